@@ -1,0 +1,141 @@
+"""The one place where user input is checked and normalised.
+
+Every public function passes its array arguments through these helpers, which return
+float64 arrays of the expected shape or raise an :mod:`streamsvd.errors` exception whose
+message names the argument, states the requirement, shows what was received and says how
+to fix it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError, NonFiniteError, ShapeMismatchError
+
+__all__ = [
+    "as_float_array",
+    "check_choice",
+    "check_finite",
+    "check_nonnegative",
+    "check_positive_int",
+]
+
+
+def _describe(x: Any) -> str:
+    if isinstance(x, np.ndarray):
+        return f"an array of shape {x.shape} and dtype {x.dtype}"
+    return f"{type(x).__name__} {x!r}"[:120]
+
+
+def as_float_array(
+    x: Any,
+    name: str,
+    *,
+    ndim: int,
+    rows: int | None = None,
+    cols: int | None = None,
+    allow_empty: bool = True,
+    copy: bool = False,
+) -> np.ndarray:
+    """Return ``x`` as a finite float64 array of the given number of dimensions.
+
+    Parameters
+    ----------
+    x : array_like
+        The user's argument.
+    name : str
+        Its name, used in error messages.
+    ndim : int
+        Required number of dimensions (1 or 2).
+    rows, cols : int, optional
+        Required sizes of the first and second axes.
+    allow_empty : bool
+        Whether a zero-sized array is acceptable.
+    copy : bool
+        Return a copy even when ``x`` is already a float64 array.
+
+    Raises
+    ------
+    InputError
+        When the dtype is complex, non-numeric, or the array is empty and must not be.
+    ShapeMismatchError
+        When the number of dimensions or a size differs from the requirement.
+    NonFiniteError
+        When an entry is NaN or infinite.
+    """
+    if hasattr(x, "toarray") and not isinstance(x, np.ndarray):
+        raise InputError(
+            f"`{name}` must be a dense array; got a sparse matrix of shape "
+            f"{getattr(x, 'shape', '?')}. Convert it with `.toarray()`."
+        )
+    arr = np.asarray(x)
+    if arr.dtype.kind == "c":
+        raise InputError(
+            f"`{name}` must be real; got complex dtype {arr.dtype}. "
+            "Pass the real and imaginary parts as separate snapshots."
+        )
+    if arr.dtype.kind not in "biuf":
+        raise InputError(
+            f"`{name}` must hold real numbers; got dtype {arr.dtype}. "
+            "Convert it with `np.asarray(..., dtype=float)`."
+        )
+    if arr.ndim != ndim:
+        hint = " Pass snapshots as columns of a 2-D array." if ndim == 2 else ""
+        raise ShapeMismatchError(
+            f"`{name}` must be {ndim}-D; got {arr.ndim}-D of shape {arr.shape}.{hint}"
+        )
+    if rows is not None and arr.shape[0] != rows:
+        raise ShapeMismatchError(
+            f"`{name}` must have {rows} rows; got {arr.shape[0]} (shape {arr.shape}). "
+            "Pass snapshots as columns."
+        )
+    if cols is not None and ndim == 2 and arr.shape[1] != cols:
+        raise ShapeMismatchError(
+            f"`{name}` must have {cols} columns; got {arr.shape[1]} (shape {arr.shape})."
+        )
+    if not allow_empty and arr.size == 0:
+        raise InputError(f"`{name}` must not be empty; got shape {arr.shape}.")
+    out = np.array(arr, dtype=np.float64, copy=True) if copy else arr.astype(np.float64, copy=False)
+    check_finite(out, name)
+    return out
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """Raise :class:`NonFiniteError` if ``arr`` holds NaN or infinite entries."""
+    if arr.size and not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))
+        first = tuple(int(i) for i in bad[0])
+        raise NonFiniteError(
+            f"`{name}` must be finite; got {len(bad)} NaN or infinite entries, the first at "
+            f"index {first} ({arr[first]!r}). Remove or repair them before calling."
+        )
+
+
+def check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
+    """Return ``value`` if it is one of ``choices``; raise :class:`InputError` otherwise."""
+    if value not in choices:
+        raise InputError(f"`{name}` must be one of {choices}; got {_describe(value)}.")
+    return str(value)
+
+
+def check_nonnegative(value: Any, name: str) -> float:
+    """Return ``value`` as a finite float >= 0; raise :class:`InputError` otherwise."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"`{name}` must be a number >= 0; got {_describe(value)}.") from None
+    if not np.isfinite(out) or out < 0:
+        raise InputError(f"`{name}` must be a finite number >= 0; got {value!r}.")
+    return out
+
+
+def check_positive_int(value: Any, name: str, *, allow_none: bool = False) -> int | None:
+    """Return ``value`` as an int >= 1 (or None when allowed); raise otherwise."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        allowed = "an integer >= 1" + (" or None" if allow_none else "")
+        raise InputError(f"`{name}` must be {allowed}; got {_describe(value)}.")
+    return int(value)

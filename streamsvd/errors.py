@@ -1,0 +1,66 @@
+"""The exception hierarchy of streamsvd.
+
+Every exception raised on purpose by the library derives from :class:`StreamSVDError`
+and also from the builtin exception a caller would naturally catch (``ValueError`` for
+bad arguments, ``OSError`` for storage problems), as zarr's ``errors.py`` does.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class StreamSVDError(Exception):
+    """Base class of every error raised on purpose by streamsvd."""
+
+
+class InputError(StreamSVDError, ValueError):
+    """An argument has the wrong type, shape, dtype or value."""
+
+
+class NonFiniteError(InputError):
+    """An array argument holds NaN or infinite entries."""
+
+
+class ShapeMismatchError(InputError):
+    """An array argument does not have the shape the operation needs."""
+
+
+class InnerProductMismatchError(InputError):
+    """Two objects were built with different inner products."""
+
+
+class ConvergenceError(StreamSVDError, RuntimeError):
+    """An iteration stopped before its convergence test was met.
+
+    Parameters
+    ----------
+    message : str
+        What did not converge and why.
+    result : object
+        The partial result reached when the iteration stopped.
+    """
+
+    def __init__(self, message: str, result: Any) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class StoreError(StreamSVDError, OSError):
+    """A basis store cannot be read or written."""
+
+
+class StoreLockedError(StoreError):
+    """Another writer holds the lock of a basis store."""
+
+
+class StoreFormatError(StoreError):
+    """A basis store was written in another format version or is corrupt."""
+
+
+class StoreMismatchError(StoreError, ValueError):
+    """A basis store holds a basis of another size, dtype or inner product."""
+
+
+class SourceError(StreamSVDError, OSError):
+    """A snapshot source cannot be opened or read."""

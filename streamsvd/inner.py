@@ -1,0 +1,255 @@
+"""Inner products on snapshot space.
+
+An expansion ``A = U V^T`` is kept with ``U`` orthonormal in an inner product
+``(x | y)_M = x^T M y``. The paper uses the Euclidean one; a finite-element solver
+usually wants its mass matrix. Three kinds are offered, all behind one small interface:
+
+* :class:`Euclidean` -- ``M = I``;
+* :class:`DiagonalInner` -- ``M = diag(w)`` with positive weights ``w``;
+* :class:`MatrixInner` -- any symmetric positive-definite ``M``, dense or scipy.sparse.
+
+Each carries a :attr:`fingerprint` (a SHA-256 of its kind and data) so that a stored basis
+can refuse to be continued with another inner product.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import InnerProductMismatchError, InputError, ShapeMismatchError
+from ._validation import as_float_array, check_finite
+
+__all__ = [
+    "DiagonalInner",
+    "Euclidean",
+    "InnerProduct",
+    "MatrixInner",
+    "as_inner",
+    "check_same_inner",
+]
+
+
+@runtime_checkable
+class InnerProduct(Protocol):
+    """What every inner product offers."""
+
+    @property
+    def n(self) -> int | None:
+        """Size of the vectors, or None when any size is accepted."""
+
+    @property
+    def is_euclidean(self) -> bool:
+        """Whether ``M`` is the identity (so ``apply`` returns its argument itself)."""
+
+    @property
+    def fingerprint(self) -> str:
+        """A SHA-256 hex digest identifying the kind and the data of ``M``."""
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Return ``M @ X``."""
+
+    def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Return ``X^T M Y``."""
+
+
+class Euclidean:
+    """The canonical inner product ``x^T y`` (the paper's choice)."""
+
+    n: int | None = None
+    is_euclidean = True
+    fingerprint = hashlib.sha256(b"euclidean").hexdigest()
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Return ``X`` itself (``M = I``)."""
+        return X
+
+    def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Return ``X^T Y``."""
+        return X.T @ Y
+
+    def __repr__(self) -> str:
+        return "Euclidean()"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Euclidean)
+
+    def __hash__(self) -> int:
+        return hash(self.fingerprint)
+
+
+class DiagonalInner:
+    """The weighted inner product ``x^T diag(w) y`` with positive weights ``w``.
+
+    Parameters
+    ----------
+    weights : array_like, shape (n,)
+        Positive, finite weights (a lumped mass matrix, quadrature weights, ...).
+    """
+
+    is_euclidean = False
+
+    def __init__(self, weights: Any) -> None:
+        w = as_float_array(weights, "weights", ndim=1, allow_empty=False, copy=True)
+        if np.any(w <= 0):
+            k = int(np.argmin(w))
+            raise InputError(
+                f"`weights` must all be > 0 to define an inner product; got weights[{k}] = "
+                f"{float(w[k])!r}. Drop the degrees of freedom that carry no weight."
+            )
+        w.setflags(write=False)
+        self.weights = w
+        self.n = w.shape[0]
+        self.fingerprint = _digest(b"diagonal", w)
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Return ``diag(w) @ X``."""
+        return X * self.weights.reshape((-1,) + (1,) * (X.ndim - 1))
+
+    def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Return ``X^T diag(w) Y``."""
+        return X.T @ self.apply(Y)
+
+    def __repr__(self) -> str:
+        return f"DiagonalInner(n={self.n}, fingerprint={self.fingerprint[:12]})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, DiagonalInner) and other.fingerprint == self.fingerprint
+
+    def __hash__(self) -> int:
+        return hash(self.fingerprint)
+
+
+class MatrixInner:
+    """The inner product ``x^T M y`` of a symmetric positive-definite matrix ``M``.
+
+    Parameters
+    ----------
+    M : array_like or scipy.sparse matrix, shape (n, n)
+        Symmetric positive definite (for example a finite-element mass matrix). Symmetry
+        is checked to ``1e3 * eps * max|M|``, positivity of the diagonal always, and
+        definiteness with a Cholesky factorisation when ``M`` is dense.
+    """
+
+    is_euclidean = False
+
+    def __init__(self, M: Any) -> None:
+        if sp.issparse(M):
+            mat: Any = sp.csr_array(M, dtype=np.float64)
+            mat.sum_duplicates()
+            mat.sort_indices()
+            check_finite(mat.data, "M")
+            diag = mat.diagonal()
+            asym = abs(mat - mat.T).max() if mat.nnz else 0.0
+            scale = abs(mat).max() if mat.nnz else 0.0
+        else:
+            mat = as_float_array(M, "M", ndim=2, allow_empty=False, copy=True)
+            diag = np.diag(mat).copy() if mat.shape[0] == mat.shape[1] else np.zeros(0)
+            asym = None
+            scale = float(np.max(np.abs(mat)))
+        if mat.shape[0] != mat.shape[1]:
+            raise ShapeMismatchError(f"`M` must be square; got shape {mat.shape}.")
+        if asym is None:
+            asym = float(np.max(np.abs(mat - mat.T)))
+        if asym > 1e3 * np.finfo(float).eps * scale:
+            raise InputError(
+                f"`M` must be symmetric; got max |M - M^T| = {asym:.3e} for max |M| = "
+                f"{scale:.3e}. Symmetrise it with `(M + M.T) / 2`."
+            )
+        if np.any(diag <= 0):
+            k = int(np.argmin(diag))
+            raise InputError(
+                f"`M` must be positive definite; got M[{k}, {k}] = {float(diag[k])!r} <= 0."
+            )
+        if not sp.issparse(mat):
+            try:
+                np.linalg.cholesky(mat)
+            except np.linalg.LinAlgError:
+                raise InputError(
+                    "`M` must be positive definite; its Cholesky factorisation failed. "
+                    "Check the matrix (a singular mass matrix needs its constraints removed)."
+                ) from None
+            mat.setflags(write=False)
+            self.fingerprint = _digest(b"dense", mat)
+        else:
+            self.fingerprint = _digest(
+                b"sparse", mat.indptr.astype(np.int64), mat.indices.astype(np.int64), mat.data
+            )
+        self.matrix = mat
+        self.n = mat.shape[0]
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Return ``M @ X``."""
+        return np.asarray(self.matrix @ X)
+
+    def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Return ``X^T M Y``."""
+        return X.T @ self.apply(Y)
+
+    def __repr__(self) -> str:
+        kind = "sparse" if sp.issparse(self.matrix) else "dense"
+        return f"MatrixInner(n={self.n}, {kind}, fingerprint={self.fingerprint[:12]})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, MatrixInner) and other.fingerprint == self.fingerprint
+
+    def __hash__(self) -> int:
+        return hash(self.fingerprint)
+
+
+def _digest(kind: bytes, *arrays: np.ndarray) -> str:
+    h = hashlib.sha256(kind)
+    for a in arrays:
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def as_inner(inner: Any, n: int | None = None) -> InnerProduct:
+    """Normalise the ``inner=`` argument of every public function.
+
+    Parameters
+    ----------
+    inner : None, InnerProduct, array_like or scipy.sparse matrix
+        ``None`` for the Euclidean inner product, a 1-D array of positive weights, a 2-D
+        SPD matrix (dense or sparse), or an object implementing :class:`InnerProduct`.
+    n : int, optional
+        The size of the vectors; checked against the inner product's own size.
+    """
+    if inner is None:
+        out: InnerProduct = Euclidean()
+    elif isinstance(inner, Euclidean | DiagonalInner | MatrixInner):
+        out = inner
+    elif sp.issparse(inner):
+        out = MatrixInner(inner)
+    elif isinstance(inner, InnerProduct):
+        out = inner
+    else:
+        arr = np.asarray(inner)
+        if arr.ndim == 1:
+            out = DiagonalInner(arr)
+        elif arr.ndim == 2:
+            out = MatrixInner(arr)
+        else:
+            raise InputError(
+                "`inner` must be None, a 1-D array of weights, a 2-D SPD matrix or an "
+                f"InnerProduct; got an array of shape {arr.shape}."
+            )
+    if n is not None and out.n is not None and out.n != n:
+        raise InnerProductMismatchError(
+            f"`inner` acts on vectors of size {out.n}; the snapshots have size {n}. "
+            "Pass the matrix that belongs to this mesh."
+        )
+    return out
+
+
+def check_same_inner(a: InnerProduct, b: InnerProduct, what: str) -> None:
+    """Raise :class:`InnerProductMismatchError` if two inner products differ."""
+    if a.fingerprint != b.fingerprint:
+        raise InnerProductMismatchError(
+            f"`{what}` uses the inner product {b!r}; expected {a!r}, the one of the "
+            "current basis. Express both in the same inner product."
+        )

@@ -1,0 +1,431 @@
+"""Block iterators over snapshot sources (columns are snapshots).
+
+:func:`open_source` wraps an in-memory or on-disk ``n x m`` snapshot matrix in a
+:class:`Source`, which reads column blocks as float64 arrays one at a time:
+
+* a numpy array (or anything :func:`numpy.asarray` turns into a real 2-D array);
+* a ``.npy`` file, memory-mapped;
+* an HDF5 file (``.h5``, ``.hdf5``) and a dataset name (optional when the file holds
+  exactly one dataset), or an open :class:`h5py.Dataset`;
+* a zarr array or group (a directory, or a path ending in ``.zarr``) and an array name
+  (optional when the group holds exactly one array), or an open :class:`zarr.Array`;
+* a dask array, of which each block is computed on its own with ``.compute()`` (the
+  whole array is never materialised).
+
+``Source.blocks`` can read the next block in a background thread while the caller works
+on the current one (one block ahead, so at most two blocks are in memory), which hides
+the read time of compressed on-disk data behind the update of the basis.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from types import TracebackType
+from typing import Any, cast
+
+import numpy as np
+
+from ._validation import check_positive_int
+from .errors import InputError, ShapeMismatchError, SourceError
+
+__all__ = ["Source", "open_source"]
+
+logger = logging.getLogger(__name__)
+
+_HDF5_SUFFIXES = (".h5", ".hdf5", ".he5")
+_NPY_SUFFIXES = (".npy",)
+_ZARR_SUFFIXES = (".zarr",)
+
+
+class Source:
+    """An ``n x m`` snapshot matrix read by column blocks.
+
+    Build one with :func:`open_source`. Columns are snapshots: ``n`` is the size of one
+    snapshot and ``m`` the number of snapshots. Every read returns a new float64 array
+    that does not share memory with the underlying data.
+
+    Parameters
+    ----------
+    data : object
+        An object with ``shape``, ``dtype`` and 2-D slicing ``data[:, a:b]`` (numpy
+        array or memmap, h5py dataset, zarr array, dask array).
+    description : str
+        How the source is named in messages (for example ``"HDF5 dataset '/u' in
+        run.h5"``).
+    compute : bool
+        Whether a slice must be evaluated with ``.compute()`` (dask arrays).
+    on_close : callable, optional
+        Called once by :meth:`close` (for example to close a file the source opened).
+
+    Attributes
+    ----------
+    n : int
+        Number of rows (size of one snapshot).
+    m : int
+        Number of columns (number of snapshots).
+    dtype : numpy.dtype
+        Dtype of the underlying data (blocks are always float64).
+    description : str
+        How the source is named in messages.
+    """
+
+    def __init__(
+        self,
+        data: Any,
+        description: str,
+        *,
+        compute: bool = False,
+        on_close: Callable[[], None] | None = None,
+    ) -> None:
+        shape = tuple(getattr(data, "shape", ()))
+        dtype = np.dtype(getattr(data, "dtype", np.float64))
+        _check_matrix(shape, dtype, description)
+        self._data = data
+        self._compute = compute
+        self._on_close = on_close
+        self.n = int(shape[0])
+        self.m = int(shape[1])
+        self.dtype = dtype
+        self.description = description
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(n, m)``."""
+        return (self.n, self.m)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Return columns ``start:stop`` as a new float64 array of shape ``(n, stop-start)``.
+
+        Parameters
+        ----------
+        start, stop : int
+            Column range, ``0 <= start <= stop <= m``.
+
+        Raises
+        ------
+        InputError
+            When the range is outside ``[0, m]`` or reversed.
+        SourceError
+            When the underlying read fails (chained to the original exception).
+        """
+        start = _check_index(start, "start", self.m)
+        stop = _check_index(stop, "stop", self.m)
+        if stop < start:
+            raise InputError(
+                f"`stop` must be >= `start` ({start}); got {stop}. Pass an increasing range."
+            )
+        return self._read_checked(start, stop)
+
+    def _read_checked(self, start: int, stop: int) -> np.ndarray:
+        try:
+            block = self._data[:, start:stop]
+            if self._compute:
+                block = block.compute()
+            out = np.asarray(block, dtype=np.float64)
+            if isinstance(self._data, np.ndarray) and np.may_share_memory(out, self._data):
+                out = out.copy()
+            return out
+        except Exception as exc:  # any reader failure is reported with its offset
+            raise SourceError(
+                f"reading columns {start}:{stop} (offset {start}) of {self.description} "
+                f"failed: {type(exc).__name__}: {exc}. Check that the data is readable and "
+                f"resume from offset {start}."
+            ) from exc
+
+    def blocks(
+        self, block: int = 100, *, start: int = 0, prefetch: bool = True
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(offset, X)`` for consecutive column blocks, from column ``start`` on.
+
+        ``X`` holds columns ``offset:offset + b`` as a float64 array of shape ``(n, b)``,
+        with ``b = block`` except for the last, shorter block.
+
+        Parameters
+        ----------
+        block : int
+            Number of columns per block, >= 1.
+        start : int
+            First column, ``0 <= start <= m`` (``start = m`` yields nothing); used to
+            resume from a recorded source offset.
+        prefetch : bool
+            Read the next block in a background thread while the caller works on the
+            current one (one block ahead, so at most two blocks are in memory).
+
+        Yields
+        ------
+        offset : int
+            Index of the block's first column.
+        X : numpy.ndarray, shape (n, b)
+            The block.
+
+        Raises
+        ------
+        InputError
+            When ``block < 1`` or ``start`` is outside ``[0, m]``.
+        SourceError
+            When reading a block fails; raised when the caller asks for that block, with
+            its offset in the message and the original exception chained.
+        """
+        block = cast(int, check_positive_int(block, "block"))
+        start = _check_index(start, "start", self.m)
+        return self._iter_blocks(block, start, bool(prefetch))
+
+    def _iter_blocks(
+        self, block: int, start: int, prefetch: bool
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        offsets = range(start, self.m, block)
+        if not prefetch:
+            for offset in offsets:
+                yield offset, self._read_checked(offset, min(offset + block, self.m))
+            return
+        if not offsets:
+            return
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="streamsvd-prefetch")
+        try:
+            pending: Future[np.ndarray] = pool.submit(
+                self._read_checked, start, min(start + block, self.m)
+            )
+            for offset in offsets:
+                current = pending.result()  # re-raises the reader's SourceError here
+                nxt = offset + block
+                if nxt < self.m:
+                    pending = pool.submit(self._read_checked, nxt, min(nxt + block, self.m))
+                yield offset, current
+                del current
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def close(self) -> None:
+        """Release what the source opened (an HDF5 file, for instance); idempotent."""
+        on_close, self._on_close = self._on_close, None
+        if on_close is not None:
+            on_close()
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __len__(self) -> int:
+        return self.m
+
+    def __repr__(self) -> str:
+        return f"Source({self.description}, n={self.n}, m={self.m}, dtype={self.dtype})"
+
+
+def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
+    if dtype.kind == "c":
+        raise InputError(
+            f"`source` must be real; {description} has complex dtype {dtype}. "
+            "Pass the real and imaginary parts as separate snapshots."
+        )
+    if dtype.kind not in "biuf":
+        raise InputError(
+            f"`source` must hold real numbers; {description} has dtype {dtype}. "
+            "Convert it to a float array first."
+        )
+    if len(shape) != 2:
+        raise ShapeMismatchError(
+            f"`source` must be 2-D (n x m, one snapshot per column); {description} is "
+            f"{len(shape)}-D of shape {shape}. Reshape it so that columns are snapshots."
+        )
+
+
+def _check_index(value: Any, name: str, m: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise InputError(f"`{name}` must be an integer in [0, {m}]; got {value!r}.")
+    if not 0 <= value <= m:
+        raise InputError(
+            f"`{name}` must be in [0, {m}] (the source has m = {m} columns); got {value}. "
+            "Pass a column offset inside the source."
+        )
+    return int(value)
+
+
+def _is_dask_array(obj: Any) -> bool:
+    module = type(obj).__module__ or ""
+    if not module.startswith("dask"):
+        return False
+    import dask.array as da
+
+    return isinstance(obj, da.Array)
+
+
+def _is_h5py_dataset(obj: Any) -> bool:
+    if not (type(obj).__module__ or "").startswith("h5py"):
+        return False
+    import h5py
+
+    return isinstance(obj, h5py.Dataset)
+
+
+def _is_zarr_array(obj: Any) -> bool:
+    if not (type(obj).__module__ or "").startswith("zarr"):
+        return False
+    import zarr
+
+    return isinstance(obj, zarr.Array)
+
+
+def _no_dataset(dataset: Any, what: str) -> None:
+    if dataset is not None:
+        raise InputError(
+            f"`dataset` only applies to HDF5 files and zarr groups; got dataset="
+            f"{dataset!r} for {what}. Drop the `dataset` argument."
+        )
+
+
+def _choose(names: list[str], dataset: str | None, kind: str, where: str) -> str:
+    """Pick the dataset name to open among ``names``."""
+    if dataset is not None:
+        wanted = dataset.strip("/")
+        if wanted not in names:
+            raise SourceError(
+                f"`dataset` {dataset!r} is not in {where}; it holds the {kind}s "
+                f"{names}. Pass one of these names."
+            )
+        return wanted
+    if len(names) == 1:
+        return names[0]
+    if not names:
+        raise SourceError(f"`source` {where} holds no {kind}. Pass a file holding the snapshots.")
+    raise InputError(
+        f"`dataset` must be given because {where} holds {len(names)} {kind}s: {names}. "
+        f"Pass dataset=<one of them>."
+    )
+
+
+def _open_hdf5(path: Path, dataset: str | None) -> Source:
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise SourceError(
+            f"`source` {path} cannot be opened as an HDF5 file ({exc}). Check the file."
+        ) from exc
+    try:
+        names: list[str] = []
+
+        def visit(name: str, obj: Any) -> None:
+            if isinstance(obj, h5py.Dataset):
+                names.append(name)
+
+        f.visititems(visit)
+        name = _choose(names, dataset, "dataset", f"HDF5 file {path}")
+        return Source(f[name], f"HDF5 dataset '/{name}' in {path}", on_close=f.close)
+    except BaseException:
+        f.close()
+        raise
+
+
+def _open_zarr(path: Path, dataset: str | None) -> Source:
+    import zarr
+
+    try:
+        node = zarr.open(store=str(path), mode="r")
+    except (OSError, ValueError, KeyError) as exc:
+        raise SourceError(
+            f"`source` {path} cannot be opened as a zarr array or group ({exc}). Check the path."
+        ) from exc
+    if isinstance(node, zarr.Array):
+        _no_dataset(dataset, f"the zarr array {path}")
+        return Source(node, f"zarr array {path}")
+    names = sorted(
+        name for name, member in node.members(max_depth=None) if isinstance(member, zarr.Array)
+    )
+    name = _choose(names, dataset, "array", f"zarr group {path}")
+    return Source(node[name], f"zarr array '{name}' in {path}")
+
+
+def _open_path(path: Path, dataset: str | None) -> Source:
+    if not path.exists():
+        raise SourceError(
+            f"`source` {path} does not exist. Check the path (relative paths start in "
+            f"{Path.cwd()})."
+        )
+    suffix = path.suffix.lower()
+    if suffix in _NPY_SUFFIXES:
+        _no_dataset(dataset, f"the .npy file {path}")
+        try:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise SourceError(
+                f"`source` {path} cannot be read as a .npy file ({exc}). Check the file."
+            ) from exc
+        return Source(arr, f".npy file {path}")
+    if suffix in _HDF5_SUFFIXES:
+        return _open_hdf5(path, dataset)
+    if suffix in _ZARR_SUFFIXES or (
+        path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zarray", ".zgroup"))
+    ):
+        return _open_zarr(path, dataset)
+    raise InputError(
+        f"`source` {path} has an unknown extension {path.suffix!r}; expected .npy, "
+        f"{', '.join(_HDF5_SUFFIXES)}, .zarr or a zarr directory. Rename the file or pass "
+        "the array itself."
+    )
+
+
+def open_source(obj: Any, *, dataset: str | None = None) -> Source:
+    """Wrap a snapshot matrix (columns are snapshots) in a :class:`Source`.
+
+    Parameters
+    ----------
+    obj : array_like, str, os.PathLike, h5py.Dataset, zarr.Array, dask array or Source
+        A real ``n x m`` matrix: an in-memory array, the path of a ``.npy`` file
+        (memory-mapped), of an HDF5 file (``.h5``, ``.hdf5``), of a zarr array or group
+        (a ``.zarr`` path or a zarr directory), or an open h5py dataset, zarr array or
+        dask array. A :class:`Source` is returned as is.
+    dataset : str, optional
+        Name of the dataset in an HDF5 file or of the array in a zarr group; may be
+        omitted when there is exactly one.
+
+    Returns
+    -------
+    Source
+        Close it (or use it as a context manager) to release a file it opened.
+
+    Raises
+    ------
+    SourceError
+        When the file does not exist, cannot be opened, or has no such dataset.
+    InputError
+        When the extension is unknown, ``dataset`` is needed or misplaced, or the data
+        is not a real 2-D matrix.
+    """
+    if dataset is not None and not isinstance(dataset, str):
+        raise InputError(f"`dataset` must be a str naming a dataset; got {dataset!r}.")
+    if isinstance(obj, Source):
+        _no_dataset(dataset, "a Source")
+        return obj
+    if isinstance(obj, str | os.PathLike):
+        return _open_path(Path(obj), dataset)
+    if _is_dask_array(obj):
+        _no_dataset(dataset, "a dask array")
+        return Source(obj, f"dask array of shape {obj.shape}", compute=True)
+    if _is_h5py_dataset(obj):
+        _no_dataset(dataset, "an h5py dataset")
+        return Source(obj, f"HDF5 dataset '{obj.name}' in {obj.file.filename}")
+    if _is_zarr_array(obj):
+        _no_dataset(dataset, "a zarr array")
+        return Source(obj, f"zarr array {obj.store_path}")
+    _no_dataset(dataset, f"a {type(obj).__name__}")
+    if hasattr(obj, "toarray") and not isinstance(obj, np.ndarray):
+        raise InputError(
+            f"`source` must be a dense array; got a sparse matrix of shape "
+            f"{getattr(obj, 'shape', '?')}. Convert it with `.toarray()`."
+        )
+    arr = obj if isinstance(obj, np.ndarray) else np.asarray(obj)
+    kind = "memmap" if isinstance(arr, np.memmap) else "array"
+    return Source(arr, f"numpy {kind} of shape {arr.shape}")

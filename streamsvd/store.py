@@ -1,0 +1,1216 @@
+"""Versioned, crash-safe persistence of a basis in a zarr v3 group.
+
+A basis store holds a set of named float arrays (the factors ``U``, ``V``, the
+amplitudes, ...) and a JSON-able dictionary of attributes (columns absorbed, source
+offset, tolerances, discarded energy, error bound, history, ...). Every
+:meth:`BasisStore.commit` writes a new *generation* and then switches a pointer to it,
+so that a process killed at any instant leaves the last committed generation intact and
+readable.
+
+Layout of a store directory::
+
+    <path>/
+      zarr.json                  root group; attributes: format, format_version, n,
+                                 dtype, inner_fingerprint, created, library_version,
+                                 chunk_bytes
+      current.json               the pointer: number of the current generation
+      writer.lock                present while a writer has the store open
+      generations/
+        g00000007/               previous generation (kept)
+        g00000008/               current generation
+          zarr.json              attributes: {"streamsvd": {...}, "attrs": {...}}
+          U/, V/, amplitudes/    one zarr array per name
+
+Design
+------
+*Pointer.* The current generation is named by ``current.json``, a small JSON file
+written to a temporary file, ``fsync``-ed, moved into place with :func:`os.replace`
+(atomic on POSIX) and made durable by an ``fsync`` of the directory. The root
+``zarr.json`` attributes are deliberately *not* used as the pointer: zarr's
+``LocalStore`` (3.1) does replace files through a temporary file and a rename, so a
+reader never sees a torn document, but it never calls ``fsync`` on the file nor on the
+directory, so after a power failure the rename may be lost or the file found empty;
+atomic replacement is moreover not part of zarr's store contract (other stores do not
+offer it). Keeping the pointer apart from zarr metadata also leaves the root metadata
+immutable after creation.
+
+*Commit.* A generation is written completely first (group attributes holding the
+caller's attributes and, for each array, its shape, dtype and SHA-256; then the
+arrays), every file and directory of it is ``fsync``-ed, and only then is the pointer
+switched. The pointer also records the SHA-256 of the generation's attributes, so the
+chain pointer -> attributes -> array bytes is verified on every read. After the switch,
+generations older than the previous one are deleted: the current and the previous
+generation are kept. A generation left half-written by a killed process is never
+pointed to and is deleted by the next writer.
+
+*Chunks.* Arrays are chunked by rows only, a chunk holding whole rows and about
+``chunk_bytes`` bytes (16 MiB by default: large enough for efficient compressed reads,
+small enough to be written and verified with bounded memory), and compressed with zstd
+(level 3, with the zstd frame checksum).
+
+*Lock.* A writer (mode ``"a"``) creates ``writer.lock`` with ``O_CREAT | O_EXCL``; it
+holds the writer's pid, host name and start time, and the writer keeps an advisory
+``flock`` on it while the store is open. A second writer gets
+:class:`~streamsvd.errors.StoreLockedError` naming the holder. A lock whose holder is on
+this host and no longer runs (its pid is gone, or its ``flock`` is released, which also
+covers a reused pid) is stale and is taken over with a logged warning. Readers (mode
+``"r"``) never take the lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import importlib.metadata
+import json
+import logging
+import os
+import re
+import shutil
+import socket
+import time
+import uuid
+import weakref
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal, cast
+
+import numpy as np
+import zarr
+import zarr.codecs
+from zarr.storage import LocalStore
+
+from ._validation import check_finite, check_positive_int
+from .errors import (
+    InputError,
+    StoreError,
+    StoreFormatError,
+    StoreLockedError,
+    StoreMismatchError,
+)
+
+__all__ = [
+    "DEFAULT_CHUNK_BYTES",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "BasisStore",
+    "StoreState",
+    "open_store",
+]
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "streamsvd-basis"
+"""Value of the root attribute ``format`` of every basis store."""
+
+FORMAT_VERSION = 1
+"""Version of the store layout written by this module."""
+
+DEFAULT_CHUNK_BYTES = 16 * 2**20
+"""Target size in bytes of one (uncompressed) chunk of a stored array."""
+
+POINTER_NAME = "current.json"
+LOCK_NAME = "writer.lock"
+GENERATIONS = "generations"
+
+_GEN_RE = re.compile(r"^g(\d{8})$")
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_DTYPES = ("float32", "float64")
+# Errors that zarr, numcodecs and the JSON decoder raise on damaged or missing data.
+_READ_ERRORS = (RuntimeError, ValueError, KeyError, TypeError, IndexError, OSError)
+# A lock file without content is given this long (seconds) to be filled by its creator.
+_LOCK_FILL_GRACE = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class StoreState:
+    """One committed generation of a basis store, as read back.
+
+    Attributes
+    ----------
+    generation : int
+        Number of the generation (0 for the state written by :meth:`BasisStore.create`).
+    arrays : dict of str to numpy.ndarray
+        The committed arrays, read-only, in the store's ``dtype``; their SHA-256 was
+        verified.
+    attrs : dict
+        The attributes committed with them, as JSON decodes them (tuples become lists).
+    n : int
+        Snapshot size recorded at creation.
+    dtype : str
+        Floating dtype of the stored arrays (``"float32"`` or ``"float64"``).
+    inner_fingerprint : str
+        Fingerprint of the inner product the basis is orthonormal in.
+    """
+
+    generation: int
+    arrays: dict[str, np.ndarray]
+    attrs: dict[str, Any]
+    n: int
+    dtype: str
+    inner_fingerprint: str
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _library_version() -> str:
+    try:
+        return importlib.metadata.version("streamsvd")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _gen_name(k: int) -> str:
+    return f"g{k:08d}"
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _normalise_attrs(attrs: Any) -> dict[str, Any]:
+    """Return ``attrs`` as JSON decodes it, or raise :class:`InputError`."""
+    if attrs is None:
+        return {}
+    if not isinstance(attrs, Mapping):
+        raise InputError(
+            f"`attrs` must be a dict of JSON-able values; got {type(attrs).__name__}. "
+            "Pass a dict such as {'n_seen': 100}."
+        )
+    try:
+        text = json.dumps(dict(attrs), default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"`attrs` must hold only JSON-able values (numbers, strings, lists, dicts, "
+            f"None, numpy scalars and arrays); {exc}. Convert the offending value."
+        ) from None
+    out = json.loads(text)
+    if not all(isinstance(key, str) for key in attrs):
+        raise InputError("`attrs` must have string keys; got a non-string key. Use str keys.")
+    return dict(out)
+
+
+def _attrs_digest(doc: Any) -> str:
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def _array_digest(arr: np.ndarray) -> str:
+    data = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
+    return hashlib.sha256(data.reshape(-1).view(np.uint8).data).hexdigest()
+
+
+def _chunks_for(shape: tuple[int, ...], itemsize: int, chunk_bytes: int) -> tuple[int, ...]:
+    """Row chunks of whole rows holding about ``chunk_bytes`` bytes each."""
+    row_items = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
+    rows = max(1, chunk_bytes // max(1, row_items * itemsize))
+    rows = min(rows, max(1, shape[0]))
+    return (rows,) + tuple(max(1, s) for s in shape[1:])
+
+
+def _prepare_arrays(arrays: Any, dtype: np.dtype) -> dict[str, np.ndarray]:
+    if not isinstance(arrays, Mapping):
+        raise InputError(
+            f"`arrays` must be a dict mapping names to arrays; got {type(arrays).__name__}. "
+            "Pass e.g. {'U': U, 'V': V}."
+        )
+    out: dict[str, np.ndarray] = {}
+    for name, value in arrays.items():
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            raise InputError(
+                f"`arrays` keys must be identifiers (letters, digits, underscores, not "
+                f"starting with a digit); got {name!r}. Rename the array."
+            )
+        arr = np.asarray(value)
+        label = f"arrays['{name}']"
+        if arr.dtype.kind not in "biuf":
+            raise InputError(
+                f"`{label}` must hold real numbers; got dtype {arr.dtype}. "
+                "Store real and imaginary parts as separate arrays."
+            )
+        if arr.ndim not in (1, 2):
+            raise InputError(
+                f"`{label}` must be 1-D or 2-D; got {arr.ndim}-D of shape {arr.shape}. "
+                "Store scalars in `attrs` and reshape higher-dimensional data."
+            )
+        cast = np.ascontiguousarray(arr, dtype=dtype)
+        check_finite(cast, label)
+        out[name] = cast
+    return out
+
+
+def _fsync_path(path: Path, *, directory: bool = False) -> None:
+    flags = os.O_RDONLY | (os.O_DIRECTORY if directory else 0)
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(top: Path) -> None:
+    """Flush every file and directory below ``top`` (zarr itself never calls fsync)."""
+    for dirpath, _dirnames, filenames in os.walk(top):
+        for name in filenames:
+            _fsync_path(Path(dirpath) / name)
+        _fsync_path(Path(dirpath), directory=True)
+    _fsync_path(top.parent, directory=True)
+
+
+def _write_array(group: zarr.Group, name: str, data: np.ndarray, chunk_bytes: int) -> None:
+    """Create the array ``name`` in ``group`` and write ``data`` into it."""
+    arr = group.create_array(
+        name,
+        shape=data.shape,
+        chunks=_chunks_for(data.shape, data.dtype.itemsize, chunk_bytes),
+        dtype=data.dtype,
+        compressors=zarr.codecs.ZstdCodec(level=3, checksum=True),
+        fill_value=0.0,
+    )
+    if data.size:
+        arr[...] = data
+
+
+def _write_json_atomically(path: Path, doc: Any) -> None:
+    """Replace ``path`` by ``doc`` atomically: temp file, fsync, rename, fsync dir."""
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")
+    data = json.dumps(doc, indent=2).encode()
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def _remove_tree(path: Path) -> None:
+    try:
+        shutil.rmtree(path)
+    except FileNotFoundError:
+        pass
+    except OSError as exc:
+        logger.warning("could not delete %s: %s", path, exc)
+
+
+# ------------------------------------------------------------------------------ lock
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OverflowError:
+        return False
+    return True
+
+
+def _flock_free(path: Path) -> bool | None:
+    """Whether nobody holds an advisory lock on ``path`` (None if it cannot be told)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:
+        return None
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return True
+    finally:
+        os.close(fd)
+
+
+def _describe_holder(info: dict[str, Any] | None) -> str:
+    if info is None:
+        return "a writer that has not yet written its pid into the lock file"
+    return f"pid {info.get('pid')} on host {info.get('host')!r} since {info.get('since')}"
+
+
+class _WriterLock:
+    """The ``writer.lock`` file of a store (see the module docstring)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fd: int | None = None
+        self.owner_pid = os.getpid()
+
+    def acquire(self) -> None:
+        """Create the lock file, taking over a stale one; raise if a live writer holds it."""
+        for _attempt in range(8):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                seen = self._read()
+                if seen is None:
+                    continue  # released meanwhile
+                info, raw, ident = seen
+                reason = self._stale_reason(info)
+                if reason is None:
+                    again = self._read()
+                    if again is None or again[2] != ident:
+                        continue  # replaced meanwhile
+                    raise StoreLockedError(
+                        f"`path` {self.path.parent} is locked by another writer: "
+                        f"{_describe_holder(info)} (lock file {self.path}). Close that "
+                        "writer first, open the store with mode='r' to read it without the "
+                        "lock, or delete the lock file if that process is gone."
+                    ) from None
+                self._take_over(info, raw, ident, reason)
+            else:
+                self._fill(fd)
+                return
+        raise StoreLockedError(
+            f"`path` {self.path.parent} could not be locked: the lock file {self.path} kept "
+            "changing hands. Make sure a single writer opens the store, then retry."
+        )
+
+    def _fill(self, fd: int) -> None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            flocked = True
+        except OSError:
+            flocked = False
+        info = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "since": _now(),
+            "flock": flocked,
+        }
+        os.write(fd, json.dumps(info).encode())
+        os.fsync(fd)
+        self.fd = fd
+        self.owner_pid = os.getpid()
+
+    def _read(self) -> tuple[dict[str, Any] | None, bytes, tuple[int, int]] | None:
+        """Return (parsed content or None, raw bytes, (device, inode)), or None if absent."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY)
+        except FileNotFoundError:
+            return None
+        try:
+            st = os.fstat(fd)
+            raw = os.read(fd, 65536)
+        finally:
+            os.close(fd)
+        info: dict[str, Any] | None
+        try:
+            info = json.loads(raw)
+        except ValueError:
+            info = None
+        if not isinstance(info, dict) or not isinstance(info.get("pid"), int):
+            info = None
+        return info, raw, (st.st_dev, st.st_ino)
+
+    def _stale_reason(self, info: dict[str, Any] | None) -> str | None:
+        """Why the lock described by ``info`` is stale, or None if it is (maybe) live."""
+        if info is None:
+            if _flock_free(self.path):
+                time.sleep(_LOCK_FILL_GRACE)
+                again = self._read()
+                if again is not None and again[0] is None and _flock_free(self.path):
+                    return "its holder stopped before writing into it (the file is empty)"
+            return None
+        if info.get("host") != socket.gethostname():
+            return None
+        pid = int(info["pid"])
+        if not _pid_alive(pid):
+            return f"process {pid} is no longer running"
+        if info.get("flock") and _flock_free(self.path):
+            return f"its holder released it (pid {pid} now belongs to another process)"
+        return None
+
+    def _take_over(
+        self, info: dict[str, Any] | None, raw: bytes, ident: tuple[int, int], reason: str
+    ) -> None:
+        """Move the stale lock file away, unless another writer replaced it meanwhile."""
+        moved = self.path.with_name(f"{LOCK_NAME}.stale-{uuid.uuid4().hex}")
+        try:
+            os.rename(self.path, moved)
+        except FileNotFoundError:
+            return
+        st = os.stat(moved)
+        if (st.st_dev, st.st_ino) != ident or moved.read_bytes() != raw:
+            # Another writer replaced the stale lock in between: put its lock back.
+            with contextlib.suppress(FileExistsError):
+                os.link(moved, self.path)
+            moved.unlink()
+            return
+        moved.unlink()
+        logger.warning(
+            "taking over the stale lock %s held by %s: %s",
+            self.path,
+            _describe_holder(info),
+            reason,
+        )
+
+    def owned(self) -> bool:
+        """Whether the lock file is still the one this object created."""
+        if self.fd is None:
+            return False
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return False
+        mine = os.fstat(self.fd)
+        return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
+
+    def holder(self) -> str:
+        """Describe the current holder of the lock file."""
+        seen = self._read()
+        return "nobody" if seen is None else _describe_holder(seen[0])
+
+    def release(self) -> None:
+        """Delete the lock file if it is still ours; close its descriptor."""
+        if self.fd is None or os.getpid() != self.owner_pid:
+            return
+        try:
+            if self.owned():
+                os.unlink(self.path)
+            else:
+                logger.warning(
+                    "the lock %s was taken over by %s; leaving it in place",
+                    self.path,
+                    self.holder(),
+                )
+        finally:
+            os.close(self.fd)
+            self.fd = None
+
+
+# ----------------------------------------------------------------------- the store
+
+
+def _check_dtype(dtype: Any) -> str:
+    try:
+        name = np.dtype(dtype).name
+    except TypeError:
+        name = None
+    if name not in _DTYPES:
+        raise InputError(f"`dtype` must be one of {_DTYPES}; got {dtype!r}.")
+    return name
+
+
+def _positive_int(value: Any, name: str) -> int:
+    return cast(int, check_positive_int(value, name))
+
+
+def _check_fingerprint(value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise InputError(
+            f"`inner_fingerprint` must be a non-empty string; got {value!r}. "
+            "Pass `inner.fingerprint` of the inner product in use."
+        )
+    return value
+
+
+def _check_path(path: Any) -> Path:
+    if not isinstance(path, str | os.PathLike):
+        raise InputError(
+            f"`path` must be a str or os.PathLike naming a local directory; got "
+            f"{type(path).__name__} {path!r}."
+        )
+    return Path(path)
+
+
+def _read_root_attrs(path: Path) -> dict[str, Any]:
+    """Read and check the root attributes of the store at ``path``."""
+    meta = path / "zarr.json"
+    if not path.exists():
+        raise StoreFormatError(
+            f"`path` must be an existing basis store; {path} does not exist. "
+            "Create one with `BasisStore.create(path, n=..., inner_fingerprint=...)`."
+        )
+    try:
+        doc = json.loads(meta.read_bytes())
+    except FileNotFoundError:
+        raise StoreFormatError(
+            f"`path` must be a basis store (a zarr v3 group); {path} has no zarr.json. "
+            "Pass the directory given to `BasisStore.create`."
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise StoreFormatError(
+            f"`path` must be a basis store; {meta} cannot be read ({exc}). "
+            "The store is damaged: restore it from a copy."
+        ) from exc
+    attrs = doc.get("attributes") if isinstance(doc, dict) else None
+    if not isinstance(attrs, dict) or doc.get("zarr_format") != 3 or attrs.get("format") != FORMAT:
+        found = attrs.get("format") if isinstance(attrs, dict) else None
+        raise StoreFormatError(
+            f"`path` must be a basis store (zarr v3 group with format {FORMAT!r}); "
+            f"{path} has format {found!r}. Pass the directory given to `BasisStore.create`."
+        )
+    version = attrs.get("format_version")
+    if version != FORMAT_VERSION:
+        raise StoreFormatError(
+            f"`path` {path} holds a basis store of format version {version!r}; this "
+            f"version of streamsvd reads format version {FORMAT_VERSION}. Open it with the "
+            "streamsvd release that wrote it, or export it and create a new store."
+        )
+    for key, kind in (("n", int), ("dtype", str), ("inner_fingerprint", str)):
+        if not isinstance(attrs.get(key), kind):
+            raise StoreFormatError(
+                f"`path` {path} is a damaged basis store: root attribute {key!r} is "
+                f"{attrs.get(key)!r}. Restore the store from a copy."
+            )
+    return attrs
+
+
+def _read_pointer(path: Path) -> dict[str, Any]:
+    pointer = path / POINTER_NAME
+    try:
+        doc = json.loads(pointer.read_bytes())
+    except FileNotFoundError:
+        raise StoreFormatError(
+            f"`path` {path} is an incomplete basis store: it has no {POINTER_NAME} (its "
+            "creation was interrupted). Create it again with `BasisStore.create`, which "
+            "replaces the leftovers."
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise StoreFormatError(
+            f"`path` {path} is a damaged basis store: {pointer} cannot be read ({exc}). "
+            "Restore the store from a copy."
+        ) from exc
+    if (
+        not isinstance(doc, dict)
+        or doc.get("format") != FORMAT
+        or not isinstance(doc.get("generation"), int)
+        or not isinstance(doc.get("attrs_sha256"), str)
+    ):
+        raise StoreFormatError(
+            f"`path` {path} is a damaged basis store: {pointer} does not name a "
+            "generation. Restore the store from a copy."
+        )
+    if doc.get("format_version") != FORMAT_VERSION:
+        raise StoreFormatError(
+            f"`path` {path} has a pointer of format version {doc.get('format_version')!r}; "
+            f"this version of streamsvd reads format version {FORMAT_VERSION}. Open it with "
+            "the streamsvd release that wrote it."
+        )
+    return doc
+
+
+def _is_interrupted_creation(path: Path) -> bool:
+    """Whether ``path`` holds only what an interrupted :meth:`BasisStore.create` leaves."""
+    ours = {"zarr.json", GENERATIONS, LOCK_NAME}
+    for entry in path.iterdir():
+        name = entry.name
+        if name in ours or name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
+            continue
+        return False
+    meta = path / "zarr.json"
+    if meta.exists():
+        try:
+            doc = json.loads(meta.read_bytes())
+        except (OSError, ValueError):
+            return True
+        attrs = doc.get("attributes") if isinstance(doc, dict) else None
+        return isinstance(attrs, dict) and attrs.get("format") == FORMAT
+    return True
+
+
+class BasisStore:
+    """A versioned, crash-safe basis store in a local zarr v3 directory.
+
+    Open one with :func:`open_store` or create one with :meth:`BasisStore.create`; see
+    the module docstring for the layout and the guarantees. A store opened for writing
+    holds the writer lock until :meth:`close` (also called on leaving a ``with`` block).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Directory of the store.
+    mode : {"r", "a"}
+        ``"r"`` to read only (no lock taken), ``"a"`` to read and commit (takes the
+        writer lock).
+    n : int, optional
+        Expected snapshot size; checked against the store.
+    dtype : str or numpy.dtype, optional
+        Expected dtype of the stored arrays; checked against the store.
+    inner_fingerprint : str, optional
+        Expected inner-product fingerprint; checked against the store.
+
+    Raises
+    ------
+    StoreFormatError
+        ``path`` is not a basis store, is damaged, or has another format version.
+    StoreMismatchError
+        The store's ``n``, ``dtype`` or ``inner_fingerprint`` differs from the one passed.
+    StoreLockedError
+        ``mode="a"`` and another live writer holds the lock.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        mode: Literal["r", "a"] = "r",
+        *,
+        n: int | None = None,
+        dtype: Any = None,
+        inner_fingerprint: str | None = None,
+    ) -> None:
+        root = _check_path(path)
+        if mode not in ("r", "a"):
+            raise InputError(
+                f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
+            )
+        expected_n = check_positive_int(n, "n", allow_none=True)
+        expected_dtype = None if dtype is None else _check_dtype(dtype)
+        expected_fp = None if inner_fingerprint is None else _check_fingerprint(inner_fingerprint)
+        attrs = _read_root_attrs(root)
+        _read_pointer(root)
+        for key, want in (
+            ("n", expected_n),
+            ("dtype", expected_dtype),
+            ("inner_fingerprint", expected_fp),
+        ):
+            if want is not None and attrs[key] != want:
+                raise StoreMismatchError(
+                    f"`{key}` must match the store {root}: expected {want!r}, found "
+                    f"{attrs[key]!r}. Open the store that belongs to this problem, or "
+                    "create a new one."
+                )
+        lock = None
+        if mode == "a":
+            lock = _WriterLock(root / LOCK_NAME)
+            lock.acquire()
+        try:
+            self._setup(root, mode, attrs, lock)
+            if lock is not None:
+                self._clean_leftovers()
+        except BaseException:
+            if lock is not None:
+                lock.release()
+            raise
+
+    def _setup(
+        self,
+        root: Path,
+        mode: str,
+        attrs: dict[str, Any],
+        lock: _WriterLock | None,
+    ) -> None:
+        self._path = root
+        self._mode = mode
+        self._root_attrs = dict(attrs)
+        self._lock = lock
+        self._closed = False
+        pointer = _read_pointer(root)
+        self._generation: int = pointer["generation"]
+        self._previous: int | None = pointer.get("previous")
+        self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
+
+    # ------------------------------------------------------------------ creation
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        n: int,
+        dtype: Any = "float64",
+        inner_fingerprint: str,
+        attrs: Mapping[str, Any] | None = None,
+        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+    ) -> BasisStore:
+        """Create a new store at ``path`` and return it opened for writing.
+
+        The new store is at generation 0, which holds no arrays and the attributes
+        ``attrs``.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            A directory that does not exist yet or is empty. Leftovers of an
+            interrupted creation are replaced.
+        n : int
+            Snapshot size (the number of rows of ``U``).
+        dtype : {"float64", "float32"}
+            Dtype in which every array is stored; committed arrays are cast to it.
+        inner_fingerprint : str
+            Fingerprint of the inner product (``inner.fingerprint``).
+        attrs : dict, optional
+            JSON-able attributes of generation 0.
+        chunk_bytes : int
+            Target size of one uncompressed chunk; each chunk holds whole rows.
+
+        Returns
+        -------
+        BasisStore
+            The store, opened with mode ``"a"`` (it holds the writer lock).
+
+        Raises
+        ------
+        StoreError
+            A store already exists at ``path``, or ``path`` is a file or a non-empty
+            directory that is not a store.
+        StoreLockedError
+            Another process is creating or writing a store at ``path``.
+        """
+        root = _check_path(path)
+        n = _positive_int(n, "n")
+        dtype_name = _check_dtype(dtype)
+        fingerprint = _check_fingerprint(inner_fingerprint)
+        chunk_bytes = _positive_int(chunk_bytes, "chunk_bytes")
+        user_attrs = _normalise_attrs(attrs)
+        cls._check_creatable(root)
+        root.mkdir(parents=True, exist_ok=True)
+        lock = _WriterLock(root / LOCK_NAME)
+        lock.acquire()
+        try:
+            cls._check_creatable(root)
+            for entry in root.iterdir():
+                if entry.name == LOCK_NAME:
+                    continue
+                logger.warning("removing %s, left by an interrupted store creation", entry)
+                if entry.is_dir():
+                    _remove_tree(entry)
+                else:
+                    entry.unlink()
+            root_attrs = {
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "n": n,
+                "dtype": dtype_name,
+                "inner_fingerprint": fingerprint,
+                "created": _now(),
+                "library_version": _library_version(),
+                "chunk_bytes": chunk_bytes,
+            }
+            zstore = LocalStore(root)
+            try:
+                group = zarr.create_group(
+                    store=zstore, zarr_format=3, attributes=cast(Any, root_attrs)
+                )
+                group.create_group(GENERATIONS)
+            finally:
+                zstore.close()
+            self = cls.__new__(cls)
+            self._path = root
+            self._mode = "a"
+            self._root_attrs = root_attrs
+            self._lock = lock
+            self._closed = False
+            self._generation = -1
+            self._previous = None
+            self._finalizer = None
+            self._write_generation(0, {}, user_attrs)
+            self._finalizer = weakref.finalize(self, lock.release)
+        except BaseException:
+            lock.release()
+            raise
+        logger.info("created basis store %s (n=%d, dtype=%s)", root, n, dtype_name)
+        return self
+
+    @staticmethod
+    def _check_creatable(root: Path) -> None:
+        if root.exists() and not root.is_dir():
+            raise StoreError(
+                f"`path` must be a directory to create a store in; {root} is a file. "
+                "Choose another path."
+            )
+        if (root / POINTER_NAME).exists():
+            raise StoreError(
+                f"`path` {root} already holds a basis store. Open it with "
+                "`open_store(path, mode='a')`, or delete it first to start afresh."
+            )
+        if root.is_dir() and any(root.iterdir()) and not _is_interrupted_creation(root):
+            raise StoreError(
+                f"`path` must be a new or empty directory to create a store in; {root} "
+                "holds other files. Choose another path."
+            )
+
+    # --------------------------------------------------------------- properties
+
+    @property
+    def path(self) -> Path:
+        """Directory of the store."""
+        return self._path
+
+    @property
+    def mode(self) -> str:
+        """``"r"`` (read only) or ``"a"`` (read and commit)."""
+        return self._mode
+
+    @property
+    def format_version(self) -> int:
+        """Format version of the store layout."""
+        return int(self._root_attrs["format_version"])
+
+    @property
+    def generation(self) -> int:
+        """Number of the current generation, as last seen by this handle."""
+        return self._generation
+
+    @property
+    def n(self) -> int:
+        """Snapshot size recorded at creation."""
+        return int(self._root_attrs["n"])
+
+    @property
+    def dtype(self) -> str:
+        """Dtype of the stored arrays."""
+        return str(self._root_attrs["dtype"])
+
+    @property
+    def inner_fingerprint(self) -> str:
+        """Fingerprint of the inner product recorded at creation."""
+        return str(self._root_attrs["inner_fingerprint"])
+
+    @property
+    def root_attrs(self) -> dict[str, Any]:
+        """Root attributes (format, version, n, dtype, fingerprint, created, ...)."""
+        return dict(self._root_attrs)
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    # -------------------------------------------------------------------- reading
+
+    def read(self, *, generation: int | None = None) -> StoreState:
+        """Read the current generation (or a retained one) and verify its checksums.
+
+        Parameters
+        ----------
+        generation : int, optional
+            Number of the generation to read: the current one (default) or the previous
+            one, which is kept too.
+
+        Returns
+        -------
+        StoreState
+            The generation's arrays (read-only) and attributes.
+
+        Raises
+        ------
+        StoreFormatError
+            The generation is missing or damaged (a checksum does not match); the
+            previous generation is not substituted silently.
+        """
+        self._check_open()
+        for attempt in range(3):
+            pointer = _read_pointer(self._path)
+            current = pointer["generation"]
+            retained = [current] + (
+                [pointer["previous"]] if isinstance(pointer.get("previous"), int) else []
+            )
+            wanted = current if generation is None else generation
+            if wanted not in retained:
+                raise InputError(
+                    f"`generation` must be one of the retained generations {retained}; got "
+                    f"{generation!r}. Older generations are deleted after each commit."
+                )
+            digest = pointer["attrs_sha256"] if wanted == current else None
+            try:
+                state = self._load(wanted, digest)
+            except StoreFormatError:
+                # A reader racing a writer may find its generation pruned: retry then.
+                moved = _read_pointer(self._path)["generation"] != current
+                if moved and self._mode == "r" and attempt < 2:
+                    continue
+                raise
+            self._generation = current
+            self._previous = retained[1] if len(retained) > 1 else None
+            return state
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _load(self, k: int, attrs_digest: str | None) -> StoreState:
+        gpath = f"{GENERATIONS}/{_gen_name(k)}"
+        where = self._path / GENERATIONS / _gen_name(k)
+        hint = (
+            f" The previous generation is kept: read it with `store.read(generation="
+            f"{self._previous})` and commit it again, or restore the store from a copy."
+            if self._previous is not None and self._previous != k
+            else " Restore the store from a copy."
+        )
+        zstore = LocalStore(self._path, read_only=True)
+        try:
+            try:
+                group = zarr.open_group(store=zstore, mode="r", path=gpath, zarr_format=3)
+                doc = group.attrs.asdict()
+            except _READ_ERRORS as exc:
+                raise StoreFormatError(
+                    f"`path` {self._path} is damaged: generation {k} ({where}) cannot be "
+                    f"opened ({type(exc).__name__}: {exc}).{hint}"
+                ) from exc
+            meta = doc.get("streamsvd")
+            if (
+                not isinstance(meta, dict)
+                or meta.get("generation") != k
+                or not isinstance(meta.get("arrays"), dict)
+                or not isinstance(doc.get("attrs"), dict)
+                or (attrs_digest is not None and _attrs_digest(doc) != attrs_digest)
+            ):
+                raise StoreFormatError(
+                    f"`path` {self._path} is damaged: the attributes of generation {k} "
+                    f"({where}) do not match the checksum recorded in {POINTER_NAME}.{hint}"
+                )
+            arrays: dict[str, np.ndarray] = {}
+            for name, info in meta["arrays"].items():
+                try:
+                    node = group[name]
+                    if not isinstance(node, zarr.Array):
+                        raise TypeError(f"{name!r} is a group, not an array")
+                    data = np.asarray(node[...])
+                except _READ_ERRORS as exc:
+                    raise StoreFormatError(
+                        f"`path` {self._path} is damaged: array {name!r} of generation {k} "
+                        f"cannot be read ({type(exc).__name__}: {exc}).{hint}"
+                    ) from exc
+                if (
+                    list(data.shape) != info.get("shape")
+                    or data.dtype.name != info.get("dtype")
+                    or _array_digest(data) != info.get("sha256")
+                ):
+                    raise StoreFormatError(
+                        f"`path` {self._path} is damaged: array {name!r} of generation {k} "
+                        f"does not match its recorded shape, dtype or SHA-256 checksum "
+                        f"(found shape {data.shape}, dtype {data.dtype}).{hint}"
+                    )
+                data.setflags(write=False)
+                arrays[name] = data
+        finally:
+            zstore.close()
+        return StoreState(
+            generation=k,
+            arrays=arrays,
+            attrs=cast(dict[str, Any], doc["attrs"]),
+            n=self.n,
+            dtype=self.dtype,
+            inner_fingerprint=self.inner_fingerprint,
+        )
+
+    # --------------------------------------------------------------------- writing
+
+    def commit(self, arrays: Mapping[str, Any], attrs: Mapping[str, Any] | None = None) -> int:
+        """Write ``arrays`` and ``attrs`` as a new generation and make it current.
+
+        The switch is atomic: a reader, or a process reopening the store after this one
+        was killed at any instant, sees either the previous generation or the new one,
+        complete. If the commit fails, the previous generation stays current and intact.
+
+        Parameters
+        ----------
+        arrays : dict of str to array_like
+            Named real 1-D or 2-D arrays (for example ``{"U": U, "V": V,
+            "amplitudes": s}``); names are identifiers. Each is cast to the store's
+            ``dtype`` and must be finite.
+        attrs : dict, optional
+            JSON-able attributes of the generation (columns absorbed, source offset,
+            tolerances, discarded energy, error bound, history, ...).
+
+        Returns
+        -------
+        int
+            Number of the new generation.
+
+        Raises
+        ------
+        StoreError
+            The store is read-only or closed, or writing failed (the previous
+            generation is then still current).
+        StoreLockedError
+            The lock was taken over by another writer meanwhile.
+        """
+        self._check_open()
+        if self._mode != "a":
+            raise StoreError(
+                f"`store` {self._path} was opened read-only (mode='r'); commit needs "
+                "mode='a'. Reopen it with `open_store(path, mode='a')`."
+            )
+        prepared = _prepare_arrays(arrays, np.dtype(self.dtype))
+        user_attrs = _normalise_attrs(attrs)
+        k = self._generation + 1
+        self._write_generation(k, prepared, user_attrs)
+        return k
+
+    def _write_generation(
+        self, k: int, arrays: dict[str, np.ndarray], user_attrs: dict[str, Any]
+    ) -> None:
+        gdir = self._path / GENERATIONS / _gen_name(k)
+        if gdir.exists():
+            logger.warning("removing %s, left by an interrupted commit", gdir)
+            _remove_tree(gdir)
+        doc = {
+            "streamsvd": {
+                "generation": k,
+                "committed": _now(),
+                "arrays": {
+                    name: {
+                        "shape": list(a.shape),
+                        "dtype": a.dtype.name,
+                        "sha256": _array_digest(a),
+                    }
+                    for name, a in arrays.items()
+                },
+            },
+            "attrs": user_attrs,
+        }
+        doc = json.loads(json.dumps(doc))
+        previous = self._generation if self._generation >= 0 else None
+        pointer = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "generation": k,
+            "previous": previous,
+            "attrs_sha256": _attrs_digest(doc),
+            "committed": doc["streamsvd"]["committed"],
+        }
+        switched = False
+        try:
+            zstore = LocalStore(self._path)
+            try:
+                parent = zarr.open_group(store=zstore, mode="r+", path=GENERATIONS, zarr_format=3)
+                group = parent.create_group(_gen_name(k), attributes=doc)
+                for name, data in arrays.items():
+                    _write_array(group, name, data, int(self._root_attrs["chunk_bytes"]))
+            finally:
+                zstore.close()
+            _fsync_tree(gdir)
+            if self._lock is None or not self._lock.owned():
+                holder = self._lock.holder() if self._lock is not None else "nobody"
+                raise StoreLockedError(
+                    f"`store` {self._path} lost its writer lock to {holder}; generation {k} "
+                    "was not committed. Make sure a single writer opens the store."
+                )
+            _write_json_atomically(self._path / POINTER_NAME, pointer)
+            switched = True
+        except OSError as exc:
+            if isinstance(exc, StoreError):
+                raise
+            raise StoreError(
+                f"`store` {self._path}: writing generation {k} failed ({exc}); the current "
+                f"generation {self._generation} is unchanged. Fix the cause and commit again."
+            ) from exc
+        finally:
+            if not switched:
+                _remove_tree(gdir)
+        self._previous = previous
+        self._generation = k
+        _fsync_path(self._path, directory=True)
+        self._prune()
+        logger.debug("committed generation %d of %s", k, self._path)
+
+    def _prune(self) -> None:
+        keep = {self._generation, self._previous}
+        gens = self._path / GENERATIONS
+        for entry in gens.iterdir():
+            m = _GEN_RE.match(entry.name)
+            if m and entry.is_dir() and int(m.group(1)) not in keep:
+                _remove_tree(entry)
+
+    def _clean_leftovers(self) -> None:
+        """Delete what killed writers left: half-written generations, temp files."""
+        gens = self._path / GENERATIONS
+        keep = {self._generation, self._previous}
+        for entry in gens.iterdir():
+            m = _GEN_RE.match(entry.name)
+            if m and entry.is_dir() and int(m.group(1)) not in keep:
+                logger.info("removing %s, left by an interrupted commit", entry)
+                _remove_tree(entry)
+        for entry in self._path.iterdir():
+            if entry.name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
+                logger.info("removing %s, left by an interrupted writer", entry)
+                with contextlib.suppress(FileNotFoundError):
+                    entry.unlink()
+
+    # --------------------------------------------------------------------- closing
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StoreError(
+                f"`store` {self._path} is closed. Open it again with `open_store(path)`."
+            )
+
+    def close(self) -> None:
+        """Release the writer lock (if held); the handle cannot be used afterwards."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._finalizer is not None:
+            self._finalizer()
+
+    def __enter__(self) -> BasisStore:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"mode={self._mode!r}"
+        return (
+            f"BasisStore({str(self._path)!r}, {state}, generation={self._generation}, "
+            f"n={self.n}, dtype={self.dtype!r})"
+        )
+
+
+def open_store(
+    path: str | os.PathLike[str],
+    mode: Literal["r", "a"] = "r",
+    *,
+    n: int | None = None,
+    dtype: Any = None,
+    inner_fingerprint: str | None = None,
+) -> BasisStore:
+    """Open an existing basis store.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Directory of the store.
+    mode : {"r", "a"}
+        ``"r"`` to read only (no lock is taken), ``"a"`` to read and commit (takes the
+        writer lock; leftovers of interrupted commits are deleted).
+    n, dtype, inner_fingerprint : optional
+        Expected snapshot size, stored dtype and inner-product fingerprint; each one
+        given is checked against the store.
+
+    Returns
+    -------
+    BasisStore
+        The open store; use it as a context manager or call :meth:`BasisStore.close`.
+
+    Raises
+    ------
+    StoreFormatError
+        ``path`` is not a basis store, is damaged, or has another format version.
+    StoreMismatchError
+        An expectation differs from what the store holds.
+    StoreLockedError
+        ``mode="a"`` and another live writer holds the lock.
+    """
+    return BasisStore(path, mode, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint)
