@@ -44,12 +44,13 @@ def test_paper_rule_reaches_lapack_accuracy(name):
     assert_svd_contract(A, r.expansion)
 
 
-def test_paper_rule_on_exactly_repeated_values_is_an_svd_without_meeting_the_cosine_test():
-    # between equal amplitudes eta = 1, so eq. (14) gives no contraction: the rounding-level
-    # coupling (~1e-14) stays, but it moves the singular values by less than LAPACK's ratio
+def test_paper_rule_on_exactly_repeated_values_is_an_svd_whether_or_not_it_converges():
+    # between equal amplitudes eta = 1, so eq. (14) gives no contraction: a rounding-level
+    # coupling (~1e-14) may stay above tol, but it moves the singular values by less than
+    # LAPACK's ratio
     A = HARD["repeated"]
     r = ss.compress(ss.Expansion.canonical(A), rule="paper", max_sweeps=300)
-    assert not r.converged and r.max_cosine[-1] < 1e3 * EPS
+    assert r.max_cosine[-1] < 1e3 * EPS
     assert_svd_contract(A, r.expansion)
 
 
