@@ -28,6 +28,7 @@ from .expansion import Expansion
 from .gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
 from .inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
 from .rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
+from .stream import StreamCompressor, UpdateRecord
 
 __version__ = "0.1.0"
 
@@ -53,8 +54,10 @@ __all__ = [
     "StoreFormatError",
     "StoreLockedError",
     "StoreMismatchError",
+    "StreamCompressor",
     "StreamSVDError",
     "SweepState",
+    "UpdateRecord",
     "__version__",
     "as_inner",
     "compress",

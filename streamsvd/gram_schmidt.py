@@ -87,20 +87,25 @@ def cgs2_extend(
     *,
     inner: InnerProduct,
     reject_tol: float,
+    G: np.ndarray | None = None,
 ) -> BasisExtension:
     """Decompose a block on an ``M``-orthonormal basis and extend the basis by CGS2.
 
     Parameters
     ----------
-    Q : ndarray, shape (n, q)
-        ``M``-orthonormal basis.
-    MQ : ndarray, shape (n, q)
+    Q : ndarray, shape (n, w)
+        Stored basis factor.
+    MQ : ndarray, shape (n, w)
         ``M @ Q`` (``Q`` itself for the Euclidean inner product).
     X : ndarray, shape (n, b)
         Finite block; not modified.
     inner : InnerProduct
     reject_tol : float
         Relative threshold of the rejection rule (module docstring).
+    G : ndarray, shape (w, q), optional
+        When given, the basis is the lazy product ``Q @ G`` (``M``-orthonormal), and the
+        products with it are formed as ``G^T (MQ^T X)`` and ``Q (G C)`` so that ``Q @ G``
+        is never built.
     """
     n, b = X.shape
     peak = np.max(np.abs(X), axis=0) if n else np.zeros(b)
@@ -108,11 +113,16 @@ def cgs2_extend(
     Xs = np.ldexp(X, -exps[np.newaxis, :])
     MXs = inner.apply(Xs)
     nu = np.sqrt(np.maximum(np.einsum("ij,ij->j", Xs, MXs), 0.0))
-    C = np.zeros((Q.shape[1], b))
-    if Q.shape[1]:
+    q = Q.shape[1] if G is None else G.shape[1]
+    C = np.zeros((q, b))
+    if q:
         for _ in range(2):  # twice is enough
-            dC = MQ.T @ Xs
-            Xs -= Q @ dC
+            if G is None:
+                dC = MQ.T @ Xs
+                Xs -= Q @ dC
+            else:
+                dC = G.T @ (MQ.T @ Xs)
+                Xs -= Q @ (G @ dC)
             C += dC
     Q_new = np.empty((n, b))
     MQ_new = Q_new if inner.is_euclidean else np.empty((n, b))

@@ -1,0 +1,503 @@
+"""Streaming compression: absorb snapshot blocks and low-rank increments.
+
+A :class:`StreamCompressor` keeps the expansion ``A ~ U V^T`` of every snapshot seen so
+far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each update
+
+1. decomposes the new left vectors on the basis by block CGS2, rejecting directions whose
+   residual is below ``reject_tol`` (:func:`streamsvd.gram_schmidt.cgs2_extend`);
+2. runs ``sweeps`` rotation sweeps of the paper (Algorithm 2, rule ``"paper"`` or
+   ``"jacobi"``) on a small core;
+3. truncates the terms that fail ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` or
+   ``i <= max_rank`` (after the sweeps, on the sorted amplitudes), logging the energy cut.
+
+Cost. The large factors are kept lazily as products ``U = U0 @ Gu`` and
+``V = Vraw @ Gv`` of a stored factor and a small matrix with orthonormal columns, and the
+rotations act on a small core ``R`` with ``V^T V = R^T R``. Absorbing ``b`` columns at
+rank ``p`` costs ``O(n w b + (p + b)^3)`` with ``w <= compact_ratio * p`` the stored width,
+independent of the number of snapshots already absorbed; when the stored width exceeds
+``compact_ratio * p`` the products are formed once (compaction).
+
+Orthogonality. The small Gram ``H = U0^T M U0`` is kept up to date, so
+``||U^T M U - I|| = ||Gu^T H Gu - I||`` is measured after every update at a cost of
+``O(w^2 p)``; when it exceeds ``reorth_tol`` (default ``10 n eps``) the basis is
+re-orthonormalised through the Cholesky factor of that small Gram (``U <- U L^{-T}``,
+``V <- V L``, which leaves ``U V^T`` unchanged).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from ._scaling import pow2_exponent, safe_column_norms
+from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
+from .compress import fix_signs
+from .errors import InputError
+from .expansion import Expansion
+from .gram_schmidt import cgs2_extend, default_reject_tol
+from .inner import InnerProduct, as_inner
+from .rotations import RULES, sweep_core
+
+__all__ = ["StreamCompressor", "UpdateRecord"]
+
+logger = logging.getLogger(__name__)
+
+_EPS = np.finfo(np.float64).eps
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """What one update did (an entry of :attr:`StreamCompressor.history`).
+
+    Attributes
+    ----------
+    kind : {"absorb", "add"}
+    columns : int
+        Snapshots added (``absorb``) or terms of the increment (``add``).
+    rank : int
+        Rank after the update.
+    new_directions : int
+        Directions accepted by Gram-Schmidt.
+    rejected : int
+        Directions rejected by Gram-Schmidt.
+    cut : int
+        Terms removed by truncation.
+    cut_energy : float
+        Energy ``sum ||v_i||^2`` removed by truncation and rejection.
+    sweeps : int
+        Rotation sweeps run.
+    max_cosine : float
+        Largest pair cosine met in the last sweep (0 at the SVD).
+    orthogonality : float
+        ``||U^T M U - I||_2`` after the update.
+    error_bound : float
+        The guaranteed bound on ``||A - U V^T||_F`` after the update.
+    seconds : float
+        Wall time of the update.
+    """
+
+    kind: str
+    columns: int
+    rank: int
+    new_directions: int
+    rejected: int
+    cut: int
+    cut_energy: float
+    sweeps: int
+    max_cosine: float
+    orthogonality: float
+    error_bound: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class _Factors:
+    """The lazy state: U = U0 Gu, V = Vraw Gv, V^T V = R^T R, H = U0^T M U0."""
+
+    U0: np.ndarray
+    MU0: np.ndarray
+    Gu: np.ndarray
+    H: np.ndarray
+    Vraw: np.ndarray
+    Gv: np.ndarray
+    R: np.ndarray
+
+    @property
+    def rank(self) -> int:
+        return int(self.Gu.shape[1])
+
+    @property
+    def m(self) -> int:
+        return int(self.Vraw.shape[0])
+
+
+def _empty_factors(n: int, euclidean: bool) -> _Factors:
+    U0 = np.zeros((n, 0))
+    return _Factors(
+        U0=U0,
+        MU0=U0 if euclidean else np.zeros((n, 0)),
+        Gu=np.zeros((0, 0)),
+        H=np.zeros((0, 0)),
+        Vraw=np.zeros((0, 0)),
+        Gv=np.zeros((0, 0)),
+        R=np.zeros((0, 0)),
+    )
+
+
+class StreamCompressor:
+    """Absorb snapshots (columns) and low-rank increments into an orthonormal expansion.
+
+    Parameters
+    ----------
+    n : int
+        Size of one snapshot.
+    inner : None, array_like, sparse matrix or InnerProduct
+        Inner product ``M`` in which ``U`` is orthonormal (Euclidean by default).
+    eps : float
+        Absolute threshold: terms with ``||v_i|| < eps`` are cut (Algorithm 3).
+    rtol : float, optional
+        Relative threshold: terms with ``||v_i|| < rtol * ||v_1||`` are cut.
+    max_rank : int, optional
+        Keep at most this many terms (the ones of largest amplitude after the sweeps).
+    rule : {"paper", "jacobi"}
+        Rotation rule of the sweeps (see :func:`streamsvd.compress`).
+    sweeps : int or None
+        Rotation sweeps per update; ``None`` sweeps to convergence (the exact SVD of the
+        current expansion, as Brand's incremental SVD).
+    reject_tol : float, optional
+        Gram-Schmidt rejection threshold relative to a column's norm; default ``n * eps``.
+    compact_ratio : float
+        Compact the lazy factors when their stored width exceeds ``compact_ratio * rank``.
+    reorth_tol : float, optional
+        Re-orthonormalise when ``||U^T M U - I||_2`` exceeds it; default ``10 n eps``.
+
+    Notes
+    -----
+    Error bound. Let ``A_t`` be every snapshot (and increment) received after ``t``
+    updates, ``K_t = U V^T`` the expansion and ``E_t = A_t - K_t``. Update ``t`` discards
+    ``D_t`` (truncated terms and rejected residuals) of energy ``e_t = ||D_t||_F^2``, so
+    ``E_t = E_{t-1} + D_t`` (padded with zero columns). Then
+
+        ||E_t||^2 = ||E_{t-1}||^2 + e_t + 2 <E_{t-1}, D_t>.
+
+    For ``absorb`` only, ``|<E_{t-1}, D_t>| <= c_{t-1}`` where ``c_t = c_{t-1} +
+    ||W_kd||_*`` accumulates the nuclear norm of the coupling ``W_kd = V_kept^T V_cut``
+    between kept and cut terms at each truncation (``K_t D_t^T = U_k W_kd U_d^T``, and
+    ``K_t E_t^T = (I - P_t) K_{t-1} E_{t-1}^T + K_t D_t^T`` with ``P_t`` an orthogonal
+    projection). By Cauchy-Schwarz the cross term is also at most
+    ``sqrt(e_t) ||E_{t-1}||``. Hence the guaranteed bound
+
+        b_t^2 = b_{t-1}^2 + e_t + 2 min(c_{t-1}, sqrt(e_t) b_{t-1}),
+
+    with ``c = inf`` once an ``add`` has overlapped earlier columns. When every truncation
+    happens at convergence (``sweeps=None``), ``W_kd = 0`` and the bound is the
+    Pythagorean ``sqrt(sum_t e_t)``; it is never worse than the triangle inequality
+    ``sum_t sqrt(e_t)``. Rounding errors (of order ``eps ||A||_F``) are not included.
+    """
+
+    def __init__(
+        self,
+        n: int,
+        *,
+        inner: Any = None,
+        eps: float = 0.0,
+        rtol: float | None = None,
+        max_rank: int | None = None,
+        rule: str = "paper",
+        sweeps: int | None = 1,
+        reject_tol: float | None = None,
+        compact_ratio: float = 2.0,
+        reorth_tol: float | None = None,
+    ) -> None:
+        self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
+        self.inner: InnerProduct = as_inner(inner, self.n)
+        self.eps = check_nonnegative(eps, "eps")
+        self.rtol = None if rtol is None else check_nonnegative(rtol, "rtol")
+        self.max_rank = check_positive_int(max_rank, "max_rank", allow_none=True)
+        self.rule = check_choice(rule, "rule", RULES)
+        self.sweeps = check_positive_int(sweeps, "sweeps", allow_none=True)
+        self.reject_tol = (
+            default_reject_tol(self.n)
+            if reject_tol is None
+            else check_nonnegative(reject_tol, "reject_tol")
+        )
+        self.compact_ratio = check_nonnegative(compact_ratio, "compact_ratio")
+        if self.compact_ratio < 1.0:
+            raise InputError(f"`compact_ratio` must be >= 1; got {compact_ratio!r}.")
+        self.reorth_tol = (
+            10 * self.n * _EPS if reorth_tol is None else check_nonnegative(reorth_tol, "reorth_tol")
+        )
+        self._f = _empty_factors(self.n, self.inner.is_euclidean)
+        self._bound2 = 0.0
+        self._coupling = 0.0
+        self._discarded = 0.0
+        self._history: list[UpdateRecord] = []
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_seen(self) -> int:
+        """Number of snapshots (columns) in the expansion."""
+        return self._f.m
+
+    @property
+    def rank(self) -> int:
+        """Current number of terms."""
+        return self._f.rank
+
+    @property
+    def expansion(self) -> Expansion:
+        """The current expansion ``U V^T`` (formed from the lazy factors, signs fixed)."""
+        f = self._f
+        U = f.U0 @ f.Gu
+        V = f.Vraw @ f.Gv
+        perm = np.argsort(-safe_column_norms(V), kind="stable")
+        U, V = U[:, perm], V[:, perm]
+        fix_signs(U, V)
+        return Expansion(U, V, inner=self.inner)
+
+    @property
+    def amplitudes(self) -> np.ndarray:
+        """``||v_i||``, computed on the small core (``||v_i|| = ||r_i||``), sorted."""
+        return np.sort(safe_column_norms(self._f.R))[::-1]
+
+    @property
+    def discarded_energy(self) -> float:
+        """Sum of the energies ``||D_t||_F^2`` discarded by every update."""
+        return self._discarded
+
+    @property
+    def error_bound(self) -> float:
+        """Guaranteed bound on ``||A - U V^T||_F`` (see the class notes for the theorem)."""
+        return math.sqrt(self._bound2)
+
+    @property
+    def history(self) -> tuple[UpdateRecord, ...]:
+        """One :class:`UpdateRecord` per update, oldest first."""
+        return tuple(self._history)
+
+    def orthogonality_error(self) -> float:
+        """Return ``||U^T M U - I||_2`` from the small Gram matrices."""
+        return _orthogonality(self._f)
+
+    def __repr__(self) -> str:
+        return (
+            f"StreamCompressor(n={self.n}, n_seen={self.n_seen}, rank={self.rank}, "
+            f"rule={self.rule!r}, sweeps={self.sweeps}, eps={self.eps}, rtol={self.rtol}, "
+            f"max_rank={self.max_rank})"
+        )
+
+    # ------------------------------------------------------------------ updates
+    def absorb(self, columns: Any) -> UpdateRecord:
+        """Append a block of snapshots (the columns of ``columns``, ``n x b``, ``b >= 1``).
+
+        On bad input an :class:`~streamsvd.errors.InputError` is raised and the state is
+        unchanged.
+        """
+        t0 = time.perf_counter()
+        B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
+        f = self._f
+        ext = cgs2_extend(
+            f.U0, f.MU0, B, inner=self.inner, reject_tol=self.reject_tol, G=f.Gu
+        )
+        b = B.shape[1]
+        r = ext.Q_new.shape[1]
+        # V_new = [[V, 0], [C^T, R_new^T]] = blockdiag(Q_V, I_b) K
+        K = np.zeros((f.R.shape[0] + b, f.rank + r))
+        K[: f.R.shape[0], : f.rank] = f.R
+        K[f.R.shape[0] :, : f.rank] = ext.coeffs.T
+        K[f.R.shape[0] :, f.rank :] = ext.R_new.T
+        Vraw = np.zeros((f.m + b, f.Vraw.shape[1] + r))
+        Vraw[: f.m, : f.Vraw.shape[1]] = f.Vraw
+        Vraw[f.m :, : f.Vraw.shape[1]] = ext.coeffs.T @ f.Gv.T
+        Vraw[f.m :, f.Vraw.shape[1] :] = ext.R_new.T
+        rejected_energy = float(np.sum(ext.rejected_norms**2))
+        grown = _grow(f, ext.Q_new, ext.MQ_new, Vraw, self.inner)
+        self._update(
+            "absorb", b, grown, K, ext, rejected_energy, overlapping=False, t0=t0,
+            coupling_extra=math.sqrt(rejected_energy) * float(np.linalg.norm(B)),
+        )
+        return self._history[-1]
+
+    def add(self, U_k: Any, V_k: Any) -> UpdateRecord:
+        """Add the low-rank increment ``U_k V_k^T`` to the current matrix.
+
+        Parameters
+        ----------
+        U_k : array_like, shape (n, k)
+            Left vectors of the increment (any, not necessarily orthonormal).
+        V_k : array_like, shape (m, k)
+            Right vectors; ``m`` must equal :attr:`n_seen` (or fixes it when the
+            compressor is empty).
+        """
+        t0 = time.perf_counter()
+        Uk = as_float_array(U_k, "U_k", ndim=2, rows=self.n)
+        f = self._f
+        m = f.m if (f.m or f.rank) else None
+        Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
+        if Uk.shape[1] == 0:
+            raise InputError("`U_k` must have at least one column; got shape " f"{Uk.shape}.")
+        if f.m == 0 and f.rank == 0:
+            f = _Factors(f.U0, f.MU0, f.Gu, f.H, np.zeros((Vk.shape[0], 0)), f.Gv, np.zeros((0, 0)))
+        ext = cgs2_extend(
+            f.U0, f.MU0, Uk, inner=self.inner, reject_tol=self.reject_tol, G=f.Gu
+        )
+        r = ext.Q_new.shape[1]
+        # V_new = [V + V_k C^T, V_k R_new^T], formed explicitly (V_k spans every row)
+        V_old = f.Vraw @ f.Gv
+        V_new = np.concatenate([V_old + Vk @ ext.coeffs.T, Vk @ ext.R_new.T], axis=1)
+        K = np.linalg.qr(V_new, mode="r") if V_new.size else np.zeros((0, V_new.shape[1]))
+        vnorms = safe_column_norms(Vk)
+        rejected_energy = float(np.sum((ext.rejected_norms * vnorms) ** 2))
+        grown = _grow(f, ext.Q_new, ext.MQ_new, V_new, self.inner, reset_v=True)
+        self._update("add", Uk.shape[1], grown, K, ext, rejected_energy, overlapping=True, t0=t0)
+        return self._history[-1]
+
+    # ------------------------------------------------------------------ internals
+    def _update(
+        self,
+        kind: str,
+        columns: int,
+        f: _Factors,
+        K: np.ndarray,
+        ext: Any,
+        rejected_energy: float,
+        *,
+        overlapping: bool,
+        t0: float,
+        coupling_extra: float = 0.0,
+    ) -> None:
+        p = f.Gu.shape[1]
+        R = np.linalg.qr(K, mode="r") if K.shape[0] > p else K
+        e = pow2_exponent(R)
+        Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
+        Qt = np.eye(p)
+        order = np.arange(p, dtype=np.int64)
+        done = 0
+        max_cos = 0.0
+        limit = self.sweeps if self.sweeps is not None else 200
+        while done < limit and p > 1:
+            s = sweep_core(Rt, Qt, order, p, rule=self.rule, eps=0.0, tol=math.sqrt(f.m) * _EPS)
+            done += 1
+            max_cos = s.max_cosine
+            if s.rotations == 0:
+                break
+        # final order by amplitude, then truncation after the sweeps
+        amps = np.ldexp(safe_column_norms(Rt.T), e)
+        order = np.argsort(-amps, kind="stable")
+        keep = self._keep_count(amps[order])
+        kept, cut = order[:keep], order[keep:]
+        cut_energy = float(np.sum(amps[cut] ** 2))
+        if cut.size and kept.size:
+            W_kd = np.ldexp(Rt[kept], e) @ np.ldexp(Rt[cut], e).T
+            nuclear = float(np.sum(scipy.linalg.svdvals(W_kd)))
+        else:
+            nuclear = 0.0
+        if cut.size:
+            logger.info(
+                "%s: cut %d terms of energy %.3e (amplitudes %.3e .. %.3e)",
+                kind, cut.size, cut_energy, amps[cut].max(), amps[cut].min(),
+            )
+        T = Qt[kept].T
+        new = _Factors(
+            U0=f.U0, MU0=f.MU0, Gu=f.Gu @ T, H=f.H, Vraw=f.Vraw, Gv=f.Gv @ T,
+            R=np.ldexp(Rt[kept], e).T.copy(),
+        )
+        new = _maybe_compact(new, self.compact_ratio, self.inner)
+        orth = _orthogonality(new)
+        if orth > self.reorth_tol:
+            logger.info("re-orthonormalising the basis (||U^T M U - I|| = %.2e)", orth)
+            new = _reorthonormalize(new)
+            orth = _orthogonality(new)
+        # error bound recursion (class notes)
+        energy = cut_energy + rejected_energy
+        b_prev = math.sqrt(self._bound2)
+        cross = math.sqrt(energy) * b_prev
+        if not overlapping:
+            cross = min(cross, self._coupling)
+        bound2 = self._bound2 + energy + 2.0 * cross
+        coupling = math.inf if overlapping else self._coupling + nuclear + coupling_extra
+        # commit the new state only now: any exception above leaves the old one intact
+        self._f = new
+        self._bound2 = bound2
+        self._coupling = coupling
+        self._discarded += energy
+        self._history.append(
+            UpdateRecord(
+                kind=kind, columns=columns, rank=new.rank,
+                new_directions=int(ext.Q_new.shape[1]),
+                rejected=int(np.count_nonzero(~ext.accepted)), cut=int(cut.size),
+                cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
+                error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
+            )
+        )
+
+    def _keep_count(self, amps_sorted: np.ndarray) -> int:
+        keep = amps_sorted.size
+        if keep == 0:
+            return 0
+        thresh = self.eps
+        if self.rtol is not None:
+            thresh = max(thresh, self.rtol * float(amps_sorted[0]))
+        keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else keep
+        # zero amplitudes carry nothing: drop them (no energy is lost)
+        keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
+        if self.max_rank is not None:
+            keep = min(keep, self.max_rank)
+        return keep
+
+
+def _grow(
+    f: _Factors,
+    Q_new: np.ndarray,
+    MQ_new: np.ndarray,
+    Vraw: np.ndarray,
+    inner: InnerProduct,
+    *,
+    reset_v: bool = False,
+) -> _Factors:
+    """Append new directions to the lazy factors (Gu, Gv grow by an identity block)."""
+    r = Q_new.shape[1]
+    w, p = f.Gu.shape
+    U0 = np.concatenate([f.U0, Q_new], axis=1)
+    MU0 = U0 if inner.is_euclidean else np.concatenate([f.MU0, MQ_new], axis=1)
+    H = np.zeros((w + r, w + r))
+    H[:w, :w] = f.H
+    if r:
+        cross = f.MU0.T @ Q_new
+        H[:w, w:] = cross
+        H[w:, :w] = cross.T
+        H[w:, w:] = MQ_new.T @ Q_new
+    Gu = np.zeros((w + r, p + r))
+    Gu[:w, :p] = f.Gu
+    Gu[w:, p:] = np.eye(r)
+    if reset_v:
+        Gv = np.eye(p + r)
+    else:
+        wv = f.Gv.shape[0]
+        Gv = np.zeros((wv + r, p + r))
+        Gv[:wv, :p] = f.Gv
+        Gv[wv:, p:] = np.eye(r)
+    return _Factors(U0=U0, MU0=MU0, Gu=Gu, H=H, Vraw=Vraw, Gv=Gv, R=f.R)
+
+
+def _maybe_compact(f: _Factors, ratio: float, inner: InnerProduct) -> _Factors:
+    """Form ``U0 @ Gu`` and ``Vraw @ Gv`` when the stored width exceeds ``ratio * rank``."""
+    p = f.rank
+    limit = ratio * max(p, 1)
+    U0, MU0, Gu, H = f.U0, f.MU0, f.Gu, f.H
+    if Gu.shape[0] > limit:
+        U0 = U0 @ Gu
+        MU0 = U0 if inner.is_euclidean else MU0 @ Gu
+        H = Gu.T @ H @ Gu
+        Gu = np.eye(p)
+    Vraw, Gv = f.Vraw, f.Gv
+    if Gv.shape[0] > limit:
+        Vraw = Vraw @ Gv
+        Gv = np.eye(p)
+    return _Factors(U0=U0, MU0=MU0, Gu=Gu, H=H, Vraw=Vraw, Gv=Gv, R=f.R)
+
+
+def _orthogonality(f: _Factors) -> float:
+    p = f.rank
+    if p == 0:
+        return 0.0
+    G = f.Gu.T @ f.H @ f.Gu
+    return float(np.linalg.norm(G - np.eye(p), 2))
+
+
+def _reorthonormalize(f: _Factors) -> _Factors:
+    """``U <- U L^{-T}``, ``V <- V L`` with ``U^T M U = L L^T``: ``U V^T`` is unchanged."""
+    G = f.Gu.T @ f.H @ f.Gu
+    G = 0.5 * (G + G.T)
+    L = np.linalg.cholesky(G)
+    Gu = scipy.linalg.solve_triangular(L, f.Gu.T, lower=True).T
+    return _Factors(
+        U0=f.U0, MU0=f.MU0, Gu=Gu, H=f.H, Vraw=f.Vraw, Gv=f.Gv @ L, R=f.R @ L,
+    )
+
