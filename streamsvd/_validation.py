@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError, NonFiniteError, ShapeMismatchError
+from .errors import InputError, InputTypeError, NonFiniteError, ShapeMismatchError
 
 __all__ = [
     "as_float_array",
@@ -71,10 +71,18 @@ def as_float_array(
             f"{getattr(x, 'shape', '?')}. Convert it with `.toarray()`."
         )
     arr = np.asarray(x)
+    if arr.dtype.kind == "O":
+        try:
+            arr = arr.astype(np.float64)
+        except (TypeError, ValueError) as err:
+            raise InputTypeError(
+                f"`{name}` must hold real numbers; got an object array with an entry that is "
+                f"not a number ({err}). Convert it with `np.asarray(..., dtype=float)`."
+            ) from None
     if arr.dtype.kind == "c":
         raise InputError(
-            f"`{name}` must be real; got complex dtype {arr.dtype}. "
-            "Pass the real and imaginary parts as separate snapshots."
+            f"`{name}` must be real; got complex dtype {arr.dtype} (Complex data not "
+            "supported). Pass the real and imaginary parts as separate snapshots."
         )
     if arr.dtype.kind not in "biuf":
         raise InputError(
@@ -82,7 +90,7 @@ def as_float_array(
             "Convert it with `np.asarray(..., dtype=float)`."
         )
     if arr.ndim != ndim:
-        hint = " Pass snapshots as columns of a 2-D array." if ndim == 2 else ""
+        hint = " Reshape your data: pass a 2-D array." if ndim == 2 else ""
         raise ShapeMismatchError(
             f"`{name}` must be {ndim}-D; got {arr.ndim}-D of shape {arr.shape}.{hint}"
         )

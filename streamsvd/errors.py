@@ -18,6 +18,10 @@ class InputError(StreamSVDError, ValueError):
     """An argument has the wrong type, shape, dtype or value."""
 
 
+class InputTypeError(InputError, TypeError):
+    """An array argument holds entries that are not numbers."""
+
+
 class NonFiniteError(InputError):
     """An array argument holds NaN or infinite entries."""
 

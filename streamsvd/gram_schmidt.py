@@ -6,7 +6,10 @@ Two implementations:
   Gram-Schmidt order, one pass), kept as the reference;
 * :func:`orthonormalize` (the fast path) runs classical Gram-Schmidt twice
   ("twice is enough", Giraud et al. 2005) block by block, and *rejects* a new direction
-  whose residual is negligible instead of normalising rounding noise.
+  whose residual is negligible instead of normalising rounding noise. "Twice is enough"
+  assumes the second pass does not cancel much; a column whose norm a pass reduces by
+  more than half is projected again (the Kahan-Parlett / DGKS criterion), up to four
+  passes, so that a small accepted residual is orthogonal to working accuracy.
 
 Rejection rule: after both passes, the column ``x_k`` (``M``-norm ``nu_k`` before
 projection) leaves the residual ``r_k``; the direction is kept when
@@ -42,6 +45,14 @@ __all__ = [
 ]
 
 _EPS = np.finfo(np.float64).eps
+_MAX_PASSES = 4  # projections per column: two, plus up to two more while norms collapse
+_REITERATE = 0.5  # project again when a pass leaves less than this fraction of the norm
+
+
+def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M``-norms of the columns of an already scaled block."""
+    MX = X if inner.is_euclidean else inner.apply(X)
+    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
 
 
 def default_reject_tol(n: int) -> float:
@@ -116,14 +127,24 @@ def cgs2_extend(
     q = Q.shape[1] if G is None else G.shape[1]
     C = np.zeros((q, b))
     if q:
-        for _ in range(2):  # twice is enough
+        active = np.arange(b)
+        before = nu
+        for npass in range(_MAX_PASSES):
+            Xa = Xs[:, active]
             if G is None:
-                dC = MQ.T @ Xs
-                Xs -= Q @ dC
+                dC = MQ.T @ Xa
+                Xa -= Q @ dC
             else:
-                dC = G.T @ (MQ.T @ Xs)
-                Xs -= Q @ (G @ dC)
-            C += dC
+                dC = G.T @ (MQ.T @ Xa)
+                Xa -= Q @ (G @ dC)
+            Xs[:, active] = Xa
+            C[:, active] += dC
+            after = _m_norms(Xa, inner)
+            # twice is enough unless a pass cancelled more than half of the norm
+            again = (after < _REITERATE * before) if npass else np.ones(active.size, bool)
+            active, before = active[again], after[again]
+            if not active.size:
+                break
     Q_new = np.empty((n, b))
     MQ_new = Q_new if inner.is_euclidean else np.empty((n, b))
     R_new = np.zeros((b, b))
@@ -132,13 +153,17 @@ def cgs2_extend(
     r = 0
     for k in range(b):
         x = Xs[:, k]
+        mx = x if inner.is_euclidean else inner.apply(x)
+        nrm = float(np.sqrt(max(float(x @ mx), 0.0)))
         if r:
-            for _ in range(2):
+            for npass in range(_MAX_PASSES):
                 c = MQ_new[:, :r].T @ x
                 x -= Q_new[:, :r] @ c
                 R_new[:r, k] += c
-        mx = x if inner.is_euclidean else inner.apply(x)
-        nrm = float(np.sqrt(max(float(x @ mx), 0.0)))
+                mx = x if inner.is_euclidean else inner.apply(x)
+                prev, nrm = nrm, float(np.sqrt(max(float(x @ mx), 0.0)))
+                if npass and nrm >= _REITERATE * prev:
+                    break
         if nu[k] == 0.0 or nrm <= reject_tol * nu[k]:
             rejected[k] = nrm
             continue

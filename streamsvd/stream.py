@@ -492,12 +492,17 @@ def _orthogonality(f: _Factors) -> float:
 
 
 def _reorthonormalize(f: _Factors) -> _Factors:
-    """``U <- U L^{-T}``, ``V <- V L`` with ``U^T M U = L L^T``: ``U V^T`` is unchanged."""
+    """``U <- U L^{-T}``, ``V <- V L`` with ``U^T M U = L L^T``: ``U V^T`` is unchanged.
+
+    ``V L`` is formed explicitly (``Gv`` must keep orthonormal columns, since new rows are
+    appended as ``C^T Gv^T``); this costs ``O(m w p)`` and happens rarely.
+    """
     G = f.Gu.T @ f.H @ f.Gu
     G = 0.5 * (G + G.T)
     L = np.linalg.cholesky(G)
     Gu = scipy.linalg.solve_triangular(L, f.Gu.T, lower=True).T
+    Vraw = f.Vraw @ (f.Gv @ L)
     return _Factors(
-        U0=f.U0, MU0=f.MU0, Gu=Gu, H=f.H, Vraw=f.Vraw, Gv=f.Gv @ L, R=f.R @ L,
+        U0=f.U0, MU0=f.MU0, Gu=Gu, H=f.H, Vraw=Vraw, Gv=np.eye(f.rank), R=f.R @ L,
     )
 
