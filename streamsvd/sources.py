@@ -370,6 +370,11 @@ def _open_path(path: Path, dataset: str | None) -> Source:
         path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zarray", ".zgroup"))
     ):
         return _open_zarr(path, dataset)
+    if path.is_dir():
+        raise InputError(
+            f"`source` {path} is a directory but not a zarr array or group (no zarr.json, "
+            ".zarray or .zgroup in it). Pass the path of the zarr array or of a file."
+        )
     raise InputError(
         f"`source` {path} has an unknown extension {path.suffix!r}; expected .npy, "
         f"{', '.join(_HDF5_SUFFIXES)}, .zarr or a zarr directory. Rename the file or pass "
@@ -426,6 +431,12 @@ def open_source(obj: Any, *, dataset: str | None = None) -> Source:
             f"`source` must be a dense array; got a sparse matrix of shape "
             f"{getattr(obj, 'shape', '?')}. Convert it with `.toarray()`."
         )
-    arr = obj if isinstance(obj, np.ndarray) else np.asarray(obj)
+    try:
+        arr = obj if isinstance(obj, np.ndarray) else np.asarray(obj)
+    except (TypeError, ValueError) as exc:
+        raise InputError(
+            f"`source` must be a real 2-D array (n x m); {type(obj).__name__} cannot be "
+            f"converted to one ({exc}). Pass a numpy array, a file path or a dask array."
+        ) from None
     kind = "memmap" if isinstance(arr, np.memmap) else "array"
     return Source(arr, f"numpy {kind} of shape {arr.shape}")

@@ -166,7 +166,9 @@ def _library_version() -> str:
     try:
         return importlib.metadata.version("streamsvd")
     except importlib.metadata.PackageNotFoundError:
-        return "unknown"
+        import streamsvd
+
+        return str(getattr(streamsvd, "__version__", "unknown"))
 
 
 def _gen_name(k: int) -> str:
@@ -702,7 +704,8 @@ class BasisStore:
             lock = _WriterLock(root / LOCK_NAME)
             lock.acquire()
         try:
-            self._setup(root, mode, attrs, lock)
+            pointer = _read_pointer(root)
+            self._setup(root, mode, attrs, lock, pointer["generation"], pointer.get("previous"))
             if lock is not None:
                 self._clean_leftovers()
         except BaseException:
@@ -716,15 +719,16 @@ class BasisStore:
         mode: str,
         attrs: dict[str, Any],
         lock: _WriterLock | None,
+        generation: int,
+        previous: int | None,
     ) -> None:
         self._path = root
         self._mode = mode
         self._root_attrs = dict(attrs)
         self._lock = lock
         self._closed = False
-        pointer = _read_pointer(root)
-        self._generation: int = pointer["generation"]
-        self._previous: int | None = pointer.get("previous")
+        self._generation = generation
+        self._previous = previous
         self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
 
     # ------------------------------------------------------------------ creation
@@ -813,16 +817,8 @@ class BasisStore:
             finally:
                 zstore.close()
             self = cls.__new__(cls)
-            self._path = root
-            self._mode = "a"
-            self._root_attrs = root_attrs
-            self._lock = lock
-            self._closed = False
-            self._generation = -1
-            self._previous = None
-            self._finalizer = None
+            self._setup(root, "a", root_attrs, lock, -1, None)
             self._write_generation(0, {}, user_attrs)
-            self._finalizer = weakref.finalize(self, lock.release)
         except BaseException:
             lock.release()
             raise
@@ -1092,7 +1088,12 @@ class BasisStore:
                 parent = zarr.open_group(store=zstore, mode="r+", path=GENERATIONS, zarr_format=3)
                 group = parent.create_group(_gen_name(k), attributes=doc)
                 for name, data in arrays.items():
-                    _write_array(group, name, data, int(self._root_attrs["chunk_bytes"]))
+                    _write_array(
+                        group,
+                        name,
+                        data,
+                        int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
+                    )
             finally:
                 zstore.close()
             _fsync_tree(gdir)
@@ -1121,22 +1122,17 @@ class BasisStore:
         logger.debug("committed generation %d of %s", k, self._path)
 
     def _prune(self) -> None:
+        """Delete every generation but the current and the previous one."""
         keep = {self._generation, self._previous}
-        gens = self._path / GENERATIONS
-        for entry in gens.iterdir():
+        for entry in (self._path / GENERATIONS).iterdir():
             m = _GEN_RE.match(entry.name)
             if m and entry.is_dir() and int(m.group(1)) not in keep:
+                logger.debug("removing generation directory %s", entry)
                 _remove_tree(entry)
 
     def _clean_leftovers(self) -> None:
-        """Delete what killed writers left: half-written generations, temp files."""
-        gens = self._path / GENERATIONS
-        keep = {self._generation, self._previous}
-        for entry in gens.iterdir():
-            m = _GEN_RE.match(entry.name)
-            if m and entry.is_dir() and int(m.group(1)) not in keep:
-                logger.info("removing %s, left by an interrupted commit", entry)
-                _remove_tree(entry)
+        """Delete what killed writers left: half-written generations, temporary files."""
+        self._prune()
         for entry in self._path.iterdir():
             if entry.name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
                 logger.info("removing %s, left by an interrupted writer", entry)

@@ -38,11 +38,12 @@ import scipy.linalg
 from ._scaling import pow2_exponent, safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
 from .compress import fix_signs
-from .errors import InputError
+from .errors import InputError, StoreError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import cgs2_extend, default_reject_tol
 from .inner import InnerProduct, as_inner
 from .rotations import RULES, sweep_core
+from .store import BasisStore, open_store
 
 __all__ = ["StreamCompressor", "UpdateRecord"]
 
@@ -156,6 +157,13 @@ class StreamCompressor:
         Compact the lazy factors when their stored width exceeds ``compact_ratio * rank``.
     reorth_tol : float, optional
         Re-orthonormalise when ``||U^T M U - I||_2`` exceeds it; default ``10 n eps``.
+    store : str or path-like, optional
+        Create a zarr basis store there (see :mod:`streamsvd.store`) and commit the state
+        to it every ``commit_every`` updates. An existing store is continued with
+        :meth:`StreamCompressor.open`, not overwritten.
+    commit_every : int
+        Updates between two commits (the last ones are committed by :meth:`flush` or
+        :meth:`close`).
 
     Notes
     -----
@@ -194,6 +202,8 @@ class StreamCompressor:
         reject_tol: float | None = None,
         compact_ratio: float = 2.0,
         reorth_tol: float | None = None,
+        store: Any = None,
+        commit_every: int = 1,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.inner: InnerProduct = as_inner(inner, self.n)
@@ -213,11 +223,145 @@ class StreamCompressor:
         self.reorth_tol = (
             10 * self.n * _EPS if reorth_tol is None else check_nonnegative(reorth_tol, "reorth_tol")
         )
+        self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._f = _empty_factors(self.n, self.inner.is_euclidean)
         self._bound2 = 0.0
         self._coupling = 0.0
         self._discarded = 0.0
         self._history: list[UpdateRecord] = []
+        self.source_offset = 0
+        self._store: BasisStore | None = None
+        self._uncommitted = 0
+        if store is not None:
+            self._store = BasisStore.create(
+                store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
+                attrs=self._attrs(),
+            )
+            self._store.commit(self._arrays(self._f, self._scalars()), attrs=self._attrs())
+
+    # ------------------------------------------------------------------ persistence
+    @classmethod
+    def open(cls, path: Any, *, inner: Any = None, mode: str = "a") -> StreamCompressor:
+        """Reopen a compressor from its store, exactly as it was at the last commit.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The store written with ``StreamCompressor(..., store=path)``.
+        inner : optional
+            The inner product the store was written with (checked by fingerprint);
+            Euclidean when omitted.
+        mode : {"a", "r"}
+            ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
+        """
+        mode = check_choice(mode, "mode", ("a", "r"))
+        st = open_store(path, mode)  # type: ignore[arg-type]
+        try:
+            state = st.read()
+            attrs = state.attrs
+            if attrs.get("kind") != "streamsvd.StreamCompressor":
+                raise StoreMismatchError(
+                    f"`path` {path!s} holds a basis store that was not written by a "
+                    "StreamCompressor; open it with `streamsvd.store.open_store`."
+                )
+            ip = as_inner(inner, state.n)
+            if ip.fingerprint != state.inner_fingerprint:
+                raise StoreMismatchError(
+                    f"`inner` must be the inner product the store {path!s} was written with "
+                    f"(fingerprint {state.inner_fingerprint[:12]}...); got {ip!r}. Pass the "
+                    "same matrix or weights."
+                )
+            opts = attrs["options"]
+            sc = cls(state.n, inner=ip, **opts)
+            sc._restore(state.arrays)
+            sc._store = st
+        except BaseException:
+            st.close()
+            raise
+        return sc
+
+    def flush(self) -> None:
+        """Commit the current state to the store now (no-op without a store)."""
+        if self._store is not None and self._uncommitted:
+            self._commit(self._f, self._scalars())
+            self._uncommitted = 0
+
+    def close(self) -> None:
+        """Commit what is pending and release the store's writer lock."""
+        if self._store is not None:
+            if self._store.mode == "a":
+                self.flush()
+            self._store.close()
+            self._store = None
+
+    def __enter__(self) -> StreamCompressor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def store_path(self) -> str | None:
+        """Path of the store, or None."""
+        return None if self._store is None else str(self._store.path)
+
+    def _options(self) -> dict[str, Any]:
+        return {
+            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank, "rule": self.rule,
+            "sweeps": self.sweeps, "reject_tol": self.reject_tol,
+            "compact_ratio": self.compact_ratio, "reorth_tol": self.reorth_tol,
+            "commit_every": self.commit_every,
+        }
+
+    def _attrs(self) -> dict[str, Any]:
+        return {
+            "kind": "streamsvd.StreamCompressor",
+            "options": self._options(),
+            "n_seen": self.n_seen,
+            "rank": self.rank,
+            "source_offset": self.source_offset,
+            "updates": len(self._history),
+            "error_bound": self.error_bound,
+            "discarded_energy": self._discarded,
+        }
+
+    def _scalars(self) -> np.ndarray:
+        return np.array(
+            [self._bound2, self._coupling, self._discarded, float(self.source_offset)]
+        )
+
+    def _arrays(self, f: _Factors, scalars: np.ndarray) -> dict[str, np.ndarray]:
+        arrays = {
+            "U0": f.U0, "Gu": f.Gu, "H": f.H, "Vraw": f.Vraw, "Gv": f.Gv, "R": f.R,
+            "scalars": scalars, "history": _history_array(self._history),
+        }
+        if not self.inner.is_euclidean:
+            arrays["MU0"] = f.MU0
+        return arrays
+
+    def _commit(self, f: _Factors, scalars: np.ndarray) -> None:
+        assert self._store is not None
+        if self._store.mode != "a":
+            raise StoreError(
+                f"the store {self._store.path} is open read-only; reopen it with "
+                "`StreamCompressor.open(path, mode='a')` to continue the stream."
+            )
+        attrs = self._attrs()
+        attrs.update(n_seen=f.m, rank=f.rank, source_offset=int(scalars[3]),
+                     error_bound=math.sqrt(scalars[0]), discarded_energy=float(scalars[2]),
+                     updates=len(self._history))
+        self._store.commit(self._arrays(f, scalars), attrs=attrs)
+
+    def _restore(self, arrays: dict[str, np.ndarray]) -> None:
+        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()}
+        U0 = a["U0"]
+        self._f = _Factors(
+            U0=U0, MU0=a["MU0"] if "MU0" in a else U0, Gu=a["Gu"], H=a["H"],
+            Vraw=a["Vraw"], Gv=a["Gv"], R=a["R"],
+        )
+        self._bound2, self._coupling, self._discarded, offset = (float(x) for x in a["scalars"])
+        self.source_offset = int(offset)
+        self._history = [_record_from_row(row) for row in a["history"]]
 
     # ------------------------------------------------------------------ properties
     @property
@@ -273,11 +417,19 @@ class StreamCompressor:
         )
 
     # ------------------------------------------------------------------ updates
-    def absorb(self, columns: Any) -> UpdateRecord:
+    def absorb(self, columns: Any, *, source_offset: int | None = None) -> UpdateRecord:
         """Append a block of snapshots (the columns of ``columns``, ``n x b``, ``b >= 1``).
 
-        On bad input an :class:`~streamsvd.errors.InputError` is raised and the state is
-        unchanged.
+        Parameters
+        ----------
+        columns : array_like, shape (n, b)
+            The new snapshots.
+        source_offset : int, optional
+            Position in the source just after this block, recorded in the store so that
+            an interrupted ingestion resumes there; default: the previous offset + ``b``.
+
+        On bad input an :class:`~streamsvd.errors.InputError` is raised and the state,
+        in memory and in the store, is unchanged.
         """
         t0 = time.perf_counter()
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
@@ -298,9 +450,11 @@ class StreamCompressor:
         Vraw[f.m :, f.Vraw.shape[1] :] = ext.R_new.T
         rejected_energy = float(np.sum(ext.rejected_norms**2))
         grown = _grow(f, ext.Q_new, ext.MQ_new, Vraw, self.inner)
+        offset = self.source_offset + b if source_offset is None else int(source_offset)
         self._update(
             "absorb", b, grown, K, ext, rejected_energy, overlapping=False, t0=t0,
             coupling_extra=math.sqrt(rejected_energy) * float(np.linalg.norm(B)),
+            source_offset=offset,
         )
         return self._history[-1]
 
@@ -335,7 +489,10 @@ class StreamCompressor:
         vnorms = safe_column_norms(Vk)
         rejected_energy = float(np.sum((ext.rejected_norms * vnorms) ** 2))
         grown = _grow(f, ext.Q_new, ext.MQ_new, V_new, self.inner, reset_v=True)
-        self._update("add", Uk.shape[1], grown, K, ext, rejected_energy, overlapping=True, t0=t0)
+        self._update(
+            "add", Uk.shape[1], grown, K, ext, rejected_energy, overlapping=True, t0=t0,
+            source_offset=self.source_offset,
+        )
         return self._history[-1]
 
     # ------------------------------------------------------------------ internals
@@ -350,6 +507,7 @@ class StreamCompressor:
         *,
         overlapping: bool,
         t0: float,
+        source_offset: int,
         coupling_extra: float = 0.0,
     ) -> None:
         p = f.Gu.shape[1]
@@ -402,20 +560,29 @@ class StreamCompressor:
             cross = min(cross, self._coupling)
         bound2 = self._bound2 + energy + 2.0 * cross
         coupling = math.inf if overlapping else self._coupling + nuclear + coupling_extra
-        # commit the new state only now: any exception above leaves the old one intact
-        self._f = new
-        self._bound2 = bound2
-        self._coupling = coupling
-        self._discarded += energy
-        self._history.append(
-            UpdateRecord(
-                kind=kind, columns=columns, rank=new.rank,
-                new_directions=int(ext.Q_new.shape[1]),
-                rejected=int(np.count_nonzero(~ext.accepted)), cut=int(cut.size),
-                cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
-                error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
-            )
+        record = UpdateRecord(
+            kind=kind, columns=columns, rank=new.rank,
+            new_directions=int(ext.Q_new.shape[1]),
+            rejected=int(np.count_nonzero(~ext.accepted)), cut=int(cut.size),
+            cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
+            error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
         )
+        scalars = np.array([bound2, coupling, self._discarded + energy, float(source_offset)])
+        # persist first, then switch the in-memory state: an exception anywhere above or
+        # in the commit leaves both the memory and the store as they were
+        self._history.append(record)
+        try:
+            if self._store is not None and self._uncommitted + 1 >= self.commit_every:
+                self._commit(new, scalars)
+                self._uncommitted = 0
+            elif self._store is not None:
+                self._uncommitted += 1
+        except BaseException:
+            self._history.pop()
+            raise
+        self._f = new
+        self._bound2, self._coupling, self._discarded = bound2, coupling, scalars[2]
+        self.source_offset = source_offset
 
     def _keep_count(self, amps_sorted: np.ndarray) -> int:
         keep = amps_sorted.size
@@ -506,3 +673,27 @@ def _reorthonormalize(f: _Factors) -> _Factors:
         U0=f.U0, MU0=f.MU0, Gu=Gu, H=f.H, Vraw=Vraw, Gv=np.eye(f.rank), R=f.R @ L,
     )
 
+
+
+_HISTORY_FIELDS = (
+    "kind", "columns", "rank", "new_directions", "rejected", "cut", "cut_energy", "sweeps",
+    "max_cosine", "orthogonality", "error_bound", "seconds",
+)
+_KINDS = ("absorb", "add")
+
+
+def _history_array(history: list[UpdateRecord]) -> np.ndarray:
+    out = np.zeros((len(history), len(_HISTORY_FIELDS)))
+    for i, rec in enumerate(history):
+        row = [getattr(rec, k) for k in _HISTORY_FIELDS]
+        row[0] = _KINDS.index(rec.kind)
+        out[i] = row
+    return out
+
+
+def _record_from_row(row: np.ndarray) -> UpdateRecord:
+    vals: dict[str, Any] = dict(zip(_HISTORY_FIELDS, row.tolist(), strict=True))
+    vals["kind"] = _KINDS[int(vals["kind"])]
+    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps"):
+        vals[k] = int(vals[k])
+    return UpdateRecord(**vals)

@@ -1,0 +1,63 @@
+"""Commit generations of known content to a basis store in a loop, until killed.
+
+Used by the kill test of ``test_store.py``: generation ``k`` holds the arrays and the
+attributes returned by :func:`expected_generation` (``k``), so a reader can check that
+whatever generation is current after a ``SIGKILL`` holds exactly what was committed.
+
+Usage: ``python _store_writer.py STORE_PATH MAX_SECONDS``; prints ``ready`` once the store
+is open, then ``committed K`` after each commit.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+N = 3000
+P = 6
+CHUNK_BYTES = 16 * 1024  # several chunks per factor, so that kills land between chunks
+CREATE_ATTRS = {"k": 0, "note": "created by the kill test"}
+
+
+def expected_generation(k: int) -> tuple[dict[str, np.ndarray], dict]:
+    """Arrays and attributes the writer commits as generation ``k`` (k >= 1)."""
+    rng = np.random.default_rng(k)
+    U = rng.standard_normal((N, P))
+    V = rng.standard_normal((k % 37 + 1, P))
+    s = rng.random(P)
+    attrs = {"k": k, "n_seen": 10 * k, "history": [float(x) for x in s[:3]]}
+    return {"U": U, "V": V, "amplitudes": s}, attrs
+
+
+def _import_store() -> types.ModuleType:
+    """Import ``streamsvd.store`` from this working tree, skipping the package's other
+    modules (numba compilation and all), so that each restarted writer starts fast."""
+    package = types.ModuleType("streamsvd")
+    package.__path__ = [str(Path(__file__).resolve().parents[1] / "streamsvd")]
+    sys.modules["streamsvd"] = package
+    return importlib.import_module("streamsvd.store")
+
+
+def main(path: str, max_seconds: float) -> None:
+    open_store = _import_store().open_store
+
+    parent = os.getppid()
+    deadline = time.monotonic() + max_seconds
+    with open_store(path, mode="a") as store:
+        sys.stdout.write("ready\n")
+        sys.stdout.flush()
+        while time.monotonic() < deadline and os.getppid() == parent:
+            arrays, attrs = expected_generation(store.generation + 1)
+            k = store.commit(arrays, attrs)
+            sys.stdout.write(f"committed {k}\n")
+            sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], float(sys.argv[2]))

@@ -1,0 +1,300 @@
+import threading
+
+import dask.array as da
+import h5py
+import numpy as np
+import pytest
+import zarr
+
+from streamsvd.errors import InputError, ShapeMismatchError, SourceError
+from streamsvd.sources import Source, open_source
+
+N, M = 9, 23
+
+
+@pytest.fixture
+def A(rng):
+    return rng.standard_normal((N, M))
+
+
+def make_source(kind, A, tmp_path):
+    """Return (obj, dataset, closer) for every supported kind of source."""
+    if kind == "numpy":
+        return A, None
+    if kind == "numpy_int":
+        return np.rint(A * 100).astype(np.int32), None
+    if kind == "list":
+        return A.tolist(), None
+    if kind == "npy":
+        np.save(tmp_path / "a.npy", A)
+        return tmp_path / "a.npy", None
+    if kind == "npy_fortran":
+        np.save(tmp_path / "f.npy", np.asfortranarray(A))
+        return str(tmp_path / "f.npy"), None
+    if kind == "hdf5_single":
+        with h5py.File(tmp_path / "a.h5", "w") as f:
+            f.create_dataset("run/u", data=A, chunks=(N, 4))
+        return tmp_path / "a.h5", None
+    if kind == "hdf5_named":
+        with h5py.File(tmp_path / "b.hdf5", "w") as f:
+            f["u"] = A
+            f["other"] = np.zeros((2, 2))
+        return tmp_path / "b.hdf5", "u"
+    if kind == "h5py_dataset":
+        with h5py.File(tmp_path / "c.h5", "w") as f:
+            f["u"] = A
+        f = h5py.File(tmp_path / "c.h5", "r")
+        return f["u"], None
+    if kind == "zarr_path":
+        z = zarr.create_array(tmp_path / "a.zarr", shape=A.shape, chunks=(N, 5), dtype="f8")
+        z[...] = A
+        return tmp_path / "a.zarr", None
+    if kind == "zarr_group":
+        g = zarr.open_group(tmp_path / "g", mode="w")
+        g.create_array("snapshots", data=A, chunks=(4, 6))
+        g.create_array("mesh", data=np.zeros((3, 2)))
+        return tmp_path / "g", "snapshots"
+    if kind == "zarr_array":
+        z = zarr.create_array(tmp_path / "b.zarr", shape=A.shape, chunks=(N, 7), dtype="f4")
+        z[...] = A
+        return z, None
+    if kind == "dask":
+        return da.from_array(A, chunks=(N, 6)), None
+    raise AssertionError(kind)
+
+
+KINDS = [
+    "numpy",
+    "numpy_int",
+    "list",
+    "npy",
+    "npy_fortran",
+    "hdf5_single",
+    "hdf5_named",
+    "h5py_dataset",
+    "zarr_path",
+    "zarr_group",
+    "zarr_array",
+    "dask",
+]
+
+
+def expected_matrix(kind, A):
+    if kind == "numpy_int":
+        return np.rint(A * 100).astype(np.int32).astype(np.float64)
+    if kind == "zarr_array":
+        return A.astype(np.float32).astype(np.float64)
+    return A
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_gives_the_same_blocks(kind, A, tmp_path):
+    obj, dataset = make_source(kind, A, tmp_path)
+    want = expected_matrix(kind, A)
+    with open_source(obj, dataset=dataset) as src:
+        assert (src.n, src.m) == (N, M) and src.shape == (N, M) and len(src) == M
+        for b in (1, 4, 7, M, M + 5):
+            for start in (0, 5, M):
+                for prefetch in (True, False):
+                    blocks = list(src.blocks(b, start=start, prefetch=prefetch))
+                    assert [o for o, _ in blocks] == list(range(start, M, b))
+                    for offset, X in blocks:
+                        assert X.dtype == np.float64
+                        assert X.shape == (N, min(b, M - offset))
+                        assert np.array_equal(X, want[:, offset : offset + b])
+        assert np.array_equal(src.read(3, 11), want[:, 3:11])
+        assert src.read(4, 4).shape == (N, 0)
+    if kind == "h5py_dataset":
+        obj.file.close()
+
+
+def test_prefetch_on_and_off_agree(A):
+    src = open_source(A)
+    on = list(src.blocks(5, prefetch=True))
+    off = list(src.blocks(5, prefetch=False))
+    assert len(on) == len(off) == 5
+    for (o1, x1), (o2, x2) in zip(on, off, strict=True):
+        assert o1 == o2 and np.array_equal(x1, x2)
+
+
+def test_blocks_do_not_share_memory_with_the_data(A):
+    src = open_source(A)
+    for _, X in src.blocks(4):
+        X[:] = 0.0
+    assert np.array_equal(src.read(0, M), A) and np.any(A != 0)
+
+
+def test_dask_blocks_are_computed_one_at_a_time(A):
+    computed = []
+    lock = threading.Lock()
+
+    def record(x, block_info=None):
+        with lock:
+            computed.append(block_info[0]["chunk-location"][1])
+        return x
+
+    D = da.from_array(A, chunks=(N, 5)).map_blocks(record, dtype=A.dtype)
+    src = open_source(D)
+    X = src.read(0, 5)
+    assert np.array_equal(X, A[:, :5]) and computed == [0]
+    computed.clear()
+    got = [X for _, X in src.blocks(5)]
+    assert np.array_equal(np.hstack(got), A)
+    assert sorted(computed) == [0, 1, 2, 3, 4]  # each chunk once: never the whole array
+
+
+class FlakyColumns:
+    """A 2-D array-like whose columns from `bad` on cannot be read."""
+
+    def __init__(self, A, bad):
+        self.A, self.bad = A, bad
+        self.shape, self.dtype = A.shape, A.dtype
+        self.reads = []
+
+    def __getitem__(self, key):
+        cols = key[1]
+        self.reads.append(cols.start)
+        if cols.stop > self.bad:
+            raise OSError(5, "Input/output error")
+        return self.A[key]
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_read_error_surfaces_at_its_block(A, prefetch):
+    data = FlakyColumns(A, bad=10)
+    src = Source(data, "flaky test array")
+    seen = []
+    with pytest.raises(
+        SourceError, match=r"reading columns 8:12 \(offset 8\) of flaky test array failed"
+    ) as info:
+        for offset, X in src.blocks(4, prefetch=prefetch):
+            seen.append(offset)
+            assert np.array_equal(X, A[:, offset : offset + 4])
+    assert seen == [0, 4]
+    assert isinstance(info.value.__cause__, OSError)
+    assert "Input/output error" in str(info.value)
+
+
+def test_dask_read_error_is_chained(A):
+    def fail_on_third(x, block_info=None):
+        if block_info[0]["chunk-location"][1] == 2:
+            raise ValueError("corrupt chunk")
+        return x
+
+    D = da.from_array(A, chunks=(N, 5)).map_blocks(fail_on_third, dtype=A.dtype)
+    with pytest.raises(SourceError, match=r"offset 9.*ValueError: corrupt chunk") as info:
+        list(open_source(D).blocks(3))
+    assert isinstance(info.value.__cause__, ValueError)
+
+
+def test_abandoned_iteration_stops_the_prefetch_thread(A):
+    before = threading.active_count()
+    it = open_source(A).blocks(2)
+    next(it)
+    it.close()
+    assert threading.active_count() == before
+
+
+def test_resume_from_offset(A):
+    src = open_source(A)
+    offsets = [o for o, _ in src.blocks(6, start=17)]
+    assert offsets == [17]
+    assert list(src.blocks(6, start=M)) == []
+
+
+# ------------------------------------------------------------------------ errors
+
+
+def test_missing_file_names_the_path(tmp_path):
+    path = tmp_path / "nothing.h5"
+    with pytest.raises(SourceError, match=rf"`source` {path} does not exist"):
+        open_source(path)
+
+
+def test_unknown_extension(tmp_path):
+    path = tmp_path / "data.csv"
+    path.write_text("1,2\n")
+    with pytest.raises(InputError, match=r"unknown extension '.csv'; expected .npy, .h5"):
+        open_source(path)
+
+
+def test_directory_that_is_not_zarr(tmp_path):
+    with pytest.raises(InputError, match=r"is a directory but not a zarr array or group"):
+        open_source(tmp_path)
+
+
+def test_dataset_needed_lists_the_datasets(A, tmp_path):
+    with h5py.File(tmp_path / "two.h5", "w") as f:
+        f["grp/u"] = A
+        f["v"] = A
+    with pytest.raises(InputError, match=r"`dataset` must be given .* \['grp/u', 'v'\]"):
+        open_source(tmp_path / "two.h5")
+    with pytest.raises(SourceError, match=r"`dataset` 'w' is not in .* \['grp/u', 'v'\]"):
+        open_source(tmp_path / "two.h5", dataset="w")
+    with open_source(tmp_path / "two.h5", dataset="/grp/u") as src:
+        assert np.array_equal(src.read(0, M), A)
+
+
+def test_zarr_group_needs_an_array_name(A, tmp_path):
+    g = zarr.open_group(tmp_path / "g.zarr", mode="w")
+    g.create_array("a", data=A)
+    g.create_array("b", data=A)
+    with pytest.raises(InputError, match=r"`dataset` must be given .* \['a', 'b'\]"):
+        open_source(tmp_path / "g.zarr")
+
+
+def test_empty_hdf5_file(tmp_path):
+    with h5py.File(tmp_path / "empty.h5", "w"):
+        pass
+    with pytest.raises(SourceError, match=r"holds no dataset"):
+        open_source(tmp_path / "empty.h5")
+
+
+def test_dataset_for_an_array_is_refused(A):
+    with pytest.raises(InputError, match=r"`dataset` only applies to HDF5 files and zarr"):
+        open_source(A, dataset="u")
+
+
+@pytest.mark.parametrize("shape", [(5,), (2, 3, 4)])
+def test_array_not_2d(shape, tmp_path):
+    with pytest.raises(ShapeMismatchError, match=rf"`source` must be 2-D .*{len(shape)}-D"):
+        open_source(np.zeros(shape))
+    np.save(tmp_path / "x.npy", np.zeros(shape))
+    with pytest.raises(ShapeMismatchError, match=r"must be 2-D"):
+        open_source(tmp_path / "x.npy")
+
+
+def test_complex_and_non_numeric_dtypes(tmp_path):
+    with pytest.raises(InputError, match=r"`source` must be real; .*complex128"):
+        open_source(np.zeros((3, 3), dtype=complex))
+    with pytest.raises(InputError, match=r"`source` must hold real numbers; .*<U1"):
+        open_source(np.array([["a", "b"], ["c", "d"]]))
+    with h5py.File(tmp_path / "c.h5", "w") as f:
+        f["z"] = np.zeros((3, 3), dtype=np.complex64)
+    with pytest.raises(InputError, match=r"must be real; HDF5 dataset '/z'.*complex64"):
+        open_source(tmp_path / "c.h5")
+
+
+def test_ragged_lists_are_refused():
+    with pytest.raises(InputError, match=r"`source` must be a real 2-D array .*list"):
+        open_source([[1.0, 2.0], [3.0]])
+
+
+@pytest.mark.parametrize("block", [0, -3, 2.5, None, True])
+def test_block_must_be_a_positive_integer(A, block):
+    with pytest.raises(InputError, match=r"`block` must be an integer >= 1"):
+        open_source(A).blocks(block)
+
+
+@pytest.mark.parametrize("start", [-1, M + 1, 1.0])
+def test_start_outside_the_source(A, start):
+    with pytest.raises(InputError, match=rf"`start` must be .*\[0, {M}\]"):
+        open_source(A).blocks(4, start=start)
+
+
+def test_read_range_errors(A):
+    src = open_source(A)
+    with pytest.raises(InputError, match=rf"`stop` must be in \[0, {M}\].*got {M + 1}"):
+        src.read(0, M + 1)
+    with pytest.raises(InputError, match=r"`stop` must be >= `start` \(5\); got 2"):
+        src.read(5, 2)
