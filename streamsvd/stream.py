@@ -41,7 +41,7 @@ from .compress import fix_signs
 from .errors import InputError, StoreError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import cgs2_extend, default_reject_tol
-from .inner import InnerProduct, as_inner
+from .inner import InnerProduct, as_inner, check_same_inner
 from .rotations import RULES, sweep_core
 from .store import BasisStore, open_store
 
@@ -58,9 +58,9 @@ class UpdateRecord:
 
     Attributes
     ----------
-    kind : {"absorb", "add"}
+    kind : {"absorb", "add", "merge"}
     columns : int
-        Snapshots added (``absorb``) or terms of the increment (``add``).
+        Snapshots added (``absorb``, ``merge``) or terms of the increment (``add``).
     rank : int
         Rank after the update.
     new_directions : int
@@ -495,6 +495,68 @@ class StreamCompressor:
         )
         return self._history[-1]
 
+    def merge(self, other: StreamCompressor | Expansion) -> UpdateRecord:
+        """Append the snapshots represented by ``other`` (they come after the current ones).
+
+        ``other`` is a compressor fed with later columns (for instance on another worker)
+        or an expansion of them; its left vectors are decomposed on the basis by CGS2 and
+        its right vectors enter the small core through their QR factor, so the cost is
+        ``O(n w p_o + m_o p_o (p + p_o))``, never ``O(n m_o)``. Error bounds compose: the
+        two parts cover disjoint columns, so before the merge's own truncation the bound is
+        ``sqrt(b_self^2 + b_other^2)`` (see the class notes), as in the hierarchical POD
+        of Himpe, Leibner and Rave (2018).
+        """
+        t0 = time.perf_counter()
+        if isinstance(other, StreamCompressor):
+            if other.n != self.n:
+                raise InputError(
+                    f"`other` must have snapshots of size {self.n}; got {other.n}."
+                )
+            check_same_inner(self.inner, other.inner, "other")
+            e_o = other.expansion
+            other_bound2, other_coupling = other._bound2, other._coupling
+            other_discarded = other._discarded
+        elif isinstance(other, Expansion):
+            if other.n != self.n:
+                raise InputError(
+                    f"`other` must have snapshots of size {self.n}; got {other.n}."
+                )
+            check_same_inner(self.inner, other.inner, "other")
+            e_o, other_bound2, other_coupling, other_discarded = other, 0.0, 0.0, 0.0
+        else:
+            raise InputError(
+                "`other` must be a StreamCompressor or an Expansion; got "
+                f"{type(other).__name__}."
+            )
+        f = self._f
+        if f.m == 0 and f.rank == 0:
+            f = _Factors(f.U0, f.MU0, f.Gu, f.H, np.zeros((0, 0)), np.zeros((0, 0)), f.R)
+        Ub, Vb = np.array(e_o.U), np.array(e_o.V)
+        ext = cgs2_extend(
+            f.U0, f.MU0, Ub, inner=self.inner, reject_tol=self.reject_tol, G=f.Gu
+        )
+        r = ext.Q_new.shape[1]
+        mb = Vb.shape[0]
+        Rb = np.linalg.qr(Vb, mode="r") if Vb.size else np.zeros((0, Vb.shape[1]))
+        K = np.zeros((f.R.shape[0] + Rb.shape[0], f.rank + r))
+        K[: f.R.shape[0], : f.rank] = f.R
+        K[f.R.shape[0] :, : f.rank] = Rb @ ext.coeffs.T
+        K[f.R.shape[0] :, f.rank :] = Rb @ ext.R_new.T
+        Vraw = np.zeros((f.m + mb, f.Vraw.shape[1] + r))
+        Vraw[: f.m, : f.Vraw.shape[1]] = f.Vraw
+        Vraw[f.m :, : f.Vraw.shape[1]] = Vb @ (ext.coeffs.T @ f.Gv.T)
+        Vraw[f.m :, f.Vraw.shape[1] :] = Vb @ ext.R_new.T
+        # rejected residuals r_k v_k^T share columns: bound their sum by the triangle rule
+        rejected_energy = float(np.sum(ext.rejected_norms * safe_column_norms(Vb))) ** 2
+        grown = _grow(f, ext.Q_new, ext.MQ_new, Vraw, self.inner)
+        self._update(
+            "merge", mb, grown, K, ext, rejected_energy, overlapping=False, t0=t0,
+            source_offset=self.source_offset + mb,
+            prior=(self._bound2 + other_bound2, self._coupling + other_coupling,
+                   self._discarded + other_discarded),
+        )
+        return self._history[-1]
+
     # ------------------------------------------------------------------ internals
     def _update(
         self,
@@ -509,6 +571,7 @@ class StreamCompressor:
         t0: float,
         source_offset: int,
         coupling_extra: float = 0.0,
+        prior: tuple[float, float, float] | None = None,
     ) -> None:
         p = f.Gu.shape[1]
         R = np.linalg.qr(K, mode="r") if K.shape[0] > p else K
@@ -553,13 +616,15 @@ class StreamCompressor:
             new = _reorthonormalize(new)
             orth = _orthogonality(new)
         # error bound recursion (class notes)
+        bound2_prev, coupling_prev, discarded_prev = (
+            (self._bound2, self._coupling, self._discarded) if prior is None else prior
+        )
         energy = cut_energy + rejected_energy
-        b_prev = math.sqrt(self._bound2)
-        cross = math.sqrt(energy) * b_prev
+        cross = math.sqrt(energy) * math.sqrt(bound2_prev)
         if not overlapping:
-            cross = min(cross, self._coupling)
-        bound2 = self._bound2 + energy + 2.0 * cross
-        coupling = math.inf if overlapping else self._coupling + nuclear + coupling_extra
+            cross = min(cross, coupling_prev)
+        bound2 = bound2_prev + energy + 2.0 * cross
+        coupling = math.inf if overlapping else coupling_prev + nuclear + coupling_extra
         record = UpdateRecord(
             kind=kind, columns=columns, rank=new.rank,
             new_directions=int(ext.Q_new.shape[1]),
@@ -567,7 +632,7 @@ class StreamCompressor:
             cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
             error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
         )
-        scalars = np.array([bound2, coupling, self._discarded + energy, float(source_offset)])
+        scalars = np.array([bound2, coupling, discarded_prev + energy, float(source_offset)])
         # persist first, then switch the in-memory state: an exception anywhere above or
         # in the commit leaves both the memory and the store as they were
         self._history.append(record)
@@ -679,7 +744,7 @@ _HISTORY_FIELDS = (
     "kind", "columns", "rank", "new_directions", "rejected", "cut", "cut_energy", "sweeps",
     "max_cosine", "orthogonality", "error_bound", "seconds",
 )
-_KINDS = ("absorb", "add")
+_KINDS = ("absorb", "add", "merge")
 
 
 def _history_array(history: list[UpdateRecord]) -> np.ndarray:

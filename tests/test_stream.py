@@ -283,3 +283,40 @@ class StreamModel(RuleBasedStateMachine):
 
 TestStreamModel = StreamModel.TestCase
 TestStreamModel.settings = settings(max_examples=30, stateful_step_count=15, deadline=None)
+
+
+@pytest.mark.parametrize("sweeps,max_rank", [(None, 12), (1, 12), (None, None)])
+def test_tree_merge_equals_the_stream_and_composes_the_bound(rng, sweeps, max_rank):
+    s = np.logspace(0, -8, 40)
+    A = with_spectrum(s, 90, 160, rng)
+    leaves = []
+    for j in range(0, 160, 40):
+        sc = ss.StreamCompressor(90, rule="jacobi", sweeps=sweeps, max_rank=max_rank)
+        for k in range(j, j + 40, 10):
+            sc.absorb(A[:, k : k + 10])
+        leaves.append(sc)
+    while len(leaves) > 1:
+        for a, b in zip(leaves[::2], leaves[1::2], strict=True):
+            a.merge(b)
+        leaves = leaves[::2]
+    root = leaves[0]
+    assert root.n_seen == 160 and root.history[-1].kind == "merge"
+    err = np.linalg.norm(A - root.expansion.to_dense())
+    assert err <= root.error_bound + 100 * 90 * EPS * np.linalg.norm(A)
+    assert root.orthogonality_error() <= 50 * 90 * EPS
+    if max_rank is None:
+        assert_svd_contract(A, ss.compress(root.expansion, rule="jacobi").expansion, relative_v=False)
+    elif sweeps is None:
+        assert err <= 1.25 * math.sqrt(np.sum(s[max_rank:] ** 2))
+
+
+def test_merge_refuses_other_sizes_and_inner_products(rng):
+    a = ss.StreamCompressor(10)
+    with pytest.raises(ss.InputError, match=r"`other` must have snapshots of size 10; got 11"):
+        a.merge(ss.StreamCompressor(11))
+    with pytest.raises(ss.InnerProductMismatchError, match=r"`other` uses the inner product"):
+        a.merge(ss.StreamCompressor(10, inner=np.full(10, 2.0)))
+    with pytest.raises(ss.InputError, match=r"`other` must be a StreamCompressor or an Expansion; got ndarray"):
+        a.merge(np.eye(10))
+    a.merge(ss.Expansion(np.eye(10)[:, :2], rng.standard_normal((4, 2))))
+    assert a.n_seen == 4 and a.rank == 2
