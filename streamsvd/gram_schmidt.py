@@ -155,15 +155,27 @@ def cgs2_extend(
         x = Xs[:, k]
         mx = x if inner.is_euclidean else inner.apply(x)
         nrm = float(np.sqrt(max(float(x @ mx), 0.0)))
-        if r:
-            for npass in range(_MAX_PASSES):
+        # DGKS on the whole basis: the first pass is against the block's new directions
+        # (the old basis was handled above); whenever a pass cancels more than half of the
+        # norm, the next one projects against the old basis and the new directions both,
+        # since the rounding of a cancelling pass leaves components along either
+        for npass in range(_MAX_PASSES if r or q else 0):
+            if npass and q:
+                if G is None:
+                    c_old = MQ.T @ x
+                    x -= Q @ c_old
+                else:
+                    c_old = G.T @ (MQ.T @ x)
+                    x -= Q @ (G @ c_old)
+                C[:, k] += c_old
+            if r:
                 c = MQ_new[:, :r].T @ x
                 x -= Q_new[:, :r] @ c
                 R_new[:r, k] += c
-                mx = x if inner.is_euclidean else inner.apply(x)
-                prev, nrm = nrm, float(np.sqrt(max(float(x @ mx), 0.0)))
-                if npass and nrm >= _REITERATE * prev:
-                    break
+            mx = x if inner.is_euclidean else inner.apply(x)
+            prev, nrm = nrm, float(np.sqrt(max(float(x @ mx), 0.0)))
+            if nrm >= _REITERATE * prev:
+                break
         if nu[k] == 0.0 or nrm <= reject_tol * nu[k]:
             rejected[k] = nrm
             continue
