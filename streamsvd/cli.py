@@ -153,7 +153,7 @@ def _export(args: Any) -> int:
         bound = sc.error_bound
     data = {"U": e.U, "V": e.V, "amplitudes": e.amplitudes, "error_bound": np.array(bound)}
     if out.suffix == ".npz":
-        np.savez(out, **data)
+        np.savez(out, U=e.U, V=e.V, amplitudes=e.amplitudes, error_bound=np.array(bound))
     else:
         import h5py
 

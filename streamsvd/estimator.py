@@ -48,11 +48,11 @@ except ImportError:  # pragma: no cover - exercised only without scikit-learn
         pass
 
 
-class NotFittedError(_NotFitted, InputError):  # type: ignore[misc, valid-type]
+class NotFittedError(_NotFitted, InputError):
     """The estimator is used before ``fit`` or ``partial_fit``."""
 
 
-class StreamingSVD(_Mixin, _Base):  # type: ignore[misc, valid-type]
+class StreamingSVD(_Mixin, _Base):
     """Truncated SVD / PCA fitted incrementally by rotation sweeps.
 
     Parameters
@@ -94,6 +94,11 @@ class StreamingSVD(_Mixin, _Base):  # type: ignore[misc, valid-type]
     error_bound_ : float
         Guaranteed bound on the Frobenius norm of the discarded part.
     """
+
+    compressor_: StreamCompressor
+    n_samples_seen_: int
+    mean_: np.ndarray
+    var_energy_: float
 
     def __init__(
         self,
@@ -166,7 +171,8 @@ class StreamingSVD(_Mixin, _Base):  # type: ignore[misc, valid-type]
                 "`n_components` must be None, an int >= 1 or a float in (0, 1); got "
                 f"{self.n_components!r}."
             )
-        max_rank = int(self.n_components) if isinstance(self.n_components, int | np.integer) else None
+        is_int = isinstance(self.n_components, int | np.integer)
+        max_rank = int(self.n_components) if is_int else None  # type: ignore[arg-type]
         self.compressor_ = StreamCompressor(
             n_features, inner=self.inner, rtol=self.tol, max_rank=max_rank,
             rule=self.rule, sweeps=self.sweeps,

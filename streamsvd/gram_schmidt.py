@@ -56,7 +56,7 @@ def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
 
 
 def default_reject_tol(n: int) -> float:
-    """The default rejection threshold ``n * eps`` (relative to a column's own norm)."""
+    """Return the default rejection threshold ``n * eps`` (relative to a column's norm)."""
     return max(n, 1) * _EPS
 
 
@@ -259,7 +259,11 @@ def orthonormalize(
     U, V = _check_pair(U, V)
     n, p = U.shape
     ip = as_inner(inner, n)
-    tol = default_reject_tol(n) if reject_tol is None else check_nonnegative(reject_tol, "reject_tol")
+    tol = (
+        default_reject_tol(n)
+        if reject_tol is None
+        else check_nonnegative(reject_tol, "reject_tol")
+    )
     Qbuf = np.empty((n, min(p, n)))
     MQbuf = Qbuf if ip.is_euclidean else np.empty_like(Qbuf)
     R = np.zeros((min(p, n), p))

@@ -20,8 +20,8 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import InnerProductMismatchError, InputError, ShapeMismatchError
 from ._validation import as_float_array, check_finite
+from .errors import InnerProductMismatchError, InputError, ShapeMismatchError
 
 __all__ = [
     "DiagonalInner",

@@ -221,7 +221,9 @@ class StreamCompressor:
         if self.compact_ratio < 1.0:
             raise InputError(f"`compact_ratio` must be >= 1; got {compact_ratio!r}.")
         self.reorth_tol = (
-            10 * self.n * _EPS if reorth_tol is None else check_nonnegative(reorth_tol, "reorth_tol")
+            10 * self.n * _EPS
+            if reorth_tol is None
+            else check_nonnegative(reorth_tol, "reorth_tol")
         )
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._f = _empty_factors(self.n, self.inner.is_euclidean)
@@ -353,6 +355,10 @@ class StreamCompressor:
         self._store.commit(self._arrays(f, scalars), attrs=attrs)
 
     def _restore(self, arrays: dict[str, np.ndarray]) -> None:
+        if not arrays:
+            # killed between the creation of the store and its first commit: the store
+            # holds the options only, and nothing was absorbed
+            return
         a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()}
         U0 = a["U0"]
         self._f = _Factors(
@@ -481,11 +487,10 @@ class StreamCompressor:
         ext = cgs2_extend(
             f.U0, f.MU0, Uk, inner=self.inner, reject_tol=self.reject_tol, G=f.Gu
         )
-        r = ext.Q_new.shape[1]
         # V_new = [V + V_k C^T, V_k R_new^T], formed explicitly (V_k spans every row)
         V_old = f.Vraw @ f.Gv
         V_new = np.concatenate([V_old + Vk @ ext.coeffs.T, Vk @ ext.R_new.T], axis=1)
-        K = np.linalg.qr(V_new, mode="r") if V_new.size else np.zeros((0, V_new.shape[1]))
+        K = _r_factor(V_new)
         vnorms = safe_column_norms(Vk)
         rejected_energy = float(np.sum((ext.rejected_norms * vnorms) ** 2))
         grown = _grow(f, ext.Q_new, ext.MQ_new, V_new, self.inner, reset_v=True)
@@ -537,7 +542,7 @@ class StreamCompressor:
         )
         r = ext.Q_new.shape[1]
         mb = Vb.shape[0]
-        Rb = np.linalg.qr(Vb, mode="r") if Vb.size else np.zeros((0, Vb.shape[1]))
+        Rb = _r_factor(Vb)
         K = np.zeros((f.R.shape[0] + Rb.shape[0], f.rank + r))
         K[: f.R.shape[0], : f.rank] = f.R
         K[f.R.shape[0] :, : f.rank] = Rb @ ext.coeffs.T
@@ -574,7 +579,7 @@ class StreamCompressor:
         prior: tuple[float, float, float] | None = None,
     ) -> None:
         p = f.Gu.shape[1]
-        R = np.linalg.qr(K, mode="r") if K.shape[0] > p else K
+        R = _r_factor(K) if K.shape[0] > p else K
         e = pow2_exponent(R)
         Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
         Qt = np.eye(p)
@@ -662,6 +667,13 @@ class StreamCompressor:
         if self.max_rank is not None:
             keep = min(keep, self.max_rank)
         return keep
+
+
+def _r_factor(X: np.ndarray) -> np.ndarray:
+    """The triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
+    if X.size == 0:
+        return np.zeros((0, X.shape[1]))
+    return np.asarray(np.linalg.qr(X, mode="r"))
 
 
 def _grow(

@@ -131,7 +131,7 @@ def test_read_only_compressor_cannot_absorb(tmp_path, rng):
 
 
 def _ingest_cmd(src, store, *extra):
-    return [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "4",
+    return [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "16",
             "--max-rank", "10", "--quiet", *extra]
 
 

@@ -107,7 +107,9 @@ def assert_svd_contract(
     if error_bound is None:
         assert r.residual < threshold, f"||A - U V^T|| / (||A|| n eps) = {r.residual:.1f}"
         if relative_v:
-            assert r.orthogonality_v < threshold, f"||Vn^T Vn - I|| / (m eps) = {r.orthogonality_v:.1f}"
+            assert r.orthogonality_v < threshold, (
+                f"||Vn^T Vn - I|| / (m eps) = {r.orthogonality_v:.1f}"
+            )
         assert r.coupling < threshold, f"||offdiag(V^T V)|| / (n eps s1^2) = {r.coupling:.1f}"
         assert r.singular_values < threshold, f"|s - sigma| / (n eps s1) = {r.singular_values:.1f}"
     else:
