@@ -239,7 +239,7 @@ class StreamCompressor:
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
                 attrs=self._attrs(),
             )
-            self._store.commit(self._arrays(self._f, self._scalars()), attrs=self._attrs())
+            self._commit(self._f, self._scalars())
 
     # ------------------------------------------------------------------ persistence
     @classmethod
@@ -275,7 +275,7 @@ class StreamCompressor:
                 )
             opts = attrs["options"]
             sc = cls(state.n, inner=ip, **opts)
-            sc._restore(state.arrays)
+            sc._restore(state.arrays, attrs.get("small_layout"))
             sc._store = st
         except BaseException:
             st.close()
@@ -333,13 +333,21 @@ class StreamCompressor:
         )
 
     def _arrays(self, f: _Factors, scalars: np.ndarray) -> dict[str, np.ndarray]:
+        # the small matrices travel packed in one array (fewer files to write and fsync
+        # per commit); their shapes are in the attributes (see `_small_layout`)
+        small = [f.Gu, f.H, f.Gv, f.R, scalars, _history_array(self._history)]
         arrays = {
-            "U0": f.U0, "Gu": f.Gu, "H": f.H, "Vraw": f.Vraw, "Gv": f.Gv, "R": f.R,
-            "scalars": scalars, "history": _history_array(self._history),
+            "U0": f.U0, "Vraw": f.Vraw,
+            "small": np.concatenate([a.ravel() for a in small]) if small else np.zeros(0),
         }
         if not self.inner.is_euclidean:
             arrays["MU0"] = f.MU0
         return arrays
+
+    def _small_layout(self, f: _Factors) -> list[list[int]]:
+        return [list(a.shape) for a in (f.Gu, f.H, f.Gv, f.R)] + [
+            [4], [len(self._history), len(_HISTORY_FIELDS)]
+        ]
 
     def _commit(self, f: _Factors, scalars: np.ndarray) -> None:
         assert self._store is not None
@@ -351,23 +359,29 @@ class StreamCompressor:
         attrs = self._attrs()
         attrs.update(n_seen=f.m, rank=f.rank, source_offset=int(scalars[3]),
                      error_bound=math.sqrt(scalars[0]), discarded_energy=float(scalars[2]),
-                     updates=len(self._history))
+                     updates=len(self._history), small_layout=self._small_layout(f))
         self._store.commit(self._arrays(f, scalars), attrs=attrs)
 
-    def _restore(self, arrays: dict[str, np.ndarray]) -> None:
+    def _restore(self, arrays: dict[str, np.ndarray], layout: Any) -> None:
         if not arrays:
             # killed between the creation of the store and its first commit: the store
             # holds the options only, and nothing was absorbed
             return
         a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()}
+        pieces = []
+        start = 0
+        for shape in layout:
+            size = int(np.prod(shape))
+            pieces.append(a["small"][start : start + size].reshape(shape))
+            start += size
+        Gu, H, Gv, R, scalars, history = pieces
         U0 = a["U0"]
         self._f = _Factors(
-            U0=U0, MU0=a["MU0"] if "MU0" in a else U0, Gu=a["Gu"], H=a["H"],
-            Vraw=a["Vraw"], Gv=a["Gv"], R=a["R"],
+            U0=U0, MU0=a["MU0"] if "MU0" in a else U0, Gu=Gu, H=H, Vraw=a["Vraw"], Gv=Gv, R=R,
         )
-        self._bound2, self._coupling, self._discarded, offset = (float(x) for x in a["scalars"])
+        self._bound2, self._coupling, self._discarded, offset = (float(x) for x in scalars)
         self.source_offset = int(offset)
-        self._history = [_record_from_row(row) for row in a["history"]]
+        self._history = [_record_from_row(row) for row in history]
 
     # ------------------------------------------------------------------ properties
     @property
