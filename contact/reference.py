@@ -1,4 +1,4 @@
-"""An independent step-by-step solver: semi-smooth Newton on the Alart-Curnier equations.
+r"""An independent step-by-step solver: semi-smooth Newton on the Alart-Curnier equations.
 
 At each instant ``t_k`` the unknowns are the free displacements ``u_f`` and the contact
 tractions ``lam = (lam_N, lam_T)``. With ``w = C u``, ``g = gaps - w_N``,
@@ -6,10 +6,10 @@ tractions ``lam = (lam_N, lam_T)``. With ``w = C u``, ``g = gaps - w_N``,
 
 .. math::
 
-    R_u &= (K u - C^T L \\lambda)_f = 0, \\\\
-    \\Phi_N &= \\lambda_N - \\min(0, \\lambda_N + r g) = 0, \\\\
-    \\Phi_T &= \\lambda_T - \\mathrm{proj}_{[-b, b]}(\\lambda_T - r\\, dw_T) = 0,
-    \\quad b = \\mu \\max(0, -(\\lambda_N + r g)),
+    R_u &= (K u - C^T L \lambda)_f = 0, \\
+    \Phi_N &= \lambda_N - \min(0, \lambda_N + r g) = 0, \\
+    \Phi_T &= \lambda_T - \mathrm{proj}_{[-b, b]}(\lambda_T - r\, dw_T) = 0,
+    \quad b = \mu \max(0, -(\lambda_N + r g)),
 
 whose solutions are exactly the states satisfying equilibrium, Signorini and the
 implicit Coulomb law of :mod:`contact.problem`. Newton's method uses a generalised
@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ._threads import blas_threads as limit_blas_threads
 from .errors import ConvergenceError, SolverOptionError
 from .problem import Problem
 
@@ -68,6 +69,7 @@ def reference_solve(
     tol: float = 1e-12,
     max_newton: int = 60,
     augmentation: float | None = None,
+    blas_threads: int | None = 1,
 ) -> ReferenceResult:
     """Solve the problem instant after instant by semi-smooth Newton.
 
@@ -75,14 +77,15 @@ def reference_solve(
     ----------
     problem : Problem
     tol : float
-        Stop when ``||R_u|| + ||L Phi|| <= tol * s``, with the force scale
-        ``s = ||(K u)_f restricted to the load||``-like quantity
-        ``max(||K_fD u_D||, ||C_f^T L lam||, ||K_DD u_D||)``.
+        Stop an instant when ``||R_u|| + ||L Phi|| <= tol * s``, with the force scale
+        ``s = max(||K_fD u_D||, ||C_f^T L lam||)`` (the load and the contact forces).
     max_newton : int
         Newton steps allowed per instant.
     augmentation : float, optional
         ``r`` of the Alart-Curnier functions; by default ``E`` over the mean distance
         between contact nodes.
+    blas_threads : int or None
+        BLAS threads during the solve (None leaves the thread pool alone).
 
     Returns
     -------
@@ -93,8 +96,15 @@ def reference_solve(
     ConvergenceError
         When an instant does not converge; ``.result`` holds the instants solved so far.
     """
-    if not (tol > 0):
-        raise SolverOptionError(f"`tol` must be positive; got {tol!r}.")
+    if not (isinstance(tol, (int, float)) and tol > 0):
+        raise SolverOptionError(f"`tol` must be a positive number; got {tol!r}.")
+    with limit_blas_threads(blas_threads):
+        return _reference_solve(problem, tol, max_newton, augmentation)
+
+
+def _reference_solve(
+    problem: Problem, tol: float, max_newton: int, augmentation: float | None
+) -> ReferenceResult:
     t0 = time.process_time()
     P = problem
     nc, m = P.nc, P.m
@@ -130,25 +140,15 @@ def reference_solve(
         uf = uf - elastic.solve(KfD @ (uD - uD_prev))
         wD = CD @ uD
         fD = KfD @ uD
-        scale = max(np.linalg.norm(fD), np.linalg.norm(CtL @ lam), 1e-300)
+        scale = max(float(np.linalg.norm(fD)), float(np.linalg.norm(CtL @ lam)), 1e-300)
 
-        def residual(uf: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, ...]:
-            w = Cf @ uf + wD
-            lN, lT = lam[:nc], lam[nc:]
-            aug = lN + r * (g0 - w[:nc])
-            active = aug < 0
-            b = mu * np.maximum(0.0, -aug)
-            y = lT - r * (w[nc:] - wT_prev)
-            stick = np.abs(y) <= b
-            Ru = Kff @ uf + fD - CtL @ lam
-            PhiN = lN - np.minimum(0.0, aug)
-            PhiT = lT - np.clip(y, -b, b)
-            return Ru, np.concatenate([PhiN, PhiT]), active, stick, y
+        step_data = _Step(Kff, CtL, Cf, nc, r, mu, g0, wD, fD, wT_prev)
+        residual = step_data.residual
 
         for it in range(max_newton + 1):
             Ru, Phi, active, stick, y = residual(uf, lam)
             res = np.linalg.norm(Ru) + np.linalg.norm(Lw * Phi)
-            scale = max(scale, np.linalg.norm(CtL @ lam))
+            scale = max(scale, float(np.linalg.norm(CtL @ lam)))
             if res <= tol * scale:
                 break
             if it == max_newton:
@@ -185,6 +185,37 @@ def reference_solve(
     cpu = time.process_time() - t0
     log.info("reference solve: %d instants, %d Newton steps, %.3f s", m, its.sum(), cpu)
     return ReferenceResult(U, LAM, W, its, cpu)
+
+
+@dataclass(frozen=True, eq=False)
+class _Step:
+    """Data of one instant; :meth:`residual` evaluates the Alart-Curnier equations."""
+
+    Kff: sp.spmatrix
+    CtL: sp.spmatrix
+    Cf: sp.csr_matrix
+    nc: int
+    r: float
+    mu: float
+    g0: np.ndarray
+    wD: np.ndarray
+    fD: np.ndarray
+    wT_prev: np.ndarray
+
+    def residual(self, uf: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Return ``R_u``, ``Phi``, the active and stick masks and the stick trial ``y``."""
+        nc, r = self.nc, self.r
+        w = self.Cf @ uf + self.wD
+        lN, lT = lam[:nc], lam[nc:]
+        aug = lN + r * (self.g0 - w[:nc])
+        active = aug < 0
+        b = self.mu * np.maximum(0.0, -aug)
+        y = lT - r * (w[nc:] - self.wT_prev)
+        stick = np.abs(y) <= b
+        Ru = self.Kff @ uf + self.fD - self.CtL @ lam
+        PhiN = lN - np.minimum(0.0, aug)
+        PhiT = lT - np.clip(y, -b, b)
+        return Ru, np.concatenate([PhiN, PhiT]), active, stick, y
 
 
 def _jacobian(

@@ -87,18 +87,20 @@ class CompressResult:
     converged: bool
 
 
-def fix_signs(U: np.ndarray, V: np.ndarray) -> None:
+def fix_signs(U: np.ndarray, V: np.ndarray) -> np.ndarray:
     """Flip ``(u_i, v_i)`` in place so that the largest-modulus entry of each ``u_i`` is > 0.
 
     Makes results deterministic across code paths, as scikit-learn's ``svd_flip``.
+    Returns the signs applied (+1 or -1 per term).
     """
     if U.shape[1] == 0 or U.shape[0] == 0:
-        return
+        return np.ones(U.shape[1])
     idx = np.argmax(np.abs(U), axis=0)
     signs = np.sign(U[idx, np.arange(U.shape[1])])
     signs[signs == 0] = 1.0
     U *= signs
     V *= signs
+    return signs
 
 
 def compress(

@@ -231,6 +231,8 @@ class StreamCompressor:
         self._coupling = 0.0
         self._discarded = 0.0
         self._history: list[UpdateRecord] = []
+        self._version = 0  # increases with every state change (for the exposure cache)
+        self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
         self.source_offset = 0
         self._store: BasisStore | None = None
         self._uncommitted = 0
@@ -376,6 +378,7 @@ class StreamCompressor:
             start += size
         Gu, H, Gv, R, scalars, history = pieces
         U0 = a["U0"]
+        self._version += 1
         self._f = _Factors(
             U0=U0, MU0=a["MU0"] if "MU0" in a else U0, Gu=Gu, H=H, Vraw=a["Vraw"], Gv=Gv, R=R,
         )
@@ -396,13 +399,19 @@ class StreamCompressor:
 
     @property
     def expansion(self) -> Expansion:
-        """The current expansion ``U V^T`` (formed from the lazy factors, signs fixed)."""
+        """The current expansion ``U V^T`` (formed from the lazy factors, signs fixed).
+
+        Terms are sorted by decreasing amplitude and signed so that the largest entry of
+        each ``u_i`` is positive; ``add(..., coefficients=dV)`` takes ``dV`` in the
+        coordinates of this ``U``.
+        """
         f = self._f
         U = f.U0 @ f.Gu
         V = f.Vraw @ f.Gv
         perm = np.argsort(-safe_column_norms(V), kind="stable")
         U, V = U[:, perm], V[:, perm]
-        fix_signs(U, V)
+        signs = fix_signs(U, V)
+        self._exposure = (self._version, perm, signs)
         return Expansion(U, V, inner=self.inner)
 
     @property
@@ -478,24 +487,37 @@ class StreamCompressor:
         )
         return self._history[-1]
 
-    def add(self, U_k: Any, V_k: Any) -> UpdateRecord:
-        """Add the low-rank increment ``U_k V_k^T`` to the current matrix.
+    def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
+        """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.
 
         Parameters
         ----------
         U_k : array_like, shape (n, k)
-            Left vectors of the increment (any, not necessarily orthonormal).
+            Left vectors of the increment (any, not necessarily orthonormal); ``k`` may
+            be 0 when ``coefficients`` is given.
         V_k : array_like, shape (m, k)
             Right vectors; ``m`` must equal :attr:`n_seen` (or fixes it when the
             compressor is empty).
+        coefficients : array_like, shape (m, p), optional
+            ``dV``: an increment *inside* the current basis, in the coordinates of the
+            ``U`` last returned by :attr:`expansion` (its column ``i`` is the change of
+            ``v_i``). It costs ``O(m p^2)`` instead of a Gram-Schmidt of ``U`` against
+            itself. This is how a PGD solver updates its time functions.
         """
         t0 = time.perf_counter()
         Uk = as_float_array(U_k, "U_k", ndim=2, rows=self.n)
         f = self._f
         m = f.m if (f.m or f.rank) else None
         Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
-        if Uk.shape[1] == 0:
-            raise InputError("`U_k` must have at least one column; got shape " f"{Uk.shape}.")
+        dV_int = None
+        if coefficients is not None:
+            dV = as_float_array(coefficients, "coefficients", ndim=2, rows=f.m, cols=f.rank)
+            dV_int = self._internal_coefficients(dV)
+        elif Uk.shape[1] == 0:
+            raise InputError(
+                f"`U_k` must have at least one column (or pass `coefficients`); got shape "
+                f"{Uk.shape}."
+            )
         if f.m == 0 and f.rank == 0:
             f = _Factors(f.U0, f.MU0, f.Gu, f.H, np.zeros((Vk.shape[0], 0)), f.Gv, np.zeros((0, 0)))
         ext = cgs2_extend(
@@ -503,6 +525,8 @@ class StreamCompressor:
         )
         # V_new = [V + V_k C^T, V_k R_new^T], formed explicitly (V_k spans every row)
         V_old = f.Vraw @ f.Gv
+        if dV_int is not None:
+            V_old = V_old + dV_int
         V_new = np.concatenate([V_old + Vk @ ext.coeffs.T, Vk @ ext.R_new.T], axis=1)
         K = _r_factor(V_new)
         vnorms = safe_column_norms(Vk)
@@ -513,6 +537,16 @@ class StreamCompressor:
             source_offset=self.source_offset,
         )
         return self._history[-1]
+
+    def _internal_coefficients(self, dV: np.ndarray) -> np.ndarray:
+        """Map coefficients on the exposed basis (sorted, signed) to the lazy factors."""
+        if self._exposure is None or self._exposure[0] != self._version:
+            _ = self.expansion  # computes and caches the exposure of this state
+        assert self._exposure is not None
+        _, perm, signs = self._exposure
+        out = np.empty_like(dV)
+        out[:, perm] = dV * signs
+        return out
 
     def merge(self, other: StreamCompressor | Expansion) -> UpdateRecord:
         """Append the snapshots represented by ``other`` (they come after the current ones).
@@ -665,6 +699,7 @@ class StreamCompressor:
             self._history.pop()
             raise
         self._f = new
+        self._version += 1
         self._bound2, self._coupling, self._discarded = bound2, coupling, scalars[2]
         self.source_offset = source_offset
 
@@ -684,7 +719,7 @@ class StreamCompressor:
 
 
 def _r_factor(X: np.ndarray) -> np.ndarray:
-    """The triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
+    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
     if X.size == 0:
         return np.zeros((0, X.shape[1]))
     return np.asarray(np.linalg.qr(X, mode="r"))

@@ -320,3 +320,26 @@ def test_merge_refuses_other_sizes_and_inner_products(rng):
         a.merge(np.eye(10))
     a.merge(ss.Expansion(np.eye(10)[:, :2], rng.standard_normal((4, 2))))
     assert a.n_seen == 4 and a.rank == 2
+
+
+def test_add_with_coefficients_in_the_basis_matches_the_dense_model(rng):
+    n, m = 30, 25
+    sc = ss.StreamCompressor(n, rule="jacobi", sweeps=1)
+    A = np.zeros((n, m))
+    Uk, Vk = rng.standard_normal((n, 4)), rng.standard_normal((m, 4))
+    sc.add(Uk, Vk)
+    A += Uk @ Vk.T
+    for step in range(6):
+        U = sc.expansion.U
+        dV = rng.standard_normal((m, sc.rank))
+        u = rng.standard_normal((n, step % 2))
+        v = rng.standard_normal((m, step % 2))
+        rec = sc.add(u, v, coefficients=dV)
+        A += U @ dV.T + u @ v.T
+        assert rec.new_directions == step % 2
+        assert np.linalg.norm(A - sc.expansion.to_dense()) <= 200 * n * EPS * np.linalg.norm(A)
+        assert sc.orthogonality_error() <= 50 * n * EPS
+    with pytest.raises(ss.ShapeMismatchError, match=r"`coefficients` must have 7 columns|`coefficients` must have"):
+        sc.add(np.zeros((n, 0)), np.zeros((m, 0)), coefficients=np.zeros((m, sc.rank + 1)))
+    with pytest.raises(ss.InputError, match=r"`U_k` must have at least one column \(or pass `coefficients`\)"):
+        sc.add(np.zeros((n, 0)), np.zeros((m, 0)))

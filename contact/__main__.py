@@ -1,0 +1,7 @@
+"""``python -m contact billet --out DIR``."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

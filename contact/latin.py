@@ -1,0 +1,338 @@
+"""The LATIN solver: local and global stages iterated over the whole space-time domain.
+
+``solve(problem, method=...)`` runs one of three variants that share the local stage
+(:mod:`contact.local`), the factorised global operator and the indicator
+(:mod:`contact.globalstage`):
+
+* ``"latin"`` -- principles P1 and P2: the global stage solves for the full space-time
+  displacement field (one back-substitution per instant and iteration);
+* ``"latin-p3"`` -- P3: the displacement correction is a sum of orthonormal space modes
+  times time functions (:mod:`contact.pgd`);
+* ``"latin-pgd"`` -- P3 where every iteration's new modes are added to a
+  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation.
+
+Each iteration ``i``: local stage ``s_hat_i`` from ``s_{i-1}`` (direction E+), global stage
+``s_i`` from ``s_hat_i`` (direction E-), indicator ``eta_i`` between ``s_i`` and
+``s_hat_i`` (:func:`contact.globalstage.indicator`). The iteration stops when
+``eta_i <= tol`` or after ``max_iter`` iterations.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from streamsvd import Expansion
+
+from ._threads import blas_threads as limit_blas_threads
+from .errors import SolverOptionError
+from .globalstage import GlobalStage, default_search_direction, indicator
+from .local import local_stage
+from .problem import Problem
+
+__all__ = ["METHODS", "IterationState", "LatinResult", "solve"]
+
+log = logging.getLogger(__name__)
+
+METHODS = ("latin", "latin-p3", "latin-pgd")
+
+
+@dataclass(frozen=True, eq=False)
+class IterationState:
+    """What a callback receives after every iteration.
+
+    Attributes
+    ----------
+    iteration : int
+        1 for the first iteration.
+    indicator : float
+        Error indicator ``eta`` between the global and local states.
+    basis_size : int
+        Number of space modes (``m`` for the full-field method).
+    cpu_time : float
+        Process time of this iteration (s).
+    basis : ndarray or None
+        Current space modes (n x p, read-only) for the separated methods.
+    """
+
+    iteration: int
+    indicator: float
+    basis_size: int
+    cpu_time: float
+    basis: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class LatinResult:
+    """Outcome of :func:`solve`.
+
+    The displacement is ``u = u_lift + y`` (see :mod:`contact.globalstage`): ``lift`` is
+    the elastic response to the prescribed displacements, ``y`` is ``field`` (n x m) for
+    ``"latin"`` and ``correction`` (a :class:`streamsvd.Expansion`, U orthonormal) for the
+    separated methods.
+
+    Attributes
+    ----------
+    method : str
+    k : float
+        Search direction used.
+    converged : bool
+        Whether ``indicator[-1] <= tol``.
+    indicator, basis_size, cpu_time, wall_time : ndarray, shape (iterations,)
+        Per-iteration history (times in s, per iteration, not cumulative).
+    setup_time : float
+        Process time of the factorisation and the lift (s).
+    w, lam : ndarray, shape (2 nc, m)
+        Contact displacements and tractions of the last global stage.
+    w_hat, lam_hat : ndarray, shape (2 nc, m)
+        The last local stage (satisfies the contact laws exactly).
+    lift : streamsvd.Expansion
+    field : ndarray or None
+    correction : streamsvd.Expansion or None
+    info : dict
+        Method-specific counters (enrichments, truncations, compressor history).
+    """
+
+    method: str
+    k: float
+    converged: bool
+    indicator: np.ndarray
+    basis_size: np.ndarray
+    cpu_time: np.ndarray
+    wall_time: np.ndarray
+    setup_time: float
+    w: np.ndarray
+    lam: np.ndarray
+    w_hat: np.ndarray
+    lam_hat: np.ndarray
+    lift: Expansion
+    field: np.ndarray | None
+    correction: Expansion | None
+    info: dict[str, Any]
+
+    @property
+    def iterations(self) -> int:
+        """Number of iterations run."""
+        return int(self.indicator.size)
+
+    def displacement(self) -> np.ndarray:
+        """Return the displacement ``u`` (n x m) as a dense array."""
+        return self.lift.to_dense() + self.correction_dense()
+
+    def correction_dense(self) -> np.ndarray:
+        """Return ``y = u - u_lift`` (n x m) as a dense array."""
+        if self.correction is not None:
+            return self.correction.to_dense()
+        return np.asarray(self.field)
+
+    def memory(self) -> int:
+        """Return the bytes of the displacement representation (lift included)."""
+        lift = self.lift.U.nbytes + self.lift.V.nbytes
+        if self.correction is not None:
+            return int(self.correction.U.nbytes + self.correction.V.nbytes + lift)
+        return int(np.asarray(self.field).nbytes + lift)
+
+    def cpu_time_to(self, level: float) -> float:
+        """Return the cumulated CPU time (setup included) until ``indicator <= level``.
+
+        ``nan`` when the level was not reached.
+        """
+        hit = np.flatnonzero(self.indicator <= level)
+        if hit.size == 0:
+            return float("nan")
+        return float(self.setup_time + np.sum(self.cpu_time[: hit[0] + 1]))
+
+    def iterations_to(self, level: float) -> int | None:
+        """Return the first iteration (1-based) with ``indicator <= level``, or None."""
+        hit = np.flatnonzero(self.indicator <= level)
+        return int(hit[0] + 1) if hit.size else None
+
+
+class _FullField:
+    """Global stage of the ``"latin"`` method: the full space-time correction field."""
+
+    def __init__(self, stage: GlobalStage) -> None:
+        self.stage = stage
+        self.y = np.zeros((len(stage.free), stage.problem.m))
+
+    @property
+    def basis_size(self) -> int:
+        return self.stage.problem.m
+
+    @property
+    def basis(self) -> None:
+        return None
+
+    def update(self, Z: np.ndarray) -> np.ndarray:
+        self.y = self.stage.solve(self.stage.G @ Z)
+        return self.stage.Cf @ self.y + self.stage.w_lift
+
+    def finish(self) -> dict[str, Any]:
+        return {}
+
+
+def _check_options(
+    problem: Problem, method: str, tol: float, max_iter: int, k: float | None
+) -> tuple[str, float, int, float]:
+    if not isinstance(problem, Problem):
+        raise SolverOptionError(
+            f"`problem` must be a contact.Problem; got {type(problem).__name__}. Build one "
+            "with contact.billet(...) or contact.block(...)."
+        )
+    if method not in METHODS:
+        raise SolverOptionError(f"`method` must be one of {METHODS}; got {method!r}.")
+    if not (isinstance(tol, (int, float)) and tol > 0):
+        raise SolverOptionError(f"`tol` must be a positive number; got {tol!r}.")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise SolverOptionError(f"`max_iter` must be a positive integer; got {max_iter!r}.")
+    if k is None:
+        k = default_search_direction(problem)
+    elif not (isinstance(k, (int, float)) and k > 0):
+        raise SolverOptionError(f"`k` must be a positive number; got {k!r}.")
+    return method, float(tol), int(max_iter), float(k)
+
+
+def solve(
+    problem: Problem,
+    method: str = "latin",
+    *,
+    tol: float = 1e-6,
+    max_iter: int = 2000,
+    k: float | None = None,
+    callback: Callable[[IterationState], Any] | None = None,
+    trunc: float = 1e-4,
+    enrich_ratio: float = 0.5,
+    fixed_point: int = 4,
+    blas_threads: int | None = 1,
+) -> LatinResult:
+    """Solve a frictional contact problem with a LATIN variant.
+
+    Parameters
+    ----------
+    problem : Problem
+    method : {"latin", "latin-p3", "latin-pgd"}
+        Variant (see the module docstring).
+    tol : float
+        Stop when the indicator ``eta <= tol``.
+    max_iter : int
+        Largest number of iterations.
+    k : float, optional
+        Search direction; default :func:`contact.globalstage.default_search_direction`
+        (``E`` over the length of the contact zone).
+    callback : callable, optional
+        ``callback(state)`` with an :class:`IterationState` after every iteration;
+        returning ``True`` stops the iteration.
+    trunc : float
+        ``"latin-pgd"`` only: after each sweep the compressor drops the terms with
+        ``||v_i|| < trunc * ||v_1||`` (``||v_1||`` the largest amplitude; the paper's
+        threshold ``eps`` of Algorithm 3 made relative), see :mod:`contact.pgd`.
+    enrich_ratio : float
+        Separated methods: a new space-time pair is computed when the time-function update
+        leaves a residual ``||R|| > enrich_ratio * ||R_before||``, ``R_before`` the
+        residual of the previous iterate against the new right-hand side.
+    fixed_point : int
+        Separated methods: alternating space/time iterations for a new pair.
+    blas_threads : int or None
+        BLAS threads during the solve (None leaves the thread pool alone); the products
+        are small, so one thread is the fastest on this problem size.
+
+    Returns
+    -------
+    LatinResult
+        ``converged`` is False when ``max_iter`` was reached first (no exception: the
+        partial result is the answer).
+    """
+    method, tol, max_iter, k = _check_options(problem, method, tol, max_iter, k)
+    if not (isinstance(enrich_ratio, (int, float)) and 0 < enrich_ratio <= 1):
+        raise SolverOptionError(f"`enrich_ratio` must be in (0, 1]; got {enrich_ratio!r}.")
+    if not (isinstance(trunc, (int, float)) and 0 <= trunc < 1):
+        raise SolverOptionError(f"`trunc` must be in [0, 1); got {trunc!r}.")
+    if isinstance(fixed_point, bool) or not isinstance(fixed_point, int) or fixed_point < 1:
+        raise SolverOptionError(
+            f"`fixed_point` must be a positive integer; got {fixed_point!r}."
+        )
+    with limit_blas_threads(blas_threads):
+        return _solve(problem, method, tol, max_iter, k, callback, trunc, enrich_ratio,
+                      fixed_point)
+
+
+def _solve(
+    problem: Problem,
+    method: str,
+    tol: float,
+    max_iter: int,
+    k: float,
+    callback: Callable[[IterationState], Any] | None,
+    trunc: float,
+    enrich_ratio: float,
+    fixed_point: int,
+) -> LatinResult:
+    c0 = time.process_time()
+    stage = GlobalStage(problem, k)
+    variant: Any
+    if method == "latin":
+        variant = _FullField(stage)
+    else:
+        from .pgd import SeparatedField
+
+        variant = SeparatedField(
+            stage,
+            compress=(method == "latin-pgd"),
+            trunc=trunc,
+            enrich_ratio=enrich_ratio,
+            fixed_point=fixed_point,
+        )
+    setup = time.process_time() - c0
+    P = problem
+    L = P.weights
+    Lc = np.concatenate([L, L])
+    w = stage.w_lift.copy()
+    lam = np.zeros_like(w)
+    w_hat = w
+    lam_hat = lam
+    etas: list[float] = []
+    sizes: list[int] = []
+    cpus: list[float] = []
+    walls: list[float] = []
+    converged = False
+    for it in range(1, max_iter + 1):
+        c0, t0 = time.process_time(), time.perf_counter()
+        w_hat, lam_hat = local_stage(w, lam, k=k, gaps=P.gaps, mu=P.mu)
+        w = variant.update(stage.rhs_data(w_hat, lam_hat))
+        lam = stage.tractions(w, w_hat, lam_hat)
+        eta = indicator(w, lam, w_hat, lam_hat, Lc, k)
+        cpus.append(time.process_time() - c0)
+        walls.append(time.perf_counter() - t0)
+        etas.append(eta)
+        sizes.append(variant.basis_size)
+        if it % 50 == 0:
+            log.debug("%s iteration %d: indicator %.3e, basis %d", method, it, eta,
+                      variant.basis_size)
+        stop = False
+        if callback is not None:
+            stop = bool(callback(IterationState(it, eta, variant.basis_size, cpus[-1],
+                                                variant.basis)))
+        if eta <= tol:
+            converged = True
+            break
+        if stop:
+            break
+    info = variant.finish()
+    lift = Expansion(stage.lift_space, stage.lift_time)
+    field = correction = None
+    if method == "latin":
+        field = np.zeros((P.n, P.m))
+        field[stage.free] = variant.y
+    else:
+        correction = info.pop("expansion")
+    log.info("%s: %d iterations, indicator %.3e, converged %s", method, len(etas),
+             etas[-1], converged)
+    return LatinResult(
+        method, k, converged, np.array(etas), np.array(sizes, dtype=int), np.array(cpus),
+        np.array(walls), setup, w, lam, w_hat, lam_hat, lift, field, correction, info,
+    )

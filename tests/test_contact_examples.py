@@ -1,0 +1,71 @@
+import json
+import runpy
+from pathlib import Path
+
+import pytest
+
+import contact
+from contact.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_billet_example_runs_and_reproduces_the_paper_trends(tmp_path, capsys):
+    script = runpy.run_path(str(ROOT / "examples" / "billet.py"))
+    summary = script["main"](["--out", str(tmp_path), "--dt", "0.02", "--max-iter", "200"])
+    for name in ("fig5_convergence", "fig6_svd", "fig7_space_modes", "fig8_mac_p3",
+                 "fig9_mac_pgd"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 10_000
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert on_disk["problem"]["instants"] == 51
+    rows = {r["method"]: r for r in summary["table"]}
+    assert rows["latin"]["converged"]
+    assert rows["latin"]["error_u_vs_reference"] < 1e-4
+    opt = rows["latin-pgd"]["optimal_svd_size"]
+    assert abs(rows["latin-pgd"]["final_basis_size"] - opt) <= max(2, 0.1 * opt)
+    assert rows["latin-p3"]["final_basis_size"] > opt
+    assert summary["reference"]["laws_worst_violation"] < 1e-10
+    capsys.readouterr()
+
+
+def test_cli_writes_the_figures(tmp_path, capsys):
+    out = tmp_path / "cli"
+    code = main(["billet", "--out", str(out), "--dt", "0.05", "--max-iter", "60",
+                 "--fine-trunc", "0", "--quiet"])
+    assert code == 0
+    assert (out / "fig5_convergence.png").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert [r["method"] for r in summary["table"]] == ["latin", "latin-p3", "latin-pgd"]
+    assert capsys.readouterr().out == ""
+
+
+def test_cli_reports_a_bad_option_as_an_error(tmp_path, capsys):
+    assert main(["billet", "--out", str(tmp_path), "--dt", "0.3", "--quiet"]) == 2
+    assert "`dt` must divide" in capsys.readouterr().err
+
+
+def test_cli_requires_a_command():
+    with pytest.raises(SystemExit):
+        main([])
+
+
+def test_scale_bench_runs_on_small_sizes(tmp_path, monkeypatch, capsys):
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
+    mod = runpy.run_path(str(ROOT / "bench" / "bench_contact_scale.py"))
+    result = mod["main"](["--quick", "--out", str(tmp_path), "--max-iter", "300"])
+    for name in ("scale", "k"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 5_000
+        assert json.loads((tmp_path / f"{name}.json").read_text())
+    for row in result["scale"]:
+        assert row["latin"]["converged"] and row["latin-p3"]["converged"]
+        assert row["latin-pgd"]["representation_bytes"] < row["full_field_bytes"] * 1.05
+        assert row["reference"]["peak_bytes"] > 0
+    its = [r["iterations"] for r in result["k"]["rows"]]
+    assert len(its) == 3 and all(i > 0 for i in its)
+    capsys.readouterr()
+
+
+def test_package_exposes_the_study_lazily():
+    assert callable(contact.billet_study)
+    with pytest.raises(AttributeError):
+        contact.not_there  # noqa: B018
