@@ -215,7 +215,10 @@ def _run_fast(
     if p == 0 or expansion.m == 0:
         return _finish(expansion, U[:, :0].copy(), V[:, :0].copy(), [], 0.0, True)
     e = pow2_exponent(V)
-    Qv, R = np.linalg.qr(np.ldexp(V, -e))
+    Vs = np.ldexp(V, -e)
+    # sort keys from V itself, kept across sweeps: exact ties order as in the literal path
+    nrm2 = np.array([float(Vs[:, c] @ Vs[:, c]) for c in range(p)])
+    Qv, R = np.linalg.qr(Vs)
     Rt = np.ascontiguousarray(R.T)
     Qt = np.eye(p)
     order = np.arange(p, dtype=np.int64)
@@ -225,7 +228,7 @@ def _run_fast(
     energy = 0.0
     converged = False
     while len(stats) < max_sweeps:
-        s = sweep_core(Rt, Qt, order, q, rule=rule, eps=eps_s, tol=tol)
+        s = sweep_core(Rt, Qt, order, q, rule=rule, eps=eps_s, tol=tol, nrm2=nrm2)
         q = s.rank
         energy += math.ldexp(s.cut_energy, 2 * e)
         stats.append(s)

@@ -284,6 +284,7 @@ def sweep_core(
     rule: str,
     eps: float,
     tol: float,
+    nrm2: np.ndarray | None = None,
 ) -> SweepStats:
     """One sweep of Algorithm 3 on a small core, in place.
 
@@ -304,8 +305,14 @@ def sweep_core(
         Cut threshold on ``||v_i||`` in the units of ``Rt`` (Algorithm 3).
     tol : float
         A pair is rotated only when ``|(v_j|v_i)| > tol ||v_j|| ||v_i||``.
+    nrm2 : ndarray, shape (p,), optional
+        Squared norms of the terms, the sort keys, updated in place (only the rotated
+        terms' keys change). Passing the keys of the full ``V`` and keeping them across
+        sweeps makes exact ties sort as in :func:`sweep_literal`; by default they are
+        computed from ``Rt``.
     """
-    nrm2 = np.einsum("ij,ij->i", Rt, Rt)
+    if nrm2 is None:
+        nrm2 = np.einsum("ij,ij->i", Rt, Rt)
     out = np.zeros(4)
     q = int(_sweep_rows(Rt, Qt, order, q, nrm2, rule == "jacobi", eps * eps, tol, out))
     return SweepStats(q, float(out[0]), float(out[1]), int(out[2]), float(out[3]))

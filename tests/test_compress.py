@@ -173,3 +173,17 @@ def test_rbs480a_converges_to_lapack_accuracy(rbs480a_path):
     assert r.converged
     assert_svd_contract(A, r.expansion)
     assert r.expansion.amplitudes[0] == pytest.approx(857.4829, rel=1e-6)
+
+
+@pytest.mark.parametrize("rule", ["paper", "jacobi"])
+def test_fast_path_orders_exact_ties_as_the_literal_path(rng, rule):
+    # integer rows with equal norms (as in rbs480a): exact ties in the sort of Algorithm 2
+    bases = rng.integers(-9, 10, size=(3, 40)).astype(float)
+    A = np.vstack([np.roll(bases[k % 3], k) for k in range(30)])  # 3 norms, 10 rows each
+    assert np.unique(np.sum(A**2, axis=1)).size == 3
+    e = ss.Expansion.canonical(A)
+    for sweeps in (1, 2):
+        f = ss.compress(e, rule=rule, max_sweeps=sweeps, tol=0.0)
+        lit = ss.compress(e, rule=rule, max_sweeps=sweeps, tol=0.0, method="literal")
+        s1 = lit.expansion.amplitudes[0]
+        np.testing.assert_allclose(f.expansion.amplitudes, lit.expansion.amplitudes, atol=1e-12 * s1)

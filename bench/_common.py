@@ -1,0 +1,179 @@
+"""Helpers shared by the benchmark scripts: paths, JSON output, timing, plotting setup.
+
+The scripts in ``bench/`` import this module by name; running ``python bench/NAME.py``
+puts ``bench/`` first on ``sys.path``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO_ROOT / "bench" / "results"
+DEFAULT_RBS480A = REPO_ROOT.parent / "shared" / "data" / "rbs480a.mtx"
+RBS480A_SOURCE = (
+    "The Matrix Market publishes RBS480A in its Harwell-Boeing collection "
+    "(https://math.nist.gov/MatrixMarket/, search for 'rbs480a'; also at "
+    "https://sparse.tamu.edu/HB/rbs480a): download rbs480a.mtx.gz, gunzip it and pass "
+    "its path with --data."
+)
+
+
+def pyplot() -> Any:
+    """Return ``matplotlib.pyplot`` with the non-interactive Agg backend selected."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def out_dir(path: str | os.PathLike[str] | None) -> Path:
+    """Return the output directory (``bench/results`` by default), created if needed."""
+    p = Path(path) if path is not None else DEFAULT_OUT
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def _to_json(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _to_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_to_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _to_json(obj.tolist())
+    if isinstance(obj, np.integer | np.bool_):
+        return obj.item()
+    if isinstance(obj, float | np.floating):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    if obj is None or isinstance(obj, str | int | bool):
+        return obj
+    return str(obj)
+
+
+def write_json(path: Path, data: dict[str, Any]) -> Path:
+    """Write ``data`` as indented JSON (numpy values converted, non-finite floats as null)."""
+    path.write_text(json.dumps(_to_json(data), indent=1) + "\n")
+    return path
+
+
+def machine_info() -> dict[str, Any]:
+    """Describe the machine and the BLAS the timings were taken with."""
+    import scipy
+
+    info: dict[str, Any] = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "blas_env": {k: v for k, v in os.environ.items() if "BLAS" in k or "OMP" in k},
+    }
+    try:
+        from threadpoolctl import threadpool_info
+
+        info["blas"] = [
+            {k: d.get(k) for k in ("internal_api", "version", "architecture", "num_threads")}
+            for d in threadpool_info()
+            if d.get("user_api") == "blas"
+        ]
+    except ImportError:
+        info["blas"] = None
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")]
+        info["cpu_model"] = names[0] if names else None
+    except OSError:
+        info["cpu_model"] = None
+    return info
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Wall-clock and process CPU times of repeated calls (seconds)."""
+
+    wall: list[float]
+    cpu: list[float]
+
+    @property
+    def best(self) -> float:
+        """Smallest wall time."""
+        return min(self.wall)
+
+    @property
+    def best_cpu(self) -> float:
+        """CPU time (all threads of the process) of the call with the smallest wall time."""
+        return self.cpu[self.wall.index(self.best)]
+
+
+def best_time(
+    fn: Callable[[], Any], *, repeat: int = 3, short: float = 2.0
+) -> tuple[Timing, Any]:
+    """Time ``fn()``; repeat up to ``repeat`` times while one call takes under ``short`` s.
+
+    Returns the wall and CPU times of every call and the result of the last call. The CPU
+    time counts every thread of the process, so it exceeds the wall time of a call that
+    runs on two threads and is close to it for a single-threaded call; unlike the wall
+    time it is not inflated by other processes competing for the cores.
+    """
+    wall: list[float] = []
+    cpu: list[float] = []
+    result = None
+    for _ in range(max(repeat, 1)):
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        result = fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        if wall[-1] >= short:
+            break
+    return Timing(wall, cpu), result
+
+
+def load_rbs480a(path: str | os.PathLike[str] | None) -> np.ndarray:
+    """Read rbs480a with ``scipy.io.mmread`` as a dense array; exit with a message if absent."""
+    import scipy.io
+
+    p = Path(path) if path is not None else DEFAULT_RBS480A
+    if not p.is_file():
+        raise SystemExit(f"rbs480a.mtx not found at {p}. {RBS480A_SOURCE}")
+    A = scipy.io.mmread(str(p))
+    return np.asarray(A.toarray() if hasattr(A, "toarray") else A, dtype=np.float64)
+
+
+def format_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """Format rows as a plain aligned text table (floats in ``%.3g``)."""
+
+    def cell(x: Any) -> str:
+        if isinstance(x, float | np.floating):
+            return "-" if not math.isfinite(float(x)) else f"{float(x):.3g}"
+        return str(x)
+
+    body = [[cell(x) for x in r] for r in rows]
+    widths = [max(len(h), *(len(r[c]) for r in body)) if body else len(h)
+              for c, h in enumerate(headers)]
+    lines = ["  ".join(h.rjust(w) for h, w in zip(headers, widths, strict=True))]
+    lines += ["  ".join(x.rjust(w) for x, w in zip(r, widths, strict=True)) for r in body]
+    return "\n".join(lines)
+
+
+def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], *, title: str = "") -> None:
+    """Print a summary table to stdout."""
+    if title:
+        print(title)
+    print(format_table(headers, rows))
+    sys.stdout.flush()

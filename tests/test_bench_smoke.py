@@ -1,0 +1,101 @@
+"""The benchmark scripts of bench/ run on tiny sizes and write sane numbers."""
+
+import importlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture
+def bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+
+    def load(name):
+        return importlib.import_module(name)
+
+    return load
+
+
+def _read(path):
+    assert path.is_file() and path.stat().st_size > 0, path
+    return json.loads(path.read_text())
+
+
+def test_fig1_pair_dynamics(bench, tmp_path):
+    mod = bench("fig1_pair_dynamics")
+    mod.main(["--out", str(tmp_path), "--steps", "12", "--random", "10"])
+    assert (tmp_path / "fig1_pair_dynamics.png").stat().st_size > 10_000
+    data = _read(tmp_path / "fig1_pair_dynamics.json")
+    assert data["max_deviation_plotted"] < 1e-12
+    assert data["max_deviation_random"]["eta"] < 1e-12
+    assert data["max_deviation_random"]["relative_product_change"] < 1e-12
+    for t in data["trajectories"]:
+        assert 0.0 < t["eta_limit"] < 1.0
+        alpha = np.array(t["alpha"])
+        eta = np.array(t["eta"])
+        assert np.all(np.diff(alpha) <= 0.0) and np.all(np.diff(eta) <= 0.0)
+        assert t["invariant_max_dev"] < 1e-10
+        assert eta[-1] >= t["eta_limit"] - 1e-12
+
+
+def test_fig3_rbs480a(bench, tmp_path, rbs480a_path):
+    mod = bench("fig3_rbs480a")
+    mod.main(["--out", str(tmp_path), "--data", str(rbs480a_path), "--size", "40",
+              "--max-sweeps", "8", "--steep-modes", "5"])
+    for name in ("fig2_rbs480a_spectra.png", "fig3_rbs480a.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    data = _read(tmp_path / "fig3_rbs480a.json")
+    assert data["sweep_list"] == [1, 2, 3, 5, 8]
+    assert set(data["configurations"]) == {"original", "medium slope", "strong initial slope"}
+    for conf in data["configurations"].values():
+        s = np.array(conf["s_mod"])
+        assert s.size == 40 and np.all(np.diff(s) <= 0.0)
+        for rr in conf["rules"].values():
+            E = [conf["E0"]] + [r["E"] for r in rr["runs"]]
+            assert all(math.isfinite(x) and x >= 0.0 for x in E)
+            assert E[-1] < 0.5 * E[0]
+            assert len(rr["indicator"]) == rr["runs"][-1]["sweeps"]
+    jac = data["configurations"]["original"]["rules"]["jacobi"]["runs"]
+    assert np.all(np.diff([r["E"] for r in jac]) <= 1e-12)
+
+
+def test_fig3_missing_data_says_where_to_get_it(bench, tmp_path):
+    mod = bench("fig3_rbs480a")
+    with pytest.raises(SystemExit, match="Matrix Market"):
+        mod.main(["--out", str(tmp_path), "--data", str(tmp_path / "absent.mtx")])
+
+
+def test_speed_vs_error_generated(bench, tmp_path):
+    mod = bench("speed_vs_error")
+    mod.main(["--out", str(tmp_path), "--matrices", "generated", "--n", "48",
+              "--decades", "3", "--ranks", "5,20", "--run-cap", "3",
+              "--literal-cap", "3", "--literal-max-n", "64"])
+    assert (tmp_path / "speed_vs_error_generated.png").stat().st_size > 10_000
+    st = _read(tmp_path / "speed_vs_error_generated.json")
+    assert set(st["series"]) == {"fast/paper", "fast/jacobi", "literal/jacobi"}
+    for s in st["series"].values():
+        runs = s["runs"]
+        assert runs and all(r["seconds"] > 0.0 for r in runs)
+        assert runs[-1]["sv"] < runs[0]["sv"]
+        assert runs[-1]["excess"]["5"] < runs[0]["excess"]["5"]
+    jac = st["series"]["fast/jacobi"]
+    assert jac["converged"] and jac["runs"][-1]["sv"] < 1e-12
+    lit = st["series"]["literal/jacobi"]["runs"]
+    fast = {r["max_sweeps"]: r["sv"] for r in jac["runs"]}
+    for r in lit:
+        assert abs(r["sv"] - fast[r["max_sweeps"]]) < 1e-10
+    for b in st["lapack"].values():
+        assert b["seconds"] > 0.0 and b["sv"] < 1e-12
+        assert abs(b["excess"]["20"]) < 1e-10 and b["subspace"]["5"] < 1e-8
+
+
+def test_speed_vs_error_missing_data(bench, tmp_path):
+    mod = bench("speed_vs_error")
+    with pytest.raises(SystemExit, match="Matrix Market"):
+        mod.main(["--out", str(tmp_path), "--matrices", "rbs480a",
+                  "--data", str(tmp_path / "absent.mtx")])
