@@ -35,14 +35,24 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from ._scaling import pow2_exponent, safe_column_norms
+from ._core import (
+    HISTORY_FIELDS,
+    Bound,
+    Truncation,
+    UpdateRecord,
+    core_step,
+    history_array,
+    r_factor,
+    record_from_row,
+)
+from ._scaling import safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
 from .compress import fix_signs
 from .errors import InputError, StoreError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import cgs2_extend, default_reject_tol
 from .inner import InnerProduct, as_inner, check_same_inner
-from .rotations import RULES, sweep_core
+from .rotations import RULES
 from .store import BasisStore, open_store
 
 __all__ = ["StreamCompressor", "UpdateRecord"]
@@ -50,51 +60,6 @@ __all__ = ["StreamCompressor", "UpdateRecord"]
 logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
-
-
-@dataclass(frozen=True)
-class UpdateRecord:
-    """What one update did (an entry of :attr:`StreamCompressor.history`).
-
-    Attributes
-    ----------
-    kind : {"absorb", "add", "merge"}
-    columns : int
-        Snapshots added (``absorb``, ``merge``) or terms of the increment (``add``).
-    rank : int
-        Rank after the update.
-    new_directions : int
-        Directions accepted by Gram-Schmidt.
-    rejected : int
-        Directions rejected by Gram-Schmidt.
-    cut : int
-        Terms removed by truncation.
-    cut_energy : float
-        Energy ``sum ||v_i||^2`` removed by truncation and rejection.
-    sweeps : int
-        Rotation sweeps run.
-    max_cosine : float
-        Largest pair cosine met in the last sweep (0 at the SVD).
-    orthogonality : float
-        ``||U^T M U - I||_2`` after the update.
-    error_bound : float
-        The guaranteed bound on ``||A - U V^T||_F`` after the update.
-    seconds : float
-        Wall time of the update.
-    """
-
-    kind: str
-    columns: int
-    rank: int
-    new_directions: int
-    rejected: int
-    cut: int
-    cut_energy: float
-    sweeps: int
-    max_cosine: float
-    orthogonality: float
-    error_bound: float
-    seconds: float
 
 
 @dataclass(frozen=True)
@@ -226,10 +191,9 @@ class StreamCompressor:
             else check_nonnegative(reorth_tol, "reorth_tol")
         )
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
+        self._truncation = Truncation(self.eps, self.rtol, self.max_rank)
         self._f = _empty_factors(self.n, self.inner.is_euclidean)
-        self._bound2 = 0.0
-        self._coupling = 0.0
-        self._discarded = 0.0
+        self._bound = Bound()
         self._history: list[UpdateRecord] = []
         self._version = 0  # increases with every state change (for the exposure cache)
         self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
@@ -326,18 +290,17 @@ class StreamCompressor:
             "source_offset": self.source_offset,
             "updates": len(self._history),
             "error_bound": self.error_bound,
-            "discarded_energy": self._discarded,
+            "discarded_energy": self._bound.discarded,
         }
 
     def _scalars(self) -> np.ndarray:
-        return np.array(
-            [self._bound2, self._coupling, self._discarded, float(self.source_offset)]
-        )
+        b = self._bound
+        return np.array([b.bound2, b.coupling, b.discarded, float(self.source_offset)])
 
     def _arrays(self, f: _Factors, scalars: np.ndarray) -> dict[str, np.ndarray]:
         # the small matrices travel packed in one array (fewer files to write and fsync
         # per commit); their shapes are in the attributes (see `_small_layout`)
-        small = [f.Gu, f.H, f.Gv, f.R, scalars, _history_array(self._history)]
+        small = [f.Gu, f.H, f.Gv, f.R, scalars, history_array(self._history)]
         arrays = {
             "U0": f.U0, "Vraw": f.Vraw,
             "small": np.concatenate([a.ravel() for a in small]) if small else np.zeros(0),
@@ -348,7 +311,7 @@ class StreamCompressor:
 
     def _small_layout(self, f: _Factors) -> list[list[int]]:
         return [list(a.shape) for a in (f.Gu, f.H, f.Gv, f.R)] + [
-            [4], [len(self._history), len(_HISTORY_FIELDS)]
+            [4], [len(self._history), len(HISTORY_FIELDS)]
         ]
 
     def _commit(self, f: _Factors, scalars: np.ndarray) -> None:
@@ -382,9 +345,10 @@ class StreamCompressor:
         self._f = _Factors(
             U0=U0, MU0=a["MU0"] if "MU0" in a else U0, Gu=Gu, H=H, Vraw=a["Vraw"], Gv=Gv, R=R,
         )
-        self._bound2, self._coupling, self._discarded, offset = (float(x) for x in scalars)
+        bound2, coupling, discarded, offset = (float(x) for x in scalars)
+        self._bound = Bound(bound2, coupling, discarded)
         self.source_offset = int(offset)
-        self._history = [_record_from_row(row) for row in history]
+        self._history = [record_from_row(row) for row in history]
 
     # ------------------------------------------------------------------ properties
     @property
@@ -422,12 +386,12 @@ class StreamCompressor:
     @property
     def discarded_energy(self) -> float:
         """Sum of the energies ``||D_t||_F^2`` discarded by every update."""
-        return self._discarded
+        return self._bound.discarded
 
     @property
     def error_bound(self) -> float:
         """Guaranteed bound on ``||A - U V^T||_F`` (see the class notes for the theorem)."""
-        return math.sqrt(self._bound2)
+        return math.sqrt(self._bound.bound2)
 
     @property
     def history(self) -> tuple[UpdateRecord, ...]:
@@ -528,7 +492,7 @@ class StreamCompressor:
         if dV_int is not None:
             V_old = V_old + dV_int
         V_new = np.concatenate([V_old + Vk @ ext.coeffs.T, Vk @ ext.R_new.T], axis=1)
-        K = _r_factor(V_new)
+        K = r_factor(V_new)
         vnorms = safe_column_norms(Vk)
         rejected_energy = float(np.sum((ext.rejected_norms * vnorms) ** 2))
         grown = _grow(f, ext.Q_new, ext.MQ_new, V_new, self.inner, reset_v=True)
@@ -567,15 +531,14 @@ class StreamCompressor:
                 )
             check_same_inner(self.inner, other.inner, "other")
             e_o = other.expansion
-            other_bound2, other_coupling = other._bound2, other._coupling
-            other_discarded = other._discarded
+            other_bound = other._bound
         elif isinstance(other, Expansion):
             if other.n != self.n:
                 raise InputError(
                     f"`other` must have snapshots of size {self.n}; got {other.n}."
                 )
             check_same_inner(self.inner, other.inner, "other")
-            e_o, other_bound2, other_coupling, other_discarded = other, 0.0, 0.0, 0.0
+            e_o, other_bound = other, Bound()
         else:
             raise InputError(
                 "`other` must be a StreamCompressor or an Expansion; got "
@@ -590,7 +553,7 @@ class StreamCompressor:
         )
         r = ext.Q_new.shape[1]
         mb = Vb.shape[0]
-        Rb = _r_factor(Vb)
+        Rb = r_factor(Vb)
         K = np.zeros((f.R.shape[0] + Rb.shape[0], f.rank + r))
         K[: f.R.shape[0], : f.rank] = f.R
         K[f.R.shape[0] :, : f.rank] = Rb @ ext.coeffs.T
@@ -605,8 +568,7 @@ class StreamCompressor:
         self._update(
             "merge", mb, grown, K, ext, rejected_energy, overlapping=False, t0=t0,
             source_offset=self.source_offset + mb,
-            prior=(self._bound2 + other_bound2, self._coupling + other_coupling,
-                   self._discarded + other_discarded),
+            prior=self._bound.combine(other_bound),
         )
         return self._history[-1]
 
@@ -624,43 +586,15 @@ class StreamCompressor:
         t0: float,
         source_offset: int,
         coupling_extra: float = 0.0,
-        prior: tuple[float, float, float] | None = None,
+        prior: Bound | None = None,
     ) -> None:
-        p = f.Gu.shape[1]
-        R = _r_factor(K) if K.shape[0] > p else K
-        e = pow2_exponent(R)
-        Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
-        Qt = np.eye(p)
-        order = np.arange(p, dtype=np.int64)
-        done = 0
-        max_cos = 0.0
-        limit = self.sweeps if self.sweeps is not None else 200
-        while done < limit and p > 1:
-            s = sweep_core(Rt, Qt, order, p, rule=self.rule, eps=0.0, tol=math.sqrt(f.m) * _EPS)
-            done += 1
-            max_cos = s.max_cosine
-            if s.rotations == 0:
-                break
-        # final order by amplitude, then truncation after the sweeps
-        amps = np.ldexp(safe_column_norms(Rt.T), e)
-        order = np.argsort(-amps, kind="stable")
-        keep = self._keep_count(amps[order])
-        kept, cut = order[:keep], order[keep:]
-        cut_energy = float(np.sum(amps[cut] ** 2))
-        if cut.size and kept.size:
-            W_kd = np.ldexp(Rt[kept], e) @ np.ldexp(Rt[cut], e).T
-            nuclear = float(np.sum(scipy.linalg.svdvals(W_kd)))
-        else:
-            nuclear = 0.0
-        if cut.size:
-            logger.info(
-                "%s: cut %d terms of energy %.3e (amplitudes %.3e .. %.3e)",
-                kind, cut.size, cut_energy, amps[cut].max(), amps[cut].min(),
-            )
-        T = Qt[kept].T
+        step = core_step(
+            K, rule=self.rule, sweeps=self.sweeps, m=f.m, truncation=self._truncation,
+            kind=kind,
+        )
         new = _Factors(
-            U0=f.U0, MU0=f.MU0, Gu=f.Gu @ T, H=f.H, Vraw=f.Vraw, Gv=f.Gv @ T,
-            R=np.ldexp(Rt[kept], e).T.copy(),
+            U0=f.U0, MU0=f.MU0, Gu=f.Gu @ step.T, H=f.H, Vraw=f.Vraw, Gv=f.Gv @ step.T,
+            R=step.R,
         )
         new = _maybe_compact(new, self.compact_ratio, self.inner)
         orth = _orthogonality(new)
@@ -668,24 +602,19 @@ class StreamCompressor:
             logger.info("re-orthonormalising the basis (||U^T M U - I|| = %.2e)", orth)
             new = _reorthonormalize(new)
             orth = _orthogonality(new)
-        # error bound recursion (class notes)
-        bound2_prev, coupling_prev, discarded_prev = (
-            (self._bound2, self._coupling, self._discarded) if prior is None else prior
+        energy = step.cut_energy + rejected_energy
+        bound = (self._bound if prior is None else prior).step(
+            energy, step.coupling, overlapping=overlapping, extra=coupling_extra
         )
-        energy = cut_energy + rejected_energy
-        cross = math.sqrt(energy) * math.sqrt(bound2_prev)
-        if not overlapping:
-            cross = min(cross, coupling_prev)
-        bound2 = bound2_prev + energy + 2.0 * cross
-        coupling = math.inf if overlapping else coupling_prev + nuclear + coupling_extra
         record = UpdateRecord(
             kind=kind, columns=columns, rank=new.rank,
             new_directions=int(ext.Q_new.shape[1]),
-            rejected=int(np.count_nonzero(~ext.accepted)), cut=int(cut.size),
-            cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
-            error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
+            rejected=int(np.count_nonzero(~ext.accepted)), cut=step.cut,
+            cut_energy=energy, sweeps=step.sweeps, max_cosine=step.max_cosine,
+            orthogonality=orth, error_bound=math.sqrt(bound.bound2),
+            seconds=time.perf_counter() - t0,
         )
-        scalars = np.array([bound2, coupling, discarded_prev + energy, float(source_offset)])
+        scalars = np.array([bound.bound2, bound.coupling, bound.discarded, float(source_offset)])
         # persist first, then switch the in-memory state: an exception anywhere above or
         # in the commit leaves both the memory and the store as they were
         self._history.append(record)
@@ -700,29 +629,8 @@ class StreamCompressor:
             raise
         self._f = new
         self._version += 1
-        self._bound2, self._coupling, self._discarded = bound2, coupling, scalars[2]
+        self._bound = bound
         self.source_offset = source_offset
-
-    def _keep_count(self, amps_sorted: np.ndarray) -> int:
-        keep = amps_sorted.size
-        if keep == 0:
-            return 0
-        thresh = self.eps
-        if self.rtol is not None:
-            thresh = max(thresh, self.rtol * float(amps_sorted[0]))
-        keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else keep
-        # zero amplitudes carry nothing: drop them (no energy is lost)
-        keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
-        if self.max_rank is not None:
-            keep = min(keep, self.max_rank)
-        return keep
-
-
-def _r_factor(X: np.ndarray) -> np.ndarray:
-    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
-    if X.size == 0:
-        return np.zeros((0, X.shape[1]))
-    return np.asarray(np.linalg.qr(X, mode="r"))
 
 
 def _grow(
@@ -801,25 +709,3 @@ def _reorthonormalize(f: _Factors) -> _Factors:
 
 
 
-_HISTORY_FIELDS = (
-    "kind", "columns", "rank", "new_directions", "rejected", "cut", "cut_energy", "sweeps",
-    "max_cosine", "orthogonality", "error_bound", "seconds",
-)
-_KINDS = ("absorb", "add", "merge")
-
-
-def _history_array(history: list[UpdateRecord]) -> np.ndarray:
-    out = np.zeros((len(history), len(_HISTORY_FIELDS)))
-    for i, rec in enumerate(history):
-        row = [getattr(rec, k) for k in _HISTORY_FIELDS]
-        row[0] = _KINDS.index(rec.kind)
-        out[i] = row
-    return out
-
-
-def _record_from_row(row: np.ndarray) -> UpdateRecord:
-    vals: dict[str, Any] = dict(zip(_HISTORY_FIELDS, row.tolist(), strict=True))
-    vals["kind"] = _KINDS[int(vals["kind"])]
-    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps"):
-        vals[k] = int(vals[k])
-    return UpdateRecord(**vals)

@@ -1,0 +1,276 @@
+"""The small-core step shared by every compressor, wherever its large factors live.
+
+An update of a compressor reduces to a small matrix ``K`` (the right factor's core after
+the new rows and directions were appended, ``V_new = Q K`` with ``Q`` orthonormal). This
+module runs the rotation sweeps on ``K``, sorts and truncates the terms, measures the
+coupling between kept and cut terms, and advances the error bound; the caller applies the
+resulting small matrix ``T`` to its large factors (in memory, or chunk by chunk on disk).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from ._scaling import pow2_exponent, safe_column_norms
+from .rotations import sweep_core
+
+__all__ = [
+    "HISTORY_FIELDS",
+    "Bound",
+    "CoreStep",
+    "Truncation",
+    "UpdateRecord",
+    "core_step",
+    "history_array",
+    "r_factor",
+    "record_from_row",
+]
+
+logger = logging.getLogger(__name__)
+
+_EPS = np.finfo(np.float64).eps
+_MAX_SWEEPS = 200  # cap of ``sweeps=None`` (to convergence)
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """What one update did (an entry of a compressor's ``history``).
+
+    Attributes
+    ----------
+    kind : {"absorb", "add", "merge"}
+    columns : int
+        Snapshots added (``absorb``, ``merge``) or terms of the increment (``add``).
+    rank : int
+        Rank after the update.
+    new_directions : int
+        Directions accepted by Gram-Schmidt.
+    rejected : int
+        Directions rejected by Gram-Schmidt.
+    cut : int
+        Terms removed by truncation.
+    cut_energy : float
+        Energy ``sum ||v_i||^2`` removed by truncation and rejection.
+    sweeps : int
+        Rotation sweeps run.
+    max_cosine : float
+        Largest pair cosine met in the last sweep (0 at the SVD).
+    orthogonality : float
+        ``||U^T M U - I||_2`` after the update.
+    error_bound : float
+        The guaranteed bound on ``||A - U V^T||_F`` after the update.
+    seconds : float
+        Wall time of the update.
+    """
+
+    kind: str
+    columns: int
+    rank: int
+    new_directions: int
+    rejected: int
+    cut: int
+    cut_energy: float
+    sweeps: int
+    max_cosine: float
+    orthogonality: float
+    error_bound: float
+    seconds: float
+
+
+HISTORY_FIELDS = (
+    "kind", "columns", "rank", "new_directions", "rejected", "cut", "cut_energy", "sweeps",
+    "max_cosine", "orthogonality", "error_bound", "seconds",
+)
+_KINDS = ("absorb", "add", "merge")
+
+
+def history_array(history: list[UpdateRecord]) -> np.ndarray:
+    """Encode a history as a float array (one row per record) for a store."""
+    out = np.zeros((len(history), len(HISTORY_FIELDS)))
+    for i, rec in enumerate(history):
+        row = [getattr(rec, k) for k in HISTORY_FIELDS]
+        row[0] = _KINDS.index(rec.kind)
+        out[i] = row
+    return out
+
+
+def record_from_row(row: np.ndarray) -> UpdateRecord:
+    """Decode one row of :func:`history_array`."""
+    vals: dict[str, Any] = dict(zip(HISTORY_FIELDS, row.tolist(), strict=True))
+    vals["kind"] = _KINDS[int(vals["kind"])]
+    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps"):
+        vals[k] = int(vals[k])
+    return UpdateRecord(**vals)
+
+
+def r_factor(X: np.ndarray) -> np.ndarray:
+    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
+    if X.size == 0:
+        return np.zeros((0, X.shape[1]))
+    return np.asarray(np.linalg.qr(X, mode="r"))
+
+
+@dataclass(frozen=True)
+class Truncation:
+    """Which terms survive an update, after its sweeps.
+
+    A term is kept when ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` and it is among
+    the ``max_rank`` largest; terms of amplitude exactly zero carry nothing and are dropped.
+    """
+
+    eps: float = 0.0
+    rtol: float | None = None
+    max_rank: int | None = None
+
+    def keep_count(self, amps_sorted: np.ndarray) -> int:
+        """Return how many leading terms are kept (amplitudes sorted decreasingly)."""
+        if amps_sorted.size == 0:
+            return 0
+        thresh = self.eps
+        if self.rtol is not None:
+            thresh = max(thresh, self.rtol * float(amps_sorted[0]))
+        keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
+        keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
+        if self.max_rank is not None:
+            keep = min(keep, self.max_rank)
+        return keep
+
+
+@dataclass(frozen=True)
+class CoreStep:
+    """Result of :func:`core_step`.
+
+    Attributes
+    ----------
+    T : ndarray, shape (p, q)
+        Orthonormal columns: the kept terms as combinations of the input terms; the caller
+        replaces its small factors ``G`` by ``G @ T``.
+    R : ndarray, shape (k, q)
+        The new core: ``V_new^T V_new = R^T R``.
+    sweeps : int
+    max_cosine : float
+    cut : int
+        Number of terms cut.
+    cut_energy : float
+        ``sum ||v_i||^2`` of the cut terms.
+    coupling : float
+        Nuclear norm of ``V_kept^T V_cut`` (zero when truncating at convergence).
+    """
+
+    T: np.ndarray
+    R: np.ndarray
+    sweeps: int
+    max_cosine: float
+    cut: int
+    cut_energy: float
+    coupling: float
+
+
+def core_step(
+    K: np.ndarray,
+    *,
+    rule: str,
+    sweeps: int | None,
+    m: int,
+    truncation: Truncation,
+    kind: str,
+) -> CoreStep:
+    """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
+
+    Parameters
+    ----------
+    K : ndarray, shape (k, p)
+        The core of the right factor of the extended expansion.
+    rule : {"paper", "jacobi"}
+    sweeps : int or None
+        Number of sweeps (``None``: until a sweep rotates nothing).
+    m : int
+        Number of snapshots (sets the stopping threshold ``sqrt(m) eps``).
+    truncation : Truncation
+    kind : str
+        Name of the update, for the log.
+    """
+    p = K.shape[1]
+    R = r_factor(K) if K.shape[0] > p else K
+    e = pow2_exponent(R)
+    Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
+    Qt = np.eye(p)
+    order = np.arange(p, dtype=np.int64)
+    done = 0
+    max_cos = 0.0
+    limit = sweeps if sweeps is not None else _MAX_SWEEPS
+    while done < limit and p > 1:
+        s = sweep_core(Rt, Qt, order, p, rule=rule, eps=0.0, tol=math.sqrt(m) * _EPS)
+        done += 1
+        max_cos = s.max_cosine
+        if s.rotations == 0:
+            break
+    amps = np.ldexp(safe_column_norms(Rt.T), e)
+    order = np.argsort(-amps, kind="stable")
+    keep = truncation.keep_count(amps[order])
+    kept, cut = order[:keep], order[keep:]
+    cut_energy = float(np.sum(amps[cut] ** 2))
+    coupling = 0.0
+    if cut.size and kept.size:
+        W_kd = np.ldexp(Rt[kept], e) @ np.ldexp(Rt[cut], e).T
+        coupling = float(np.sum(scipy.linalg.svdvals(W_kd)))
+    if cut.size:
+        logger.info(
+            "%s: cut %d terms of energy %.3e (amplitudes %.3e .. %.3e)",
+            kind, cut.size, cut_energy, amps[cut].max(), amps[cut].min(),
+        )
+    return CoreStep(
+        T=Qt[kept].T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
+        cut=int(cut.size), cut_energy=cut_energy, coupling=coupling,
+    )
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The error-bound account of a compressor (theorem in ``StreamCompressor``'s notes).
+
+    Attributes
+    ----------
+    bound2 : float
+        ``b_t^2``, the square of the guaranteed bound on ``||A - U V^T||_F``.
+    coupling : float
+        ``c_t``, the bound on the cross term with the next discard (``inf`` once an
+        overlapping ``add`` happened).
+    discarded : float
+        ``sum_t e_t``.
+    """
+
+    bound2: float = 0.0
+    coupling: float = 0.0
+    discarded: float = 0.0
+
+    def combine(self, other: Bound) -> Bound:
+        """Return the account of two expansions of disjoint column sets, side by side."""
+        return Bound(
+            self.bound2 + other.bound2, self.coupling + other.coupling,
+            self.discarded + other.discarded,
+        )
+
+    def step(
+        self, energy: float, coupling: float, *, overlapping: bool, extra: float = 0.0
+    ) -> Bound:
+        """Advance by a discard of ``energy`` with kept/cut coupling ``coupling``.
+
+        ``b_t^2 = b_{t-1}^2 + e_t + 2 min(c_{t-1}, sqrt(e_t) b_{t-1})`` (only the
+        Cauchy-Schwarz term when the update overlaps earlier columns), and
+        ``c_t = c_{t-1} + coupling + extra`` (``inf`` after an overlapping update).
+        """
+        cross = math.sqrt(energy) * math.sqrt(self.bound2)
+        if not overlapping:
+            cross = min(cross, self.coupling)
+        return Bound(
+            bound2=self.bound2 + energy + 2.0 * cross,
+            coupling=math.inf if overlapping else self.coupling + coupling + extra,
+            discarded=self.discarded + energy,
+        )
