@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,16 @@ def _parser() -> argparse.ArgumentParser:
     ing.add_argument("--commit-every", type=int, default=1, help="updates per commit")
     ing.add_argument("--resume", action="store_true", help="continue an existing store")
     ing.add_argument("--quiet", action="store_true", help="no progress bar")
+    ing.add_argument(
+        "--scheduler",
+        help="run on dask: 'threads', 'local' (a LocalCluster) or a scheduler address; "
+        "columns are compressed in leaves merged in a tree",
+    )
+    ing.add_argument("--workers", type=int, help="worker processes of --scheduler local")
+    ing.add_argument("--tall", action="store_true",
+                     help="keep U out of core in zarr panels (snapshots too long for memory)")
+    ing.add_argument("--leaf-columns", type=int, help="columns per leaf of the tree")
+    ing.add_argument("--chunk-rows", type=int, help="rows per chunk of the tall panels")
 
     info = sub.add_parser("info", help="summarise a store")
     info.add_argument("store")
@@ -65,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``streamsvd`` command; returns the exit status."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="streamsvd: %(message)s")
+    if not args.debug:
+        # dask.distributed sets its loggers to INFO from its config when first imported
+        # (here, lazily); the config can be given by environment, which workers inherit
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     try:
         return int(_COMMANDS[args.command](args))
     except (StreamSVDError, OSError, ValueError) as err:
@@ -75,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _ingest(args: Any) -> int:
+    if args.scheduler is not None or args.tall:
+        return _ingest_dask(args)
     from tqdm import tqdm
 
     store = Path(args.store)
@@ -114,7 +131,36 @@ def _ingest(args: Any) -> int:
     return 0
 
 
-def _summary(sc: StreamCompressor) -> dict[str, Any]:
+def _ingest_dask(args: Any) -> int:
+    from .parallel import ingest
+
+    summary = ingest(
+        args.source, args.store, dataset=args.dataset, block=args.block,
+        scheduler=args.scheduler, workers=args.workers, tall=args.tall,
+        leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows, resume=args.resume,
+        progress=not args.quiet, eps=args.eps, rtol=args.rtol, max_rank=args.max_rank,
+        rule=args.rule, sweeps=None if args.sweeps == 0 else args.sweeps,
+        # a tree commits its root once; the tall mode commits every `commit_every` updates
+        **({"commit_every": args.commit_every} if args.tall else {}),
+    )
+    if not args.quiet:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _open(path: Any) -> Any:
+    """Open the compressor of a store read-only, whichever kind wrote it."""
+    from .errors import StoreMismatchError
+
+    try:
+        return StreamCompressor.open(path, mode="r")
+    except StoreMismatchError:
+        from .parallel import open_compressor  # a tall store: dask is needed to read it
+
+        return open_compressor(path, mode="r")
+
+
+def _summary(sc: Any) -> dict[str, Any]:
     amps = sc.amplitudes
     return {
         "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
@@ -126,7 +172,7 @@ def _summary(sc: StreamCompressor) -> dict[str, Any]:
 
 
 def _info(args: Any) -> int:
-    with StreamCompressor.open(args.store, mode="r") as sc:
+    with _open(args.store) as sc:
         summary = _summary(sc)
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -148,7 +194,7 @@ def _export(args: Any) -> int:
     out = Path(args.out)
     if out.suffix not in (".npz", ".h5", ".hdf5"):
         raise ValueError(f"`out` must end with .npz, .h5 or .hdf5; got {out.name!r}.")
-    with StreamCompressor.open(args.store, mode="r") as sc:
+    with _open(args.store) as sc:
         e = sc.expansion
         bound = sc.error_bound
     data = {"U": e.U, "V": e.V, "amplitudes": e.amplitudes, "error_bound": np.array(bound)}
@@ -170,7 +216,7 @@ def _plot(args: Any) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    with StreamCompressor.open(args.store, mode="r") as sc:
+    with _open(args.store) as sc:
         amps = sc.amplitudes
         hist = sc.history
         bound = sc.error_bound

@@ -92,3 +92,20 @@ def test_existing_store_needs_resume(tmp_path, matrix, capsys):
     assert main(["ingest", str(src), str(store), "--quiet", "--resume"]) == 0
     with StreamCompressor.open(store, mode="r") as sc:
         assert sc.n_seen == 60
+
+
+@pytest.mark.parametrize("extra", [["--scheduler", "threads"], ["--tall", "--chunk-rows", "32"]])
+def test_ingest_on_dask_then_info_export(tmp_path, matrix, capsys, extra):
+    src = tmp_path / "a.npy"
+    np.save(src, matrix)
+    store = tmp_path / "b.zarr"
+    assert main(["ingest", str(src), str(store), "--block", "12", "--rule", "jacobi",
+                 "--sweeps", "0", "--quiet", *extra]) == 0
+    assert main(["info", str(store), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["n_seen"] == 60
+    s = np.linalg.svd(matrix, compute_uv=False)
+    np.testing.assert_allclose(info["amplitudes_head"], s[:10], atol=1e-13)
+    assert main(["export", str(store), str(tmp_path / "u.npz")]) == 0
+    with np.load(tmp_path / "u.npz") as z:
+        assert np.linalg.norm(matrix - z["U"] @ z["V"].T) <= 1e-12

@@ -1,0 +1,367 @@
+"""Scale-out on dask: out-of-core products over row chunks, tree merges on a cluster.
+
+Three ways to run the same compression beyond one in-memory stream, all built on dask
+(``dask.array``, ``dask.delayed``, ``dask.distributed``):
+
+* :func:`tree_compress` -- many snapshots: column ranges (leaves) are compressed
+  independently on workers and merged pairwise in a tree with
+  :meth:`StreamCompressor.merge`, the error bounds composed (pyMOR's distributed HAPOD);
+* :class:`TallCompressor` and :func:`tall_compress` -- tall snapshots: the stored factor
+  ``U`` lives in zarr panels chunked by rows and every product an update needs runs over
+  row chunks with ``map_blocks`` and ``da.reduction``;
+* :func:`ingest` -- what ``streamsvd ingest --scheduler ... [--tall]`` runs.
+
+Scheduler. Every function takes ``client=``: ``None`` runs on dask's threaded scheduler
+in this process; a :class:`distributed.Client` runs the same task graphs on its cluster
+(:func:`connect` opens a :class:`~distributed.LocalCluster` or connects to a scheduler
+address). Results do not depend on the scheduler, nor on the chunking of the source,
+beyond rounding.
+
+Sources. A numpy array, a ``.npy``/HDF5/zarr path, an h5py dataset, a zarr array or any
+dask array (see :func:`~streamsvd.sources.open_source`); blocks are read one at a time,
+never all at once. On a cluster, paths must be visible to every worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from ._validation import check_positive_int
+from .errors import InputError, ShapeMismatchError, StoreMismatchError
+from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
+from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
+from .store import open_store
+from .stream import StreamCompressor
+
+__all__ = [
+    "COMPRESSOR_OPTIONS",
+    "TallCompressor",
+    "connect",
+    "execute",
+    "ingest",
+    "open_compressor",
+    "tall_compress",
+    "tree_compress",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iterator[Any]:
+    """Yield the ``client=`` argument for a scheduler named as on the command line.
+
+    Parameters
+    ----------
+    scheduler : {None, "threads", "local"} or str
+        ``None`` or ``"threads"``: dask's threaded scheduler (yields ``None``);
+        ``"local"``: start a :class:`distributed.LocalCluster` of ``workers`` processes
+        with one thread each, closed on exit; anything else is the address of a running
+        scheduler (``tcp://host:8786``), connected to and disconnected from on exit.
+    workers : int, optional
+        Number of worker processes of a local cluster (default: the number of CPUs).
+
+    Yields
+    ------
+    distributed.Client or None
+    """
+    if scheduler is None or scheduler == "threads":
+        yield None
+        return
+    if not isinstance(scheduler, str) or not scheduler:
+        raise InputError(
+            f"`scheduler` must be 'threads', 'local' or a scheduler address such as "
+            f"'tcp://host:8786'; got {scheduler!r}."
+        )
+    from distributed import Client, LocalCluster
+
+    if scheduler == "local":
+        nw = cast(int, check_positive_int(workers if workers is not None else
+                                          (os.cpu_count() or 1), "workers"))
+        with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True,
+                          dashboard_address=":0") as cluster, Client(cluster) as client:
+            logger.info("started a local cluster of %d worker processes", nw)
+            yield client
+        return
+    if workers is not None:
+        raise InputError(
+            f"`workers` only applies to scheduler='local'; got workers={workers!r} with "
+            f"the address {scheduler!r}. Size the remote cluster where it runs."
+        )
+    try:
+        client = Client(scheduler, timeout="20s")
+    except OSError as exc:
+        raise InputError(
+            f"`scheduler` {scheduler!r} cannot be reached ({exc}). Check the address "
+            "(tcp://host:port) and that the scheduler is running."
+        ) from exc
+    with client:
+        yield client
+
+
+def open_compressor(path: Any, *, mode: str = "r", client: Any = None,
+                    ) -> StreamCompressor | TallCompressor:
+    """Reopen the compressor of a store, in memory or tall, whichever wrote it.
+
+    Both kinds offer ``n``, ``n_seen``, ``rank``, ``amplitudes``, ``error_bound``,
+    ``discarded_energy``, ``history``, ``orthogonality_error()``, ``expansion``,
+    ``source_offset``, ``store_path`` and ``close()``.
+    """
+    with open_store(path, "r") as st:
+        kind = st.read().attrs.get("kind")
+    if kind == KIND:
+        return TallCompressor.open(path, mode=mode, client=client)
+    if kind == "streamsvd.StreamCompressor":
+        return StreamCompressor.open(path, mode=mode)
+    raise StoreMismatchError(
+        f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
+        "or TallCompressor store."
+    )
+
+
+# ------------------------------------------------------------------------- tall driver
+
+
+def tall_compress(
+    source: Any,
+    *,
+    block: int = 100,
+    dataset: str | None = None,
+    store: Any = None,
+    resume: bool = False,
+    chunk_rows: int | None = None,
+    client: Any = None,
+    progress: bool = False,
+    **options: Any,
+) -> TallCompressor:
+    """Stream every column of a source into a :class:`TallCompressor`, block by block.
+
+    Parameters
+    ----------
+    source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
+        The ``n x m`` snapshot matrix, read as a dask array by row chunks, each block once.
+    block : int
+        Columns per update.
+    dataset : str, optional
+        Dataset of an HDF5 file or array of a zarr group.
+    store : str or path-like, optional
+        Store of the basis: created, or continued from its recorded source offset with
+        ``resume=True``. Every update is committed (``commit_every``); a failure leaves
+        the store at its last commit.
+    resume : bool
+        Continue the existing store (its options are used; pass only ``inner`` when it
+        holds weights).
+    chunk_rows : int, optional
+        Rows per chunk: by default the source's row chunks when it is a dask or zarr
+        array chunked uniformly by rows, else 16384.
+    client : distributed.Client, optional
+        Run the row-chunk products on this cluster.
+    progress : bool
+        Show a progress bar over the columns (tqdm, on stderr).
+    **options
+        :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
+        ``rule``, ``sweeps``, ``reject_tol``, ``compact_ratio``, ``reorth_tol``,
+        ``commit_every``, and ``workdir`` without a store).
+
+    Returns
+    -------
+    TallCompressor
+        It holds the store's writer lock when ``store`` is given: close it when done.
+    """
+    block = cast(int, check_positive_int(block, "block"))
+    spec = SourceSpec.of(source, dataset=dataset)
+    x = _as_dask(spec, chunk_rows)
+    rows = chunk_rows if chunk_rows is not None else _uniform_rows(x)
+    if resume:
+        inner = options.pop("inner", None)
+        if store is None or options:
+            raise InputError(
+                f"`resume` needs `store` and no options but `inner` (the store's are used); "
+                f"got store={store!r} and options {sorted(options)}. Pass only the store."
+            )
+        tc = TallCompressor.open(store, inner=inner, client=client)
+        if tc.n != spec.n:
+            tc.close()
+            raise ShapeMismatchError(
+                f"`source` must have snapshots of size {tc.n} (the store's n); got {spec.n} "
+                f"from {spec.description}. Pass the source the store was built from."
+            )
+    else:
+        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client, **options)
+    try:
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=spec.m, initial=tc.source_offset, unit="col", desc="tall",
+                       dynamic_ncols=True)
+        with bar if bar is not None else contextlib.nullcontext():
+            for a in range(tc.source_offset, spec.m, block):
+                stop = min(a + block, spec.m)
+                rec = tc.absorb(x[:, a:stop], source_offset=stop)
+                if bar is not None:
+                    bar.update(stop - a)
+                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
+                                    refresh=False)
+        tc.flush()
+    except BaseException:
+        tc.close()
+        raise
+    return tc
+
+
+class _LazyFile:
+    """A picklable array-like over an HDF5 dataset or a ``.npy`` file, opened per read."""
+
+    def __init__(self, path: str, dataset: str | None, shape: tuple[int, ...],
+                 dtype: Any) -> None:
+        self.path, self.dataset = path, dataset
+        self.shape, self.dtype, self.ndim = tuple(shape), np.dtype(dtype), 2
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        if self.dataset is None:
+            return np.array(np.load(self.path, mmap_mode="r", allow_pickle=False)[key])
+        import h5py
+
+        with h5py.File(self.path, "r") as h5:
+            return np.asarray(h5[self.dataset][key])
+
+
+def _as_dask(spec: SourceSpec, chunk_rows: int | None) -> Any:
+    """Return the source as a dask array, chunked by rows, that workers can read."""
+    import dask.array as da
+
+    rows = chunk_rows or DEFAULT_CHUNK_ROWS
+    if spec.kind == "dask":
+        return spec.obj
+    if spec.kind == "zarr":
+        return da.from_zarr(spec.obj)
+    if spec.kind == "array":
+        return da.from_array(spec.obj, chunks=(rows, -1))
+    path = str(spec.obj)  # a path, already checked by open_source
+    tag = uuid.uuid4().hex
+    suffix = Path(path).suffix.lower()
+    if suffix == ".npy":
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        lazy = _LazyFile(path, None, arr.shape, arr.dtype)
+    elif suffix in (".h5", ".hdf5", ".he5"):
+        import h5py
+
+        with h5py.File(path, "r") as h5:
+            names: list[str] = []
+            h5.visititems(lambda k, v: names.append(k) if isinstance(v, h5py.Dataset) else None)
+            name = spec.dataset.strip("/") if spec.dataset else names[0]
+            lazy = _LazyFile(path, name, h5[name].shape, h5[name].dtype)
+    else:
+        import zarr
+
+        node = zarr.open(store=path, mode="r")
+        if not isinstance(node, zarr.Array):
+            arrays = sorted(k for k, v in node.members(max_depth=None)
+                            if isinstance(v, zarr.Array))
+            node = node[spec.dataset.strip("/") if spec.dataset else arrays[0]]
+        return da.from_zarr(node)
+    return da.from_array(lazy, chunks=(rows, -1), name=f"streamsvd-file-{tag}")
+
+
+def _uniform_rows(x: Any) -> int | None:
+    rows = x.chunks[0]
+    if len(rows) > 1 and all(c == rows[0] for c in rows[:-1]):
+        return int(rows[0])
+    return None
+
+
+# --------------------------------------------------------------------------------- CLI
+
+
+def ingest(
+    source: Any,
+    store: Any,
+    *,
+    dataset: str | None = None,
+    block: int = 100,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    tall: bool = False,
+    leaf_columns: int | None = None,
+    chunk_rows: int | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    **options: Any,
+) -> dict[str, Any]:
+    """Compress a source into a store on dask: what ``streamsvd ingest`` runs.
+
+    Parameters
+    ----------
+    source, dataset, block
+        As for :func:`tree_compress`.
+    store : str or path-like
+        The basis store (created; continued with ``resume=True``).
+    scheduler : {None, "threads", "local"} or str
+        See :func:`connect`.
+    workers : int, optional
+        Worker processes of a local cluster.
+    tall : bool
+        Keep ``U`` out of core (:func:`tall_compress`); otherwise a tree of in-memory
+        leaves (:func:`tree_compress`).
+    leaf_columns : int, optional
+        Columns per leaf of the tree (ignored with ``tall``).
+    chunk_rows : int, optional
+        Rows per chunk of the tall panels (ignored without ``tall``).
+    resume : bool
+        Continue the store from its recorded source offset.
+    progress : bool
+        Show a progress bar (dask's for the tree, per column for the tall mode).
+    **options
+        Compressor options (``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ...).
+
+    Returns
+    -------
+    dict
+        The summary ``streamsvd info --json`` prints, plus ``mode``, ``scheduler`` and
+        ``seconds``.
+    """
+    t0 = time.perf_counter()
+    with connect(scheduler, workers=workers) as client:
+        sc: StreamCompressor | TallCompressor
+        if tall:
+            if leaf_columns is not None:
+                raise InputError(
+                    f"`leaf_columns` does not apply to the tall mode; got {leaf_columns!r}. "
+                    "Drop it, or drop `tall` to compress by a tree of leaves."
+                )
+            sc = tall_compress(source, block=block, dataset=dataset, store=store,
+                               resume=resume, chunk_rows=chunk_rows, client=client,
+                               progress=progress, **options)
+        else:
+            if chunk_rows is not None:
+                raise InputError(
+                    f"`chunk_rows` only applies to the tall mode; got {chunk_rows!r}. Pass "
+                    "`tall=True` (--tall) or drop it."
+                )
+            sc = tree_compress(source, block=block, leaf_columns=leaf_columns,
+                               dataset=dataset, client=client, store=store, resume=resume,
+                               progress=progress, **options)
+        try:
+            amps = sc.amplitudes
+            summary = {
+                "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
+                "source_offset": sc.source_offset, "updates": len(sc.history),
+                "error_bound": sc.error_bound, "discarded_energy": sc.discarded_energy,
+                "orthogonality": sc.orthogonality_error(), "options": sc._options(),
+                "amplitudes_head": amps[:10].tolist(), "mode": "tall" if tall else "tree",
+                "scheduler": scheduler or "threads",
+            }
+        finally:
+            sc.close()
+    summary["seconds"] = time.perf_counter() - t0
+    return summary

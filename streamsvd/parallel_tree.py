@@ -1,0 +1,483 @@
+"""Tree compression on dask: column ranges compressed on workers, merged pairwise.
+
+The columns of a source are split into *leaves* of ``leaf_columns`` columns. Each leaf is
+compressed by its own :class:`~streamsvd.StreamCompressor` in one dask task, which opens
+the source where it runs and reads its own column range one block at a time (so the
+data never travels through the scheduler, and a block is never read twice). The leaves
+are then merged pairwise in a balanced binary tree, left then right, with
+:meth:`StreamCompressor.merge`, which appends the right operand's columns after the left
+one's and composes the error bounds. This is the hierarchical approximate POD (HAPOD) of
+Himpe, Leibner and Rave (2018), as pyMOR distributes it.
+
+Determinism. The tree depends only on the number of columns, ``start``, ``block`` and
+``leaf_columns``, never on the scheduler or on the number of workers; every task is a
+deterministic function of its inputs. The result is therefore the same with the threaded
+scheduler, on a :class:`distributed.LocalCluster` or on a remote cluster, up to the
+rounding differences of the BLAS (a worker process may use a different number of BLAS
+threads than the client process).
+
+Error bound. Leaves cover disjoint columns, so when a merge appends the right operand
+``B ~ K_B`` to the left one ``A ~ K_A``, the errors ``E_A`` and ``E_B`` occupy disjoint
+columns and ``||[E_A, E_B]||_F^2 = ||E_A||^2 + ||E_B||^2``; the merge's own truncation
+and rejection then enter through the recursion of the
+:class:`~streamsvd.StreamCompressor` notes. The root's :attr:`error_bound` is a
+guaranteed bound on ``||A - U V^T||_F`` over every column compressed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from ._validation import check_positive_int
+from .errors import InputError, ShapeMismatchError, StoreError
+from .inner import as_inner
+from .sources import Source, open_source
+from .stream import StreamCompressor
+
+__all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
+
+logger = logging.getLogger(__name__)
+
+COMPRESSOR_OPTIONS = (
+    "inner", "eps", "rtol", "max_rank", "rule", "sweeps", "reject_tol", "compact_ratio",
+    "reorth_tol",
+)
+"""Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
+
+
+# ----------------------------------------------------------------------- scheduling
+
+
+def check_client(client: Any) -> Any:
+    """Return ``client`` if it is None or a :class:`distributed.Client`; raise otherwise."""
+    if client is None:
+        return None
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - distributed is a dependency
+        Client = ()  # type: ignore[assignment,misc]
+    if not isinstance(client, Client):
+        raise InputError(
+            f"`client` must be None (the threaded scheduler) or a dask.distributed.Client; "
+            f"got {type(client).__name__}. Create one with `Client(LocalCluster())` or "
+            "`Client('tcp://host:8786')`."
+        )
+    if client.status not in ("running", "newly-created"):
+        raise InputError(
+            f"`client` must be connected; got a client with status {client.status!r}. "
+            "Reconnect it or create a new one."
+        )
+    return client
+
+
+def execute(collections: list[Any], *, client: Any = None, progress: bool = False) -> list[Any]:
+    """Compute dask collections on the threaded scheduler or on ``client``'s cluster.
+
+    Parameters
+    ----------
+    collections : list
+        Dask collections (delayed objects, arrays) computed together, so that tasks they
+        share run once.
+    client : distributed.Client, optional
+        Run on this cluster; the threaded scheduler of this process when omitted (even if
+        a default client is registered).
+    progress : bool
+        Show dask's progress bar (:class:`dask.diagnostics.ProgressBar`, or
+        :func:`distributed.progress` on a cluster).
+
+    Returns
+    -------
+    list
+        The computed values, in the order of ``collections``.
+    """
+    import dask
+
+    if client is None:
+        if progress:
+            from dask.diagnostics import ProgressBar
+
+            with ProgressBar():
+                return list(dask.compute(*collections, scheduler="threads"))
+        return list(dask.compute(*collections, scheduler="threads"))
+    futures = client.compute(list(collections))
+    try:
+        if progress:
+            from distributed import progress as show_progress
+
+            show_progress(futures)
+        return list(client.gather(futures))
+    finally:
+        client.cancel(futures)
+
+
+# -------------------------------------------------------------------------- sources
+
+
+class _Window:
+    """Columns ``[start, start + w)`` of an ``n x m`` source, addressed by global columns.
+
+    Lets a leaf read its own part of an in-memory or dask source with the offsets of the
+    whole source (so that error messages name the right columns) while only that part is
+    shipped to the worker. Dask slices are evaluated with the synchronous scheduler inside
+    the task that reads them (a nested ``compute`` on a worker must not go back to the
+    cluster).
+    """
+
+    def __init__(self, data: Any, start: int, m: int, *, is_dask: bool) -> None:
+        self.data = data
+        self.start = start
+        self.shape = (int(data.shape[0]), m)
+        self.dtype = data.dtype
+        self.is_dask = is_dask
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        lo, hi = int(cols.start) - self.start, int(cols.stop) - self.start
+        if lo < 0 or hi > self.data.shape[1]:
+            raise IndexError(
+                f"columns {cols.start}:{cols.stop} are outside this leaf's columns "
+                f"{self.start}:{self.start + self.data.shape[1]}"
+            )
+        part = self.data[rows, lo:hi]
+        if self.is_dask:
+            return np.asarray(part.compute(scheduler="sync"), dtype=np.float64)
+        return np.array(part, dtype=np.float64, copy=True)
+
+
+class SourceSpec:
+    """How a task opens a snapshot source where it runs (picklable, never a collection).
+
+    Built on the client by :meth:`SourceSpec.of`, which opens the source once to check it.
+    A path (``.npy``, HDF5, zarr) is reopened by each task; an h5py dataset becomes its
+    file name and dataset name; a zarr array is shipped as is (it pickles as its store
+    location); numpy and dask arrays are cut into the column windows the tasks need.
+    """
+
+    def __init__(self, kind: str, obj: Any, dataset: str | None, n: int, m: int,
+                 description: str) -> None:
+        self.kind = kind
+        self.obj = obj
+        self.dataset = dataset
+        self.n = n
+        self.m = m
+        self.description = description
+
+    @classmethod
+    def of(cls, source: Any, *, dataset: str | None = None) -> SourceSpec:
+        """Check ``source`` (as :func:`~streamsvd.sources.open_source` does) and describe it."""
+        if isinstance(source, Source):
+            raise InputError(
+                "`source` must be an array, a path, an h5py dataset or a zarr/dask array; "
+                "got an open Source, which cannot be reopened on a worker. Pass what you "
+                "opened it from."
+            )
+        with open_source(source, dataset=dataset) as src:
+            n, m, desc = src.n, src.m, src.description
+        if isinstance(source, str | os.PathLike):
+            return cls("path", os.fspath(Path(source).resolve()), dataset, n, m, desc)
+        module = type(source).__module__ or ""
+        if module.startswith("h5py"):
+            return cls("path", os.fspath(Path(source.file.filename).resolve()),
+                       source.name, n, m, desc)
+        if module.startswith("dask"):
+            return cls("dask", source, None, n, m, desc)
+        if module.startswith("zarr"):
+            return cls("zarr", source, None, n, m, desc)
+        return cls("array", np.asarray(source), None, n, m, desc)
+
+    def window(self, start: int, stop: int) -> SourceSpec:
+        """Return the part of this spec that a task reading columns ``start:stop`` needs."""
+        if self.kind in ("array", "dask"):
+            part = _Window(self.obj[:, start:stop], start, self.m, is_dask=self.kind == "dask")
+            return SourceSpec("window", part, None, self.n, self.m, self.description)
+        return self
+
+    def open(self) -> Source:
+        """Open the source (on the worker); close the returned Source when done."""
+        if self.kind == "path":
+            return open_source(self.obj, dataset=self.dataset)
+        if self.kind == "window":
+            return Source(self.obj, self.description)
+        return open_source(self.obj)
+
+    def __repr__(self) -> str:
+        return f"SourceSpec({self.kind}, {self.description}, n={self.n}, m={self.m})"
+
+
+def read_range(src: Source, start: int, stop: int, block: int) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(offset, X)`` for the blocks of columns ``start:stop``, one read ahead."""
+    offsets = list(range(start, stop, block))
+    if not offsets:
+        return
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="streamsvd-leaf-read")
+    try:
+        pending: Future[np.ndarray] = pool.submit(src.read, start, min(start + block, stop))
+        for k, offset in enumerate(offsets):
+            current = pending.result()
+            if k + 1 < len(offsets):
+                nxt = offsets[k + 1]
+                pending = pool.submit(src.read, nxt, min(nxt + block, stop))
+            yield offset, current
+            del current
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# ---------------------------------------------------------------------------- tasks
+
+
+def _compress_leaf(
+    spec: SourceSpec, start: int, stop: int, block: int, options: dict[str, Any]
+) -> StreamCompressor:
+    """Compress columns ``start:stop`` of the source (runs on a worker)."""
+    sc = StreamCompressor(spec.n, **options)
+    with spec.open() as src:
+        for offset, X in read_range(src, start, stop, block):
+            sc.absorb(X, source_offset=offset + X.shape[1])
+    logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
+                sc.error_bound)
+    return sc
+
+
+def _merge_pair(left: StreamCompressor, right: StreamCompressor) -> StreamCompressor:
+    """Append ``right``'s columns to ``left`` (runs on a worker).
+
+    ``left`` is updated and returned: each intermediate compressor of the tree is the
+    input of exactly one merge, and :meth:`StreamCompressor.merge` only replaces the
+    compressor's arrays (it never writes into them), so a merge that fails or is re-run
+    on another worker after a crash starts again from an unchanged copy.
+    """
+    left.merge(right)
+    logger.info("merged columns up to %d: rank %d (bound %.3e)", left.source_offset,
+                left.rank, left.error_bound)
+    return left
+
+
+# ---------------------------------------------------------------------- validation
+
+
+def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
+    """Validate compressor options by building one compressor; return them normalised."""
+    unknown = sorted(set(options) - set(COMPRESSOR_OPTIONS))
+    if unknown:
+        raise InputError(
+            f"`options` must be among {COMPRESSOR_OPTIONS}; got unknown {unknown}. "
+            "Pass the store with `store=` and the other options by their names."
+        )
+    opts = dict(options)
+    opts["inner"] = as_inner(opts.get("inner"), n)
+    probe = StreamCompressor(n, **opts)
+    return {
+        "inner": probe.inner, "eps": probe.eps, "rtol": probe.rtol,
+        "max_rank": probe.max_rank, "rule": probe.rule, "sweeps": probe.sweeps,
+        "reject_tol": probe.reject_tol, "compact_ratio": probe.compact_ratio,
+        "reorth_tol": probe.reorth_tol,
+    }
+
+
+def options_of(sc: StreamCompressor) -> dict[str, Any]:
+    """Return the options of an existing compressor, as :func:`check_options` does."""
+    return {
+        "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
+        "rule": sc.rule, "sweeps": sc.sweeps, "reject_tol": sc.reject_tol,
+        "compact_ratio": sc.compact_ratio, "reorth_tol": sc.reorth_tol,
+    }
+
+
+def default_leaf_columns(columns: int, block: int) -> int:
+    """Return ten blocks per leaf (at least one): a function of the data, not of workers."""
+    return max(block, min(10 * block, max(columns, 1)))
+
+
+def leaf_ranges(start: int, stop: int, leaf_columns: int) -> list[tuple[int, int]]:
+    """Return the column ranges of the leaves covering ``start:stop``."""
+    return [(a, min(a + leaf_columns, stop)) for a in range(start, stop, leaf_columns)]
+
+
+# ----------------------------------------------------------------------------- API
+
+
+def tree_compress(
+    source: Any,
+    *,
+    block: int = 100,
+    leaf_columns: int | None = None,
+    dataset: str | None = None,
+    client: Any = None,
+    store: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    **options: Any,
+) -> StreamCompressor:
+    """Compress the columns of a source on dask: leaves on workers, merged in a tree.
+
+    Parameters
+    ----------
+    source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
+        An ``n x m`` snapshot matrix (columns are snapshots), as accepted by
+        :func:`~streamsvd.sources.open_source`. Each leaf reads its own columns, one block
+        at a time, where it runs: paths are reopened by every task (on a cluster they must
+        be visible to the workers), dask arrays are computed block by block.
+    block : int
+        Columns absorbed per update inside a leaf.
+    leaf_columns : int, optional
+        Columns per leaf; default ``10 * block`` (never fewer than ``block``). The result
+        depends on it (each merge is an update with its own truncation), never on the
+        scheduler or on the number of workers.
+    dataset : str, optional
+        Dataset of an HDF5 file or array of a zarr group (see ``open_source``).
+    client : distributed.Client, optional
+        Run on this cluster; the threaded scheduler of this process when omitted.
+    store : str or path-like, optional
+        Write the result to a basis store there. A new store is created only once the
+        whole tree is computed, and the root is merged into its empty compressor (one
+        commit; the merge runs one more sweep on the small core). With ``resume=True``
+        the store's compressor is reopened first (taking its writer lock), the columns
+        from its recorded source offset on are compressed, and the root is merged into
+        it (one commit). A failure anywhere before that commit leaves an existing store
+        as it was.
+    resume : bool
+        Continue the existing store at ``store`` (its options are used; pass only
+        ``inner`` when the store was not written with the Euclidean inner product).
+    progress : bool
+        Show dask's progress bar.
+    **options
+        Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
+        ``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ``reject_tol``,
+        ``compact_ratio``, ``reorth_tol``.
+
+    Returns
+    -------
+    StreamCompressor
+        The compressor of every column (``source_offset = m``). With ``store`` it holds
+        the store's writer lock: close it (or use it in a ``with`` block) when done; it
+        can go on absorbing new snapshots.
+
+    Raises
+    ------
+    InputError
+        Bad options, ``client`` or sizes.
+    StoreError
+        ``store`` exists and ``resume`` is false, or cannot be continued.
+    SourceError
+        A read failed on a worker (the store is then unchanged).
+
+    Notes
+    -----
+    Cost. With ``L`` leaves of ``c`` columns and rank ``p``, each leaf costs
+    ``O(n c (p + block))`` and each merge ``O(n p^2 + c p^2)``; the ``L - 1`` merges form
+    ``ceil(log2 L)`` levels, so with ``W`` workers the wall time is about
+    ``(L / W) t_leaf + log2(L) t_merge``. Peak memory per worker is one leaf's factors
+    (``n x 2p``) plus two blocks, and the merge of two ``n x p`` factors.
+    """
+    client = check_client(client)
+    block = cast(int, check_positive_int(block, "block"))
+    if leaf_columns is not None:
+        leaf_columns = cast(int, check_positive_int(leaf_columns, "leaf_columns"))
+    spec = SourceSpec.of(source, dataset=dataset)
+    target: StreamCompressor | None = None
+    path = None if store is None else Path(store)
+    if resume:
+        if path is None:
+            raise InputError(
+                "`resume` needs `store`: got resume=True and store=None. Pass the store to "
+                "continue."
+            )
+        inner = options.pop("inner", None)
+        if options:
+            raise InputError(
+                f"`options` must be empty with resume=True (the store's options are used; "
+                f"only `inner` is passed to check it); got {sorted(options)}. Drop them."
+            )
+        target = StreamCompressor.open(path, inner=inner)
+        try:
+            if target.n != spec.n:
+                raise ShapeMismatchError(
+                    f"`source` must have snapshots of size {target.n} (the store's n); got "
+                    f"{spec.n} from {spec.description}. Pass the source the store was "
+                    "built from."
+                )
+            opts = options_of(target)
+            start = target.source_offset
+        except BaseException:
+            target.close()
+            raise
+    else:
+        opts = check_options(options, spec.n)
+        start = 0
+        if path is not None and path.exists():
+            raise StoreError(
+                f"`store` {path} already exists; pass resume=True to continue it or choose "
+                "another path."
+            )
+    try:
+        root = _run_tree(spec, start, block, leaf_columns, opts, client, progress)
+        if target is None and path is None:
+            return root if root is not None else StreamCompressor(spec.n, **opts)
+        if target is None:
+            target = StreamCompressor(spec.n, store=path, **opts)
+        if root is not None:
+            target.merge(root)
+    except BaseException:
+        if target is not None:
+            target.close()
+        raise
+    return target
+
+
+def _run_tree(
+    spec: SourceSpec,
+    start: int,
+    block: int,
+    leaf_columns: int | None,
+    opts: dict[str, Any],
+    client: Any,
+    progress: bool,
+) -> StreamCompressor | None:
+    import dask
+
+    stop = spec.m
+    if start >= stop:
+        logger.info("nothing to compress: the source offset %d is the end of %s", start,
+                    spec.description)
+        return None
+    width = leaf_columns if leaf_columns is not None else default_leaf_columns(stop - start,
+                                                                               block)
+    ranges = leaf_ranges(start, stop, width)
+    tag = uuid.uuid4().hex[:12]
+    nodes = [
+        dask.delayed(_compress_leaf, pure=False)(
+            spec.window(a, b), a, b, block, opts, dask_key_name=f"streamsvd-leaf-{a}-{b}-{tag}"
+        )
+        for a, b in ranges
+    ]
+    spans = list(ranges)
+    level = 0
+    while len(nodes) > 1:
+        level += 1
+        merged, merged_spans = [], []
+        for i in range(0, len(nodes) - 1, 2):
+            a, b = spans[i][0], spans[i + 1][1]
+            merged.append(dask.delayed(_merge_pair, pure=False)(
+                nodes[i], nodes[i + 1], dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}"
+            ))
+            merged_spans.append((a, b))
+        if len(nodes) % 2:
+            merged.append(nodes[-1])
+            merged_spans.append(spans[-1])
+        nodes, spans = merged, merged_spans
+    logger.info(
+        "tree of %d leaves of %d columns (%d levels) over columns %d:%d of %s on %s",
+        len(ranges), width, level, start, stop, spec.description,
+        "the threaded scheduler" if client is None else client,
+    )
+    (root,) = execute(nodes, client=client, progress=progress)
+    return cast(StreamCompressor, root)

@@ -1,0 +1,500 @@
+"""dask scale-out: tree merges on workers, tall (out-of-core) updates, schedulers, failures.
+
+Reference results are the in-memory StreamCompressor fed with the same blocks and numpy's
+SVD, compared with LAPACK's test ratios (``streamsvd.testing``). A real LocalCluster
+(2 worker processes, 1 thread each) is started once for the module.
+"""
+
+import inspect
+import math
+import os
+from pathlib import Path
+
+import dask
+import dask.array as da
+import h5py
+import numpy as np
+import pytest
+import zarr
+
+import streamsvd as ss
+from streamsvd.errors import (
+    InputError,
+    NonFiniteError,
+    ShapeMismatchError,
+    SourceError,
+    StoreError,
+    StoreMismatchError,
+)
+from streamsvd.parallel import (
+    TallCompressor,
+    connect,
+    ingest,
+    open_compressor,
+    tall_compress,
+    tree_compress,
+)
+from streamsvd.store import open_store
+from streamsvd.testing import assert_svd_contract, with_spectrum
+
+EPS = np.finfo(float).eps
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    ) as cluster, distributed.Client(cluster) as c:
+        yield c
+
+
+def stream(A, block, **kw):
+    sc = ss.StreamCompressor(A.shape[0], **kw)
+    for j in range(0, A.shape[1], block):
+        sc.absorb(A[:, j : j + block])
+    return sc
+
+
+def low_rank(rng, n=240, m=120, rank=25, decades=6, noise=0.0):
+    A = with_spectrum(np.logspace(0, -decades, rank), n, m, rng)
+    return A + noise * rng.standard_normal((n, m)) if noise else A
+
+
+def rel_diff(a, b):
+    return float(np.max(np.abs(a - b))) / max(float(np.max(np.abs(b))), 1e-300)
+
+
+def store_snapshot(path):
+    with open_store(path, "r") as st:
+        state = st.read()
+        return state.generation, {k: np.array(v) for k, v in state.arrays.items()}
+
+
+def failing(x, bad_block):
+    """``x`` whose chunk ``bad_block`` (block index along columns) fails to read."""
+
+    def read(block, block_info=None):
+        if block_info[None]["chunk-location"][1] == bad_block:
+            raise OSError("simulated read failure")
+        return block
+
+    return x.map_blocks(read, dtype=x.dtype)
+
+
+# --------------------------------------------------------------------------- tree
+
+
+def test_one_leaf_is_the_in_memory_stream(rng):
+    A = low_rank(rng, noise=1e-8)
+    ref = stream(A, 20, max_rank=15)
+    sc = tree_compress(A, block=20, leaf_columns=1000, max_rank=15)
+    assert sc.n_seen == 120 and sc.source_offset == 120
+    np.testing.assert_array_equal(sc.expansion.U, ref.expansion.U)
+    np.testing.assert_array_equal(sc.expansion.V, ref.expansion.V)
+    assert sc.error_bound == ref.error_bound
+
+
+def three_chunkings(A):
+    return [da.from_array(A, chunks=c) for c in ((A.shape[0], 7), (64, 30), (50, A.shape[1]))]
+
+
+def test_converged_tree_is_the_svd_for_any_chunking_and_scheduler(rng, client):
+    A = low_rank(rng, n=200, m=96, rank=20, decades=8)
+    s = np.linalg.svd(A, compute_uv=False)
+    amps = []
+    for x in three_chunkings(A):
+        for c in (None, client):
+            sc = tree_compress(x, block=12, leaf_columns=24, sweeps=None, rule="jacobi",
+                               client=c)
+            e = sc.expansion
+            assert_svd_contract(A, e, relative_v=False)
+            assert e.rank >= 20
+            np.testing.assert_allclose(e.amplitudes[:20], s[:20], rtol=0,
+                                       atol=50 * 200 * EPS * s[0])
+            amps.append(e.amplitudes[:20])
+    for a in amps[1:]:
+        assert rel_diff(a, amps[0]) < 50 * 200 * EPS
+
+
+def test_truncated_tree_does_not_depend_on_chunking_or_scheduler(rng, client):
+    A = low_rank(rng, n=160, m=120, rank=40, decades=4)
+    runs = []
+    for x in three_chunkings(A):
+        for c in (None, client):
+            runs.append(tree_compress(x, block=10, leaf_columns=30, max_rank=12, client=c))
+    e0 = runs[0].expansion
+    err = float(np.linalg.norm(A - e0.to_dense()))
+    assert err <= runs[0].error_bound * (1 + 1e-9)
+    for sc in runs[1:]:
+        e = sc.expansion
+        assert rel_diff(e.U, e0.U) < 1e-10 and rel_diff(e.V, e0.V) < 1e-10
+        assert sc.error_bound == pytest.approx(runs[0].error_bound, rel=1e-10)
+
+
+@pytest.mark.parametrize("leaf_columns", [10, 30, 45, 200])
+@pytest.mark.parametrize("trunc", [{"eps": 1e-3}, {"rtol": 1e-3}, {"max_rank": 8}])
+def test_tree_error_bound_is_guaranteed_and_near_optimal(rng, leaf_columns, trunc):
+    s = np.logspace(0, -5, 40)
+    A = with_spectrum(s, 120, 150, rng)
+    sc = tree_compress(A, block=10, leaf_columns=leaf_columns, rule="jacobi", sweeps=None,
+                       **trunc)
+    e = sc.expansion
+    err = float(np.linalg.norm(A - e.to_dense()))
+    assert err <= sc.error_bound * (1 + 1e-9) + 1e-13
+    optimal = math.sqrt(float(np.sum(s[e.rank :] ** 2)))
+    # HAPOD truncates at every merge: an absolute eps is met with up to ~2x the optimum
+    assert err <= 2.0 * optimal + 1e-12
+    assert e.orthogonality_error() <= 50 * 120 * EPS
+
+
+def test_tree_reads_paths_on_workers(rng, tmp_path, client):
+    A = low_rank(rng, n=150, m=60, noise=1e-7)
+    np.save(tmp_path / "a.npy", A)
+    with h5py.File(tmp_path / "a.h5", "w") as h5:
+        h5.create_dataset("snap/u", data=A)
+    z = zarr.create_array(str(tmp_path / "a.zarr"), shape=A.shape, chunks=(40, 9), dtype="f8")
+    z[:] = A
+    ref = tree_compress(A, block=9, leaf_columns=27, max_rank=10)
+    with h5py.File(tmp_path / "a.h5", "r") as h5:
+        from_dataset = tree_compress(h5["snap/u"], block=9, leaf_columns=27, max_rank=10)
+    for src, c in [(tmp_path / "a.npy", None), (str(tmp_path / "a.h5"), client),
+                   (tmp_path / "a.zarr", client), (z, None)]:
+        sc = tree_compress(src, block=9, leaf_columns=27, max_rank=10, client=c)
+        assert rel_diff(sc.expansion.U, ref.expansion.U) < 1e-10
+    assert rel_diff(from_dataset.expansion.U, ref.expansion.U) < 1e-10
+
+
+def test_tree_store_is_created_at_the_end_and_resumed(rng, tmp_path, client):
+    A = low_rank(rng, n=120, m=100, noise=1e-8)
+    path = tmp_path / "s.zarr"
+    with tree_compress(A[:, :60], block=10, leaf_columns=20, max_rank=10, store=path) as sc:
+        assert sc.store_path == str(path)
+    gen, _ = store_snapshot(path)
+    with pytest.raises(StoreError, match="already exists; pass resume=True"):
+        tree_compress(A, block=10, store=path)
+    with pytest.raises(InputError, match="must be empty with resume=True"):
+        tree_compress(A, block=10, store=path, resume=True, max_rank=3)
+    with tree_compress(A, block=10, leaf_columns=20, store=path, resume=True,
+                       client=client) as sc:
+        assert sc.n_seen == 100 and sc.source_offset == 100 and sc.max_rank == 10
+        bound = sc.error_bound
+    assert store_snapshot(path)[0] == gen + 1
+    with ss.StreamCompressor.open(path, mode="r") as back:
+        assert back.n_seen == 100 and back.error_bound == bound
+        err = float(np.linalg.norm(A - back.expansion.to_dense()))
+        assert err <= bound * (1 + 1e-9)
+    # nothing left to read: the store is returned as it was
+    with tree_compress(A, block=10, store=path, resume=True) as sc:
+        assert sc.n_seen == 100
+    assert store_snapshot(path)[0] == gen + 1
+
+
+@pytest.mark.parametrize("on_cluster", [False, True])
+def test_failing_read_leaves_the_store_at_its_last_commit(rng, tmp_path, client, on_cluster):
+    A = low_rank(rng, n=100, m=80, noise=1e-8)
+    path = tmp_path / "s.zarr"
+    tree_compress(A[:, :40], block=10, max_rank=8, store=path).close()
+    before = store_snapshot(path)
+    x = failing(da.from_array(A, chunks=(50, 10)), bad_block=6)
+    with pytest.raises(SourceError, match=r"reading columns 60:70 \(offset 60\)"):
+        tree_compress(x, block=10, leaf_columns=20, store=path, resume=True,
+                      client=client if on_cluster else None)
+    after = store_snapshot(path)
+    assert after[0] == before[0]
+    for k, v in before[1].items():
+        np.testing.assert_array_equal(after[1][k], v)
+    with tree_compress(A, block=10, leaf_columns=20, store=path, resume=True) as sc:
+        assert sc.n_seen == 80  # the lock was released; the rest is absorbed
+
+
+class KillInMerge:
+    """Euclidean inner product that kills its worker process inside a tree merge.
+
+    With a marker path it kills once (the first merge to start); without, every time.
+    """
+
+    n = None
+    is_euclidean = True
+    fingerprint = "kill-in-merge"
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def apply(self, X):
+        if any(f.function == "_merge_pair" for f in inspect.stack()):
+            try:
+                fd = os.open(self.marker, os.O_CREAT | os.O_EXCL) if self.marker else None
+            except FileExistsError:
+                return X
+            if fd is not None:
+                os.close(fd)
+            os._exit(17)
+        return X
+
+    def gram(self, X, Y):
+        return X.T @ Y
+
+
+def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, client):
+    A = low_rank(rng, n=100, m=80, noise=1e-8)
+    ref = tree_compress(A, block=10, leaf_columns=20, max_rank=8, store=tmp_path / "ref")
+    ref.close()
+    # killed once: the cluster recomputes what the dead worker held, the result is exact
+    inner = KillInMerge(str(tmp_path / "killed-once"))
+    path = tmp_path / "s.zarr"
+    with tree_compress(A, block=10, leaf_columns=20, max_rank=8, inner=inner,
+                       client=client, store=path) as sc:
+        assert (tmp_path / "killed-once").exists()
+        np.testing.assert_allclose(sc.amplitudes, ref.amplitudes, rtol=1e-10)
+    with ss.StreamCompressor.open(path, inner=inner, mode="r") as back:
+        assert back.n_seen == 80
+    # killed at every attempt: the computation fails and an existing store is untouched
+    path2 = tmp_path / "s2.zarr"
+    tree_compress(A[:, :20], block=10, max_rank=8, inner=KillInMerge(None), store=path2).close()
+    before = store_snapshot(path2)
+    client.run_on_scheduler(lambda dask_scheduler: setattr(dask_scheduler, "allowed_failures", 0))
+    try:
+        with pytest.raises(distributed.scheduler.KilledWorker):
+            tree_compress(A, block=10, leaf_columns=20, store=path2, resume=True,
+                          inner=KillInMerge(None), client=client)
+    finally:
+        client.run_on_scheduler(
+            lambda dask_scheduler: setattr(dask_scheduler, "allowed_failures", 3))
+    after = store_snapshot(path2)
+    assert after[0] == before[0]
+    np.testing.assert_array_equal(after[1]["U0"], before[1]["U0"])
+    client.wait_for_workers(2, timeout=30)
+
+
+def test_tree_bad_arguments(rng, tmp_path):
+    A = rng.standard_normal((10, 6))
+    with pytest.raises(InputError, match="`options` must be among"):
+        tree_compress(A, block=2, max_rnak=3)
+    with pytest.raises(InputError, match="`block` must be an integer >= 1"):
+        tree_compress(A, block=0)
+    with pytest.raises(InputError, match="`leaf_columns` must be an integer >= 1"):
+        tree_compress(A, leaf_columns=-1)
+    with pytest.raises(InputError, match="`client` must be None"):
+        tree_compress(A, client="tcp://localhost:1")
+    with pytest.raises(InputError, match="`resume` needs `store`"):
+        tree_compress(A, resume=True)
+    with pytest.raises(InputError, match="got an open Source"):
+        tree_compress(ss.sources.open_source(A))
+    tree_compress(A[:9], store=tmp_path / "s").close()
+    with pytest.raises(ShapeMismatchError, match="must have snapshots of size 9"):
+        tree_compress(A, store=tmp_path / "s", resume=True)
+
+
+# --------------------------------------------------------------------------- tall
+
+
+@pytest.mark.parametrize(
+    "opts",
+    [{"sweeps": 1}, {"sweeps": 2, "eps": 1e-4}, {"sweeps": 1, "max_rank": 10, "rule": "jacobi"},
+     {"sweeps": None, "rule": "jacobi", "rtol": 1e-5}],
+)
+def test_tall_is_the_in_memory_stream(rng, opts):
+    A = low_rank(rng, n=300, m=90, rank=30, noise=1e-9)
+    ref = stream(A, 15, **opts)
+    with TallCompressor(300, chunk_rows=64, **opts) as tc:
+        for j in range(0, 90, 15):
+            tc.absorb(A[:, j : j + 15])
+        e, r = tc.expansion, ref.expansion
+        assert tc.rank == ref.rank and tc.n_seen == 90
+        np.testing.assert_allclose(e.amplitudes, r.amplitudes, rtol=1e-12, atol=1e-13)
+        top = r.amplitudes > 1e-6  # well-separated terms: vectors to rounding
+        assert rel_diff(e.U[:, top], r.U[:, top]) < 1e-8
+        assert tc.error_bound == pytest.approx(ref.error_bound, rel=1e-8, abs=1e-14)
+        assert tc.orthogonality_error() == pytest.approx(e.orthogonality_error(), abs=20 * EPS)
+        assert e.orthogonality_error() <= 50 * 300 * EPS
+        assert [h.rank for h in tc.history] == [h.rank for h in ref.history]
+
+
+def test_tall_converged_is_the_svd_for_any_chunking_and_scheduler(rng, client):
+    A = low_rank(rng, n=256, m=72, rank=20, decades=8)
+    s = np.linalg.svd(A, compute_uv=False)
+    runs = []
+    for rows, c in [(256, None), (50, None), (64, client), (100, client)]:
+        tc = tall_compress(da.from_array(A, chunks=(rows, 12)), block=12, chunk_rows=rows,
+                           sweeps=None, rule="jacobi", client=c)
+        e = tc.expansion
+        assert_svd_contract(A, e, relative_v=False)
+        np.testing.assert_allclose(e.amplitudes[:20], s[:20], rtol=0, atol=50 * 256 * EPS * s[0])
+        runs.append(e)
+        tc.close()
+    for e in runs[1:]:  # vectors of close singular values are weighted by them (LAPACK)
+        assert rel_diff(e.U[:, :20] * s[:20], runs[0].U[:, :20] * s[:20]) < 1e-12
+
+
+def test_tall_rejects_dependent_columns_like_the_in_memory_stream(rng):
+    B = rng.standard_normal((200, 6))
+    A = np.concatenate([B, B[:, :3] @ rng.standard_normal((3, 4)), B[:, 1:2], 3.0 * B], axis=1)
+    ref = stream(A, 8)
+    with TallCompressor(200, chunk_rows=48) as tc:
+        for j in range(0, A.shape[1], 8):
+            tc.absorb(A[:, j : j + 8])
+        assert tc.rank == ref.rank == 6
+        assert [h.rejected for h in tc.history] == [h.rejected for h in ref.history]
+        e = tc.expansion
+        assert np.linalg.norm(A - e.to_dense()) <= 1e-12 * np.linalg.norm(A)
+        assert tc.error_bound < 1e-9 * np.linalg.norm(A)
+        assert e.orthogonality_error() <= 50 * 200 * EPS
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e150])
+def test_tall_extreme_scales(rng, scale):
+    # (squared amplitudes, hence the bound's energies, must stay representable)
+    A = low_rank(rng, n=120, m=40, rank=10, decades=3, noise=1e-6)
+    with TallCompressor(120, chunk_rows=32, max_rank=6) as a, \
+            TallCompressor(120, chunk_rows=32, max_rank=6) as b:
+        for j in range(0, 40, 10):
+            a.absorb(A[:, j : j + 10])
+            b.absorb(A[:, j : j + 10] * scale)
+        np.testing.assert_allclose(b.amplitudes / scale, a.amplitudes, rtol=1e-12)
+        np.testing.assert_allclose(b.expansion.U, a.expansion.U, atol=1e-12)
+
+
+def test_tall_weights_match_the_in_memory_stream(rng):
+    A = low_rank(rng, n=150, m=40, rank=12, noise=1e-8)
+    w = rng.uniform(0.5, 2.0, 150)
+    ref = stream(A, 10, inner=w, max_rank=9)
+    with TallCompressor(150, chunk_rows=40, inner=w, max_rank=9) as tc:
+        for j in range(0, 40, 10):
+            tc.absorb(A[:, j : j + 10])
+        e = tc.expansion
+        np.testing.assert_allclose(e.amplitudes, ref.expansion.amplitudes, rtol=1e-11)
+        assert np.linalg.norm(e.U.T @ (w[:, None] * e.U) - np.eye(9)) < 50 * 150 * EPS
+    with pytest.raises(InputError, match="`inner` must be Euclidean or diagonal"):
+        TallCompressor(150, inner=np.diag(w))
+
+
+def test_tall_store_resume_equals_an_uninterrupted_run(rng, tmp_path):
+    A = low_rank(rng, n=180, m=80, noise=1e-8)
+    z = zarr.create_array(str(tmp_path / "a.zarr"), shape=A.shape, chunks=(60, 10), dtype="f8")
+    z[:] = A
+    with tall_compress(tmp_path / "a.zarr", block=10, store=tmp_path / "full",
+                       max_rank=9) as full:
+        assert full.chunk_rows == 60  # taken from the zarr chunks
+        want = full.expansion
+    with tall_compress(da.from_zarr(z)[:, :30], block=10, store=tmp_path / "part",
+                       max_rank=9) as part:
+        assert part.n_seen == 30
+    with tall_compress(tmp_path / "a.zarr", block=10, store=tmp_path / "part",
+                       resume=True) as tc:
+        got = tc.expansion
+        assert tc.n_seen == 80 and tc.source_offset == 80
+    np.testing.assert_array_equal(got.U, want.U)
+    np.testing.assert_array_equal(got.V, want.V)
+    with open_compressor(tmp_path / "part") as back:
+        assert isinstance(back, TallCompressor) and back.error_bound == tc.error_bound
+        U, V = back.factors()
+        np.testing.assert_array_equal(U.compute(), want.U)
+    # only the panels of the last two commits remain, and no scratch
+    with open_store(tmp_path / "part", "r") as st:
+        attrs = st.read().attrs
+    on_disk = {p.name for p in (tmp_path / "part" / "panels").iterdir() if p.is_dir()}
+    assert on_disk <= set(attrs["panels"]) | set(attrs["previous_panels"])
+    assert not any((tmp_path / "part" / "scratch").iterdir())
+    with pytest.raises(StoreMismatchError, match="not written by a StreamCompressor"):
+        ss.StreamCompressor.open(tmp_path / "part")
+
+
+@pytest.mark.parametrize("on_cluster", [False, True])
+def test_tall_failing_read_leaves_the_store_at_its_last_commit(rng, tmp_path, client,
+                                                               on_cluster):
+    A = low_rank(rng, n=120, m=60, noise=1e-8)
+    path = tmp_path / "t.zarr"
+    x = failing(da.from_array(A, chunks=(40, 10)), bad_block=3)
+    c = client if on_cluster else None
+    with pytest.raises(SourceError, match=r"absorbing columns 30:40 \(offset 30\) failed"):
+        tall_compress(x, block=10, store=path, chunk_rows=40, max_rank=8, client=c)
+    gen, arrays = store_snapshot(path)
+    with TallCompressor.open(path, mode="r") as tc:
+        assert tc.n_seen == 30 and tc.source_offset == 30
+    with tall_compress(da.from_array(A, chunks=(40, 10)), block=10, store=path, resume=True,
+                       client=c) as tc:
+        got = tc.expansion
+    with tall_compress(A, block=10, chunk_rows=40, max_rank=8) as tc:
+        want = tc.expansion
+    np.testing.assert_allclose(got.U, want.U, atol=1e-13)
+
+
+def test_tall_non_finite_block_changes_nothing(rng):
+    A = rng.standard_normal((50, 8))
+    with TallCompressor(50, chunk_rows=16) as tc:
+        tc.absorb(A[:, :4])
+        before = tc.expansion
+        bad = A[:, 4:].copy()
+        bad[7, 2] = np.nan
+        with pytest.raises(NonFiniteError, match="`columns` must be finite"):
+            tc.absorb(da.from_array(bad, chunks=(16, 4)))
+        with pytest.raises(NonFiniteError, match="`columns` must be finite"):
+            tc.absorb(bad)
+        with pytest.raises(ShapeMismatchError, match="`columns` must have 50 rows"):
+            tc.absorb(da.zeros((49, 2)))
+        assert tc.n_seen == 4
+        np.testing.assert_array_equal(tc.expansion.U, before.U)
+
+
+def test_tall_peak_memory_is_a_few_chunks(rng, tmp_path):
+    """The largest array any task produces is one row chunk, whatever n."""
+    n, rows = 4000, 250
+    A = low_rank(rng, n=n, m=40, rank=10, noise=1e-6)
+    sizes = []
+
+    class Largest(dask.callbacks.Callback):
+        def _posttask(self, key, result, dsk, state, id):
+            sizes.append(getattr(result, "nbytes", 0))
+
+    with TallCompressor(n, chunk_rows=rows, max_rank=6) as tc, Largest():
+        for j in range(0, 40, 10):
+            tc.absorb(da.from_array(A[:, j : j + 10], chunks=(rows, 10)))
+    # one row chunk of the widest operand: U0 before compaction, 2 * 6 + 10 columns
+    assert max(sizes) <= rows * (2 * 6 + 10) * 8 < n * 6 * 8
+
+
+# ----------------------------------------------------------------------- drivers
+
+
+def test_ingest_tree_and_tall_with_a_local_cluster(rng, tmp_path):
+    A = low_rank(rng, n=90, m=50, noise=1e-8)
+    np.save(tmp_path / "a.npy", A)
+    tree = ingest(tmp_path / "a.npy", tmp_path / "tree", block=10, scheduler="local",
+                  workers=2, progress=False, max_rank=7)
+    tall = ingest(tmp_path / "a.npy", tmp_path / "tall", block=10, tall=True,
+                  chunk_rows=30, progress=False, max_rank=7)
+    assert tree["mode"] == "tree" and tall["mode"] == "tall"
+    assert tree["n_seen"] == tall["n_seen"] == 50 and tree["rank"] == tall["rank"] == 7
+    assert tall["error_bound"] >= np.linalg.norm(A - stream(A, 10, max_rank=7).expansion.to_dense()) * 0.5
+    with open_compressor(tmp_path / "tree") as sc:
+        assert sc.n_seen == 50
+    with pytest.raises(InputError, match="`leaf_columns` does not apply to the tall mode"):
+        ingest(tmp_path / "a.npy", tmp_path / "x", tall=True, leaf_columns=10)
+    with pytest.raises(InputError, match="`scheduler` must be 'threads', 'local'"):
+        with connect(""):
+            pass
+
+
+def test_h5_source_for_the_tall_mode(rng, tmp_path, client):
+    A = low_rank(rng, n=100, m=30, noise=1e-8)
+    with h5py.File(tmp_path / "a.h5", "w") as h5:
+        h5.create_dataset("u", data=A)
+    np.save(tmp_path / "a.npy", A)
+    want = stream(A, 10, max_rank=5).expansion
+    for src in (tmp_path / "a.h5", tmp_path / "a.npy"):
+        with tall_compress(src, block=10, chunk_rows=32, max_rank=5, client=client) as tc:
+            assert rel_diff(tc.expansion.U, want.U) < 1e-10
+
+
+def test_results_do_not_depend_on_the_path_taken(rng):
+    """In memory, tree of one leaf and tall: one basis (the issue's cross-check)."""
+    A = low_rank(rng, n=200, m=60, rank=15, noise=1e-9)
+    a = stream(A, 12, max_rank=10).expansion
+    b = tree_compress(A, block=12, leaf_columns=60, max_rank=10).expansion
+    with tall_compress(A, block=12, chunk_rows=64, max_rank=10) as tc:
+        c = tc.expansion
+    assert rel_diff(b.U, a.U) == 0.0
+    assert rel_diff(c.U, a.U) < 1e-10 and rel_diff(c.V, a.V) < 1e-10
+    assert Path(ss.__file__).exists()
