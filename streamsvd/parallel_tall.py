@@ -31,7 +31,7 @@ D. CholeskyQR2's second pass: ``Q = (Q1 - U C3) L2^{-T}`` is written as a new pa
    written in pass C, and the block costs three passes instead of four.
 
 The coefficients ``C = C1 + C2 + C3 F`` and ``R_new = L2^T F`` then enter the same small
-core, the same rotation sweeps (:func:`~streamsvd.rotations.sweep_core`), the same
+core, the same rotation sweeps (:func:`streamsvd._core.core_step`), the same
 truncation and the same error-bound recursion as :class:`~streamsvd.StreamCompressor`,
 so both give the same basis up to rounding. When the stored width exceeds
 ``compact_ratio * rank``, a fifth pass writes ``U0 @ Gu`` as a single panel (applying the
@@ -69,7 +69,8 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg.blas import dsyrk
 
-from ._scaling import pow2_exponent, safe_column_norms
+from ._core import Bound, Truncation, UpdateRecord, core_step, history_array, record_from_row
+from ._scaling import safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
 from .compress import fix_signs
 from .errors import (
@@ -84,9 +85,8 @@ from .expansion import Expansion
 from .gram_schmidt import default_reject_tol
 from .inner import DiagonalInner, InnerProduct, as_inner
 from .parallel_tree import check_client, execute
-from .rotations import RULES, sweep_core
+from .rotations import RULES
 from .store import BasisStore, open_store
-from .stream import UpdateRecord
 
 __all__ = ["DEFAULT_CHUNK_ROWS", "TallCompressor"]
 
@@ -349,30 +349,6 @@ def _empty_state() -> _State:
     return _State((), (), z, z, z, z, z)
 
 
-_HISTORY_FIELDS = tuple(f.name for f in dataclasses.fields(UpdateRecord))
-_KINDS = ("absorb", "add", "merge")
-
-
-def _history_array(history: list[UpdateRecord]) -> np.ndarray:
-    out = np.zeros((len(history), len(_HISTORY_FIELDS)))
-    for i, rec in enumerate(history):
-        row = [getattr(rec, k) for k in _HISTORY_FIELDS]
-        row[0] = _KINDS.index(rec.kind)
-        out[i] = row
-    return out
-
-
-def _record_from_row(row: np.ndarray) -> UpdateRecord:
-    vals: dict[str, Any] = dict(zip(_HISTORY_FIELDS, row.tolist(), strict=True))
-    vals["kind"] = _KINDS[int(vals["kind"])]
-    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps"):
-        vals[k] = int(vals[k])
-    return UpdateRecord(**vals)
-
-
-# ------------------------------------------------------------------------ the class
-
-
 class TallCompressor:
     """Stream snapshots into a basis kept out of core, in zarr panels chunked by rows.
 
@@ -501,9 +477,7 @@ class TallCompressor:
             DEFAULT_CHUNK_ROWS if chunk_rows is None else chunk_rows, "chunk_rows"))
         self.client = check_client(client)
         self._s = _empty_state()
-        self._bound2 = 0.0
-        self._coupling = 0.0
-        self._discarded = 0.0
+        self._bound = Bound()
         self._history: list[UpdateRecord] = []
         self.source_offset = 0
         self._store = None
@@ -580,7 +554,8 @@ class TallCompressor:
 
     def _scalars(self) -> np.ndarray:
         return np.array(
-            [self._bound2, self._coupling, self._discarded, float(self.source_offset)]
+            [self._bound.bound2, self._bound.coupling, self._bound.discarded,
+             float(self.source_offset)]
         )
 
     def _attrs(self, s: _State, scalars: np.ndarray) -> dict[str, Any]:
@@ -602,7 +577,7 @@ class TallCompressor:
         arrays = {
             "Gu": s.Gu, "H": s.H, "Vraw": s.Vraw, "Gv": s.Gv, "R": s.R, "scalars": scalars,
             "widths": np.array(s.widths, dtype=np.float64),
-            "history": _history_array(self._history),
+            "history": history_array(self._history),
         }
         self._store.commit(arrays, attrs=self._attrs(s, scalars))
         self._committed = (s.panels, self._committed[0])
@@ -612,9 +587,10 @@ class TallCompressor:
         panels = tuple(str(p) for p in attrs["panels"])
         widths = tuple(int(x) for x in a["widths"])
         self._s = _State(panels, widths, a["Gu"], a["H"], a["Vraw"], a["Gv"], a["R"])
-        self._bound2, self._coupling, self._discarded, offset = (float(x) for x in a["scalars"])
+        bound2, coupling, discarded, offset = (float(x) for x in a["scalars"])
+        self._bound = Bound(bound2, coupling, discarded)
         self.source_offset = int(offset)
-        self._history = [_record_from_row(row) for row in a["history"]]
+        self._history = [record_from_row(row) for row in a["history"]]
         self._committed = (panels, tuple(str(p) for p in attrs.get("previous_panels", [])))
         for name, width in zip(panels, widths, strict=True):
             z = self._panel(name)
@@ -952,19 +928,6 @@ class TallCompressor:
         logger.info("compacted the basis to one panel of width %d", p)
         return _State((name,), (p,), np.eye(p), 0.5 * (H + H.T), s.Vraw, s.Gv, s.R)
 
-    def _keep_count(self, amps_sorted: np.ndarray) -> int:
-        keep = amps_sorted.size
-        if keep == 0:
-            return 0
-        thresh = self.eps
-        if self.rtol is not None:
-            thresh = max(thresh, self.rtol * float(amps_sorted[0]))
-        keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else keep
-        keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
-        if self.max_rank is not None:
-            keep = min(keep, self.max_rank)
-        return keep
-
     def _update(
         self,
         columns: int,
@@ -977,39 +940,12 @@ class TallCompressor:
         source_offset: int,
         coupling_extra: float,
     ) -> None:
-        """Sweeps, truncation, compaction and the bound: as ``StreamCompressor._update``."""
-        p = f.Gu.shape[1]
-        R = cast(np.ndarray, np.linalg.qr(K, mode="r")) if K.shape[0] > p else K
-        e = pow2_exponent(R)
-        Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
-        Qt = np.eye(p)
-        order = np.arange(p, dtype=np.int64)
-        done = 0
-        max_cos = 0.0
-        limit = self.sweeps if self.sweeps is not None else 200
-        while done < limit and p > 1:
-            st = sweep_core(Rt, Qt, order, p, rule=self.rule, eps=0.0,
-                            tol=math.sqrt(f.m) * _EPS)
-            done += 1
-            max_cos = st.max_cosine
-            if st.rotations == 0:
-                break
-        amps = np.ldexp(safe_column_norms(Rt.T), e)
-        order = np.argsort(-amps, kind="stable")
-        keep = self._keep_count(amps[order])
-        kept, cut = order[:keep], order[keep:]
-        cut_energy = float(np.sum(amps[cut] ** 2))
-        if cut.size and kept.size:
-            W_kd = np.ldexp(Rt[kept], e) @ np.ldexp(Rt[cut], e).T
-            nuclear = float(np.sum(scipy.linalg.svdvals(W_kd)))
-        else:
-            nuclear = 0.0
-        if cut.size:
-            logger.info("absorb: cut %d terms of energy %.3e (amplitudes %.3e .. %.3e)",
-                        cut.size, cut_energy, amps[cut].max(), amps[cut].min())
-        T = Qt[kept].T
-        new = dataclasses.replace(f, Gu=f.Gu @ T, Gv=f.Gv @ T,
-                                  R=np.ldexp(Rt[kept], e).T.copy())
+        """Sweeps, truncation (:func:`streamsvd._core.core_step`), compaction, the bound."""
+        step = core_step(
+            K, rule=self.rule, sweeps=self.sweeps, m=f.m,
+            truncation=Truncation(self.eps, self.rtol, self.max_rank), kind="absorb",
+        )
+        new = dataclasses.replace(f, Gu=f.Gu @ step.T, Gv=f.Gv @ step.T, R=step.R)
         limit_w = self.compact_ratio * max(new.rank, 1)
         if new.w > limit_w and new.rank:
             new = self._compact(new, created)
@@ -1023,18 +959,17 @@ class TallCompressor:
             logger.info("re-orthonormalising the basis (||U^T M U - I|| = %.2e)", orth)
             new = _reorthonormalize(new)
             orth = self._orth(new)
-        energy = cut_energy + ext["rejected_energy"]
-        cross = min(math.sqrt(energy) * math.sqrt(self._bound2), self._coupling)
-        bound2 = self._bound2 + energy + 2.0 * cross
-        coupling = self._coupling + nuclear + coupling_extra
+        energy = step.cut_energy + ext["rejected_energy"]
+        bound = self._bound.step(energy, step.coupling, overlapping=False, extra=coupling_extra)
         record = UpdateRecord(
             kind="absorb", columns=columns, rank=new.rank,
             new_directions=int(np.count_nonzero(ext["accepted"])),
-            rejected=int(np.count_nonzero(~ext["accepted"])), cut=int(cut.size),
-            cut_energy=energy, sweeps=done, max_cosine=max_cos, orthogonality=orth,
-            error_bound=math.sqrt(bound2), seconds=time.perf_counter() - t0,
+            rejected=int(np.count_nonzero(~ext["accepted"])), cut=step.cut,
+            cut_energy=energy, sweeps=step.sweeps, max_cosine=step.max_cosine,
+            orthogonality=orth, error_bound=math.sqrt(bound.bound2),
+            seconds=time.perf_counter() - t0,
         )
-        scalars = np.array([bound2, coupling, self._discarded + energy, float(source_offset)])
+        scalars = np.array([bound.bound2, bound.coupling, bound.discarded, float(source_offset)])
         self._history.append(record)
         try:
             if self._store is not None and self._uncommitted + 1 >= self.commit_every:
@@ -1046,7 +981,7 @@ class TallCompressor:
             self._history.pop()
             raise
         self._s = new
-        self._bound2, self._coupling, self._discarded = bound2, coupling, float(scalars[2])
+        self._bound = bound
         self.source_offset = source_offset
         created.clear()
         self._gc()
@@ -1082,12 +1017,12 @@ class TallCompressor:
     @property
     def discarded_energy(self) -> float:
         """Sum of the energies discarded by every update."""
-        return self._discarded
+        return self._bound.discarded
 
     @property
     def error_bound(self) -> float:
         """Guaranteed bound on ``||A - U V^T||_F`` (see the StreamCompressor notes)."""
-        return math.sqrt(self._bound2)
+        return math.sqrt(self._bound.bound2)
 
     @property
     def history(self) -> tuple[UpdateRecord, ...]:
