@@ -1,0 +1,138 @@
+"""Brand's incremental SVD (block version), the baseline of the streaming benchmark.
+
+M. Brand, "Fast low-rank modifications of the thin singular value decomposition",
+Linear Algebra Appl. 415 (2006) 20-30. The state is a thin SVD ``A_k ~ U diag(s) V^T``
+of the snapshots seen so far (columns of ``A``), truncated to ``rank`` terms. Absorbing a
+block ``B`` (``n x b``):
+
+1. block CGS2 against ``U`` ("twice is enough"): ``C = U^T B``, ``B1 = B - U C``,
+   ``C2 = U^T B1``, ``Bp = B1 - U C2``, ``C <- C + C2``;
+2. Householder QR of the residual, ``Bp = Q R`` (LAPACK ``dgeqrf`` + ``dorgqr`` through
+   ``scipy.linalg.qr``; robust when the residual is rank deficient: a zero residual gives
+   a zero row of ``R`` and some orthonormal ``Q``);
+3. LAPACK SVD (``dgesdd``) of the ``(p + b) x (p + b)`` core
+   ``K = [[diag(s), C], [0, R]]``, ``K = Uk diag(sk) Vk^T``;
+4. ``U <- [U, Q] Uk[:, :r]``, ``V <- blockdiag(V, I_b) Vk[:, :r]``, ``s <- sk[:r]`` with
+   ``r = min(rank, p + b)``: the exact SVD of the current (already truncated) expansion
+   plus the block, truncated to ``rank`` terms.
+
+Every truncation happens at the exact SVD of the expansion, so the discarded parts are
+mutually orthogonal and ``||A - U diag(s) V^T||_F = sqrt(sum of discarded s_i^2)`` (the
+error bound reported), up to rounding.
+
+Cost per block at rank ``p``: ``4 n p b`` (CGS2) ``+ O(n b^2)`` (QR) ``+ O((p + b)^3)``
+(core SVD) ``+ 2 n (p + b) p`` (the new ``U``) ``+ 2 m (p + b) p`` (the new ``V``, which
+grows with the number ``m`` of snapshots seen; small next to the ``n`` terms for
+``m << n``). ``U``, ``V`` and the work arrays live in buffers preallocated at their
+largest size (``U`` in two buffers used in turn, ``V`` for ``m_max`` rows), so an update
+allocates only the LAPACK outputs and the ``n x b`` residual.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg as sla
+
+
+class BrandSVD:
+    """Truncated incremental SVD of a stream of column blocks (Brand 2006).
+
+    Parameters
+    ----------
+    n : int
+        Size of one snapshot.
+    rank : int
+        Number of terms kept after each update.
+    max_columns : int
+        Largest number of snapshots the stream will bring (size of the ``V`` buffer).
+    max_block : int
+        Largest block width (size of the work buffers).
+    """
+
+    def __init__(self, n: int, *, rank: int, max_columns: int, max_block: int) -> None:
+        self.n = int(n)
+        self.rank = int(rank)
+        self.max_columns = int(max_columns)
+        self.max_block = int(max_block)
+        w = self.rank + self.max_block
+        self._U = [np.empty((self.n, self.rank), order="F"),
+                   np.empty((self.n, self.rank), order="F")]
+        self._cur = 0
+        self._V = [np.empty((self.max_columns, self.rank)),
+                   np.empty((self.max_columns, self.rank))]
+        self._C = np.empty((self.rank, self.max_block))
+        self._C2 = np.empty((self.rank, self.max_block))
+        self._K = np.zeros((w, w), order="F")
+        self.p = 0
+        self.m = 0
+        self.s = np.empty(0)
+        self.discarded = 0.0
+        self.seconds: list[float] = []
+
+    @property
+    def U(self) -> np.ndarray:
+        """Left singular vectors (``n x p``, a view of the internal buffer)."""
+        return self._U[self._cur][:, : self.p]
+
+    @property
+    def V(self) -> np.ndarray:
+        """Right singular vectors (``m x p``, a view of the internal buffer)."""
+        return self._V[self._cur][: self.m, : self.p]
+
+    @property
+    def error_bound(self) -> float:
+        """``sqrt`` of the discarded energy: ``||A - U diag(s) V^T||_F`` up to rounding."""
+        return math.sqrt(self.discarded)
+
+    def absorb(self, B: np.ndarray) -> None:
+        """Absorb the columns of ``B`` (``n x b``, ``b <= max_block``)."""
+        b = B.shape[1]
+        if b > self.max_block or self.m + b > self.max_columns or B.shape[0] != self.n:
+            raise ValueError(
+                f"`B` must be {self.n} x b with b <= {self.max_block} and at most "
+                f"{self.max_columns - self.m} more columns; got {B.shape}."
+            )
+        p, m = self.p, self.m
+        U = self._U[self._cur][:, :p]
+        # 1. block CGS2 against U
+        X = np.array(B, dtype=np.float64, order="F")
+        C = self._C[:p, :b]
+        if p:
+            np.matmul(U.T, X, out=C)
+            X -= U @ C
+            C2 = self._C2[:p, :b]
+            np.matmul(U.T, X, out=C2)
+            X -= U @ C2
+            C += C2
+        # 2. Householder QR of the residual (overwrites X)
+        Q, R = sla.qr(X, mode="economic", overwrite_a=True, check_finite=False)
+        # 3. SVD of the small core
+        w = p + b
+        K = self._K[:w, :w]
+        K[:] = 0.0
+        K[np.arange(p), np.arange(p)] = self.s
+        K[:p, p:] = C
+        K[p:, p:] = R
+        Uk, sk, Vkt = sla.svd(K, full_matrices=False, lapack_driver="gesdd",
+                              check_finite=False)
+        r = min(self.rank, w)
+        self.discarded += float(np.sum(sk[r:] ** 2))
+        # 4. rotate and truncate: U <- U Uk[:p, :r] + Q Uk[p:, :r] into the other buffer
+        nxt = 1 - self._cur
+        Unew = self._U[nxt][:, :r]
+        if p:
+            np.matmul(U, Uk[:p, :r], out=Unew)
+            Unew += Q @ Uk[p:, :r]
+        else:
+            np.matmul(Q, Uk[p:, :r], out=Unew)
+        Vk = Vkt[:r].T
+        Vold = self._V[self._cur][:m, :p]
+        Vnew = self._V[nxt]
+        if p:
+            np.matmul(Vold, Vk[:p], out=Vnew[:m, :r])
+        Vnew[m : m + b, :r] = Vk[p:]
+        self._cur = nxt
+        self.s = sk[:r].copy()
+        self.p, self.m = r, m + b
