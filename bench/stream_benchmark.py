@@ -44,7 +44,7 @@ Methods
 Measures
 --------
 * time of every update (wall clock around the call). Each (method, configuration) runs
-  alone in a fresh subprocess (``--isolation subprocess``), ``--repeats`` (2) times; the
+  alone in a fresh subprocess (``--isolation subprocess``), ``--repeats`` (3) times; the
   repeats alternate between the methods (forward, then backward order) so that a slow
   spell of a shared machine does not fall on every run of one method, and an update's
   time is the best over the repeats. Reported: every update's time, the total, the mean
@@ -895,7 +895,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                    help="seconds of updates per method and configuration before stopping")
     p.add_argument("--svd-k", default="100,200,400,800,2000",
                    help="prefix widths at which numpy's SVD is timed")
-    p.add_argument("--repeats", type=int, default=2,
+    p.add_argument("--repeats", type=int, default=3,
                    help="runs of each stream; an update's time is the best of them")
     p.add_argument("--isolation", choices=("subprocess", "inprocess"), default="subprocess",
                    help="run each method alone in a fresh process, or all in this one")
