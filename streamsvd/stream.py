@@ -230,7 +230,9 @@ class StreamCompressor:
             if attrs.get("kind") != "streamsvd.StreamCompressor":
                 raise StoreMismatchError(
                     f"`path` {path!s} holds a basis store that was not written by a "
-                    "StreamCompressor; open it with `streamsvd.store.open_store`."
+                    "StreamCompressor; open a TallCompressor's store with "
+                    "`streamsvd.parallel.open_compressor`, any other with "
+                    "`streamsvd.store.open_store`."
                 )
             ip = as_inner(inner, state.n)
             if ip.fingerprint != state.inner_fingerprint:
