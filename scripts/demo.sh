@@ -9,4 +9,4 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -e ".[fem]"
-exec .venv/bin/python -m streamsvd.demo "$@"
+exec .venv/bin/python scripts/demo.py "$@"

@@ -6,12 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
 EPS = np.finfo(float).eps
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+def _load(name, folder=EXAMPLES):
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -29,7 +30,7 @@ def test_heat_pod(tmp_path, capsys):
 
 
 def test_demo_main_job(tmp_path, capsys):
-    from streamsvd.demo import main
+    main = _load("demo", ROOT / "scripts").main
 
     assert main(["--out", str(tmp_path), "--quiet"]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())

@@ -1,6 +1,7 @@
 """The main job: stream rbs480a (or a generated matrix) into a local zarr basis store.
 
-Run with ``python -m streamsvd.demo [--data PATH] [--out DIR] [--quiet]``. The columns
+Run with ``bash scripts/demo.sh [--data PATH] [--out DIR] [--quiet]`` (or
+``python scripts/demo.py ...`` where streamsvd is installed). The columns
 of the matrix are absorbed block by block into ``OUT/basis.zarr`` (one rotation sweep per
 block, then sweeps to convergence at the end), and the result is compared with LAPACK:
 spectrum, error, error bound and orthogonality go to ``OUT/summary.json`` and
@@ -21,8 +22,8 @@ import numpy as np
 import scipy.io
 import scipy.linalg
 
-from . import Expansion, StreamCompressor, compress
-from .testing import with_spectrum
+from streamsvd import Expansion, StreamCompressor, compress
+from streamsvd.testing.matrices import with_spectrum
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def _load(path: Path) -> tuple[str, np.ndarray]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the main job; return the process exit code."""
-    ap = argparse.ArgumentParser(prog="python -m streamsvd.demo", description=__doc__)
+    ap = argparse.ArgumentParser(prog="scripts/demo.sh", description=__doc__)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="Matrix Market file")
     ap.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
     ap.add_argument("--block", type=int, default=40, help="snapshots per update")
