@@ -22,7 +22,6 @@ from .rotations import sweep_core
 
 __all__ = [
     "HISTORY_FIELDS",
-    "Bound",
     "CoreStep",
     "Truncation",
     "UpdateRecord",
@@ -55,8 +54,9 @@ class UpdateRecord:
         Directions rejected by Gram-Schmidt.
     cut : int
         Terms removed by truncation.
-    cut_energy : float
-        Energy ``sum ||v_i||^2`` removed by truncation and rejection.
+    discarded : float
+        ``||D_t||``: the norm of what the update removed (truncated terms and rejected
+        residuals), kept as a norm so that amplitudes up to 1e300 stay finite.
     sweeps : int
         Rotation sweeps run.
     max_cosine : float
@@ -75,7 +75,7 @@ class UpdateRecord:
     new_directions: int
     rejected: int
     cut: int
-    cut_energy: float
+    discarded: float
     sweeps: int
     max_cosine: float
     orthogonality: float
@@ -84,7 +84,7 @@ class UpdateRecord:
 
 
 HISTORY_FIELDS = (
-    "kind", "columns", "rank", "new_directions", "rejected", "cut", "cut_energy", "sweeps",
+    "kind", "columns", "rank", "new_directions", "rejected", "cut", "discarded", "sweeps",
     "max_cosine", "orthogonality", "error_bound", "seconds",
 )
 _KINDS = ("absorb", "add", "merge")
@@ -157,10 +157,11 @@ class CoreStep:
     max_cosine : float
     cut : int
         Number of terms cut.
-    cut_energy : float
-        ``sum ||v_i||^2`` of the cut terms.
-    coupling : float
-        Nuclear norm of ``V_kept^T V_cut`` (zero when truncating at convergence).
+    cut_norm : float
+        ``sqrt(sum ||v_i||^2)`` over the cut terms.
+    coupling_root : float
+        Square root of the nuclear norm of ``V_kept^T V_cut`` (zero when truncating at
+        convergence).
     """
 
     T: np.ndarray
@@ -168,8 +169,8 @@ class CoreStep:
     sweeps: int
     max_cosine: float
     cut: int
-    cut_energy: float
-    coupling: float
+    cut_norm: float
+    coupling_root: float
 
 
 def core_step(
@@ -211,66 +212,29 @@ def core_step(
         max_cos = s.max_cosine
         if s.rotations == 0:
             break
-    amps = np.ldexp(safe_column_norms(Rt.T), e)
+    amps_scaled = safe_column_norms(Rt.T)
+    amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
     keep = truncation.keep_count(amps[order])
     kept, cut = order[:keep], order[keep:]
-    cut_energy = float(np.sum(amps[cut] ** 2))
-    coupling = 0.0
+    # norms and the coupling are formed on the scaled core and scaled back as roots, so
+    # that amplitudes up to 1e300 neither overflow nor lose the bound
+    cut_norm = math.ldexp(float(np.linalg.norm(amps_scaled[cut])), e) if cut.size else 0.0
+    coupling_root = 0.0
     if cut.size and kept.size:
-        W_kd = np.ldexp(Rt[kept], e) @ np.ldexp(Rt[cut], e).T
-        coupling = float(np.sum(scipy.linalg.svdvals(W_kd)))
+        W_kd = Rt[kept] @ Rt[cut].T
+        coupling_root = math.ldexp(math.sqrt(float(np.sum(scipy.linalg.svdvals(W_kd)))), e)
     if cut.size:
         logger.info(
-            "%s: cut %d terms of energy %.3e (amplitudes %.3e .. %.3e)",
-            kind, cut.size, cut_energy, amps[cut].max(), amps[cut].min(),
+            "%s: cut %d terms of norm %.3e (amplitudes %.3e .. %.3e)",
+            kind, cut.size, cut_norm, amps[cut].max(), amps[cut].min(),
         )
+    # the accumulated rotations drift from orthogonality by about sqrt(rotations) * eps;
+    # one Newton-Schulz step, T <- T (3 I - T^T T) / 2, brings them back to eps, so that
+    # the orthogonality of U does not grow with the number of updates
+    T = Qt[kept].T
+    T = T @ (1.5 * np.eye(T.shape[1]) - 0.5 * (T.T @ T))
     return CoreStep(
-        T=Qt[kept].T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
-        cut=int(cut.size), cut_energy=cut_energy, coupling=coupling,
+        T=T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
+        cut=int(cut.size), cut_norm=cut_norm, coupling_root=coupling_root,
     )
-
-
-@dataclass(frozen=True)
-class Bound:
-    """The error-bound account of a compressor (theorem in ``StreamCompressor``'s notes).
-
-    Attributes
-    ----------
-    bound2 : float
-        ``b_t^2``, the square of the guaranteed bound on ``||A - U V^T||_F``.
-    coupling : float
-        ``c_t``, the bound on the cross term with the next discard (``inf`` once an
-        overlapping ``add`` happened).
-    discarded : float
-        ``sum_t e_t``.
-    """
-
-    bound2: float = 0.0
-    coupling: float = 0.0
-    discarded: float = 0.0
-
-    def combine(self, other: Bound) -> Bound:
-        """Return the account of two expansions of disjoint column sets, side by side."""
-        return Bound(
-            self.bound2 + other.bound2, self.coupling + other.coupling,
-            self.discarded + other.discarded,
-        )
-
-    def step(
-        self, energy: float, coupling: float, *, overlapping: bool, extra: float = 0.0
-    ) -> Bound:
-        """Advance by a discard of ``energy`` with kept/cut coupling ``coupling``.
-
-        ``b_t^2 = b_{t-1}^2 + e_t + 2 min(c_{t-1}, sqrt(e_t) b_{t-1})`` (only the
-        Cauchy-Schwarz term when the update overlaps earlier columns), and
-        ``c_t = c_{t-1} + coupling + extra`` (``inf`` after an overlapping update).
-        """
-        cross = math.sqrt(energy) * math.sqrt(self.bound2)
-        if not overlapping:
-            cross = min(cross, self.coupling)
-        return Bound(
-            bound2=self.bound2 + energy + 2.0 * cross,
-            coupling=math.inf if overlapping else self.coupling + coupling + extra,
-            discarded=self.discarded + energy,
-        )

@@ -24,13 +24,17 @@ entries from 1e-300 to 1e300 neither overflow nor underflow.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy.linalg
+import scipy.linalg.blas as blas
 
-from ._scaling import safe_column_norms
+from ._scaling import pow2_exponent
 from ._validation import as_float_array, check_nonnegative
+from .basis import BasisBackend, MemoryBasis
 from .errors import ShapeMismatchError
 from .expansion import Expansion
 from .inner import InnerProduct, as_inner
@@ -38,21 +42,31 @@ from .inner import InnerProduct, as_inner
 __all__ = [
     "BasisExtension",
     "GramSchmidtResult",
-    "cgs2_extend",
     "default_reject_tol",
+    "extend_basis",
     "orthonormalize",
     "orthonormalize_literal",
 ]
 
 _EPS = np.finfo(np.float64).eps
-_MAX_PASSES = 4  # projections per column: two, plus up to two more while norms collapse
+_MAX_PASSES = 4  # projections on the old basis: one, plus up to three while norms collapse
 _REITERATE = 0.5  # project again when a pass leaves less than this fraction of the norm
+_DELTA = 1.0 / 32.0  # a residual joins a CholeskyQR batch when its Schur pivot is >= _DELTA^2
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
     """``M``-norms of the columns of an already scaled block."""
     MX = X if inner.is_euclidean else inner.apply(X)
     return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
+
+
+def _gram(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product)."""
+    if inner.is_euclidean:
+        H = blas.dsyrk(1.0, np.asfortranarray(X), trans=1)
+        return np.triu(H) + np.triu(H, 1).T
+    G = X.T @ inner.apply(X)
+    return 0.5 * (G + G.T)
 
 
 def default_reject_tol(n: int) -> float:
@@ -64,136 +78,267 @@ def default_reject_tol(n: int) -> float:
 class BasisExtension:
     """How a block ``X`` (``n x b``) decomposes on a basis ``Q`` extended by new directions.
 
-    ``X = Q @ coeffs + Q_new @ R_new + residual``, where the residual gathers the rejected
-    directions (each of ``M``-norm at most ``reject_tol`` times its column's norm).
+    ``X = Q coeffs + Q_new R_new + Res``, where ``Q_new`` (``n x r``) sits in the basis
+    backend's workspace (accepted by the caller with ``basis.accept(r)``) and ``Res`` holds
+    the rejected residuals (zero in accepted columns), ``M``-orthogonal to ``Q`` and
+    ``Q_new`` to working accuracy.
 
     Attributes
     ----------
     coeffs : ndarray, shape (q, b)
         Coefficients on the existing basis.
-    Q_new : ndarray, shape (n, r)
-        New directions, ``M``-orthonormal and ``M``-orthogonal to ``Q``.
-    MQ_new : ndarray, shape (n, r)
-        ``M @ Q_new`` (the same array as ``Q_new`` for the Euclidean inner product).
     R_new : ndarray, shape (r, b)
-        Coefficients on the new directions (upper trapezoidal in the accepted order).
+        Coefficients on the new directions.
     accepted : ndarray of bool, shape (b,)
         Whether each column brought a new direction.
     rejected_norms : ndarray, shape (b,)
-        ``||r_k||_M`` of each rejected residual, zero for accepted columns.
+        ``||res_k||_M`` of each rejected residual, zero for accepted columns.
+    rejected_gram : ndarray, shape (k, k)
+        ``Res_rej^T M Res_rej`` of the ``k`` rejected residuals, scaled by
+        ``2^-(e_i + e_j)`` with ``e = rejected_exponents`` (overflow-safe).
+    rejected_exponents : ndarray of int, shape (k,)
     """
 
     coeffs: np.ndarray
-    Q_new: np.ndarray
-    MQ_new: np.ndarray
     R_new: np.ndarray
     accepted: np.ndarray
     rejected_norms: np.ndarray
+    rejected_gram: np.ndarray
+    rejected_exponents: np.ndarray
+
+    @property
+    def rank(self) -> int:
+        """Number of new directions ``r``."""
+        return int(self.R_new.shape[0])
+
+    def rejected_norm(self, F: np.ndarray | None = None) -> float:
+        """Return ``||Res_rej F^T||_F`` in the inner product ``M``, exactly and overflow-safe.
+
+        ``F`` (``rows x k``) holds the right vectors of the rejected columns (``V_k`` of an
+        increment, the core of an expansion); ``None`` stands for distinct columns of
+        their own (a block of snapshots), where the norm is ``sqrt(sum ||res_k||^2)``.
+        """
+        e = self.rejected_exponents
+        if e.size == 0:
+            return 0.0
+        if F is None:
+            d = np.sqrt(np.maximum(np.diag(self.rejected_gram), 0.0))
+            Fs, top = np.diag(np.ldexp(1.0, e - int(e.max()))), int(e.max())
+            return math.ldexp(float(np.linalg.norm(d * np.diag(Fs))), top)
+        Fs = np.ldexp(F, e[np.newaxis, :])
+        top = pow2_exponent(Fs)
+        Fs = np.ldexp(Fs, -top)
+        energy = float(np.sum(self.rejected_gram * (Fs.T @ Fs)))
+        return math.ldexp(math.sqrt(max(energy, 0.0)), top)
 
 
-def cgs2_extend(
-    Q: np.ndarray,
-    MQ: np.ndarray,
+def extend_basis(
+    basis: BasisBackend,
+    G: np.ndarray | None,
     X: np.ndarray,
     *,
     inner: InnerProduct,
     reject_tol: float,
-    G: np.ndarray | None = None,
+    reference: np.ndarray | None = None,
 ) -> BasisExtension:
-    """Decompose a block on an ``M``-orthonormal basis and extend the basis by CGS2.
+    """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
+
+    1. Block CGS against the basis, column subsets projected again while a pass cancels
+       more than half of their norm (DGKS; Giraud et al. 2005: twice is enough).
+    2. The residual block by CholeskyQR2 in batches: the Gram of the residuals normalised
+       to unit ``M``-norm is factored in order, a column joining the batch only when its
+       Schur pivot is at least ``_DELTA^2`` (so the batch is well conditioned and two
+       CholeskyQR passes give orthonormality to working accuracy); the batch is projected
+       once more on the old basis when it cancelled more than half of a norm. The other
+       columns are projected explicitly (CGS2) on the old basis and the batch, their
+       norms measured directly (never from a Gram of the data), and treated in the next
+       batch. A residual whose norm is ``<= reject_tol * reference_k`` is rejected, never
+       normalised.
+    3. The rejected residuals are projected on the new directions, so that they are
+       ``M``-orthogonal to every kept direction.
 
     Parameters
     ----------
-    Q : ndarray, shape (n, w)
-        Stored basis factor.
-    MQ : ndarray, shape (n, w)
-        ``M @ Q`` (``Q`` itself for the Euclidean inner product).
+    basis : BasisBackend
+        The stored basis; the new directions are left in its workspace.
+    G : ndarray, shape (w, q), or None
+        The basis is ``Q G`` (``M``-orthonormal); ``None``: the basis is ``Q``.
     X : ndarray, shape (n, b)
         Finite block; not modified.
     inner : InnerProduct
     reject_tol : float
-        Relative threshold of the rejection rule (module docstring).
-    G : ndarray, shape (w, q), optional
-        When given, the basis is the lazy product ``Q @ G`` (``M``-orthonormal), and the
-        products with it are formed as ``G^T (MQ^T X)`` and ``Q (G C)`` so that ``Q @ G``
-        is never built.
+        Relative rejection threshold.
+    reference : ndarray, shape (b,), optional
+        The norm each column's residual is compared with; default the column's own
+        ``M``-norm. Columns with a zero reference carry nothing and are rejected.
     """
     n, b = X.shape
+    q = basis.width if G is None else G.shape[1]
     peak = np.max(np.abs(X), axis=0) if n else np.zeros(b)
-    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
-    Xs = np.ldexp(X, -exps[np.newaxis, :])
-    MXs = inner.apply(Xs)
-    nu = np.sqrt(np.maximum(np.einsum("ij,ij->j", Xs, MXs), 0.0))
-    q = Q.shape[1] if G is None else G.shape[1]
+    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
+    Y, MY = basis.workspace(b)
+    np.ldexp(X, -exps[np.newaxis, :], out=Y)
+    nu = _m_norms(Y, inner)
+    ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
     C = np.zeros((q, b))
     if q:
-        active = np.arange(b)
-        before = nu
-        for npass in range(_MAX_PASSES):
-            Xa = Xs[:, active]
-            if G is None:
-                dC = MQ.T @ Xa
-                Xa -= Q @ dC
-            else:
-                dC = G.T @ (MQ.T @ Xa)
-                Xa -= Q @ (G @ dC)
-            Xs[:, active] = Xa
-            C[:, active] += dC
-            after = _m_norms(Xa, inner)
-            # twice is enough unless a pass cancelled more than half of the norm
-            again = (after < _REITERATE * before) if npass else np.ones(active.size, bool)
-            active, before = active[again], after[again]
-            if not active.size:
-                break
-    Q_new = np.empty((n, b))
-    MQ_new = Q_new if inner.is_euclidean else np.empty((n, b))
+        _project_old(basis, G, Y, C, np.arange(b), nu, inner, first=True)
     R_new = np.zeros((b, b))
-    rejected = np.zeros(b)
-    accepted = np.zeros(b, dtype=bool)
-    r = 0
-    for k in range(b):
-        x = Xs[:, k]
-        mx = x if inner.is_euclidean else inner.apply(x)
-        nrm = float(np.sqrt(max(float(x @ mx), 0.0)))
-        # DGKS on the whole basis: the first pass is against the block's new directions
-        # (the old basis was handled above); whenever a pass cancels more than half of the
-        # norm, the next one projects against the old basis and the new directions both,
-        # since the rounding of a cancelling pass leaves components along either
-        for npass in range(_MAX_PASSES if r or q else 0):
-            if npass and q:
-                if G is None:
-                    c_old = MQ.T @ x
-                    x -= Q @ c_old
-                else:
-                    c_old = G.T @ (MQ.T @ x)
-                    x -= Q @ (G @ c_old)
-                C[:, k] += c_old
-            if r:
-                c = MQ_new[:, :r].T @ x
-                x -= Q_new[:, :r] @ c
-                R_new[:r, k] += c
-            mx = x if inner.is_euclidean else inner.apply(x)
-            prev, nrm = nrm, float(np.sqrt(max(float(x @ mx), 0.0)))
-            if nrm >= _REITERATE * prev:
-                break
-        if nu[k] == 0.0 or nrm <= reject_tol * nu[k]:
-            rejected[k] = nrm
-            continue
-        Q_new[:, r] = x / nrm
-        if not inner.is_euclidean:
-            MQ_new[:, r] = mx / nrm
-        R_new[r, k] = nrm
-        accepted[k] = True
-        r += 1
+    rejected = np.zeros(b, dtype=bool)
+    order: list[np.ndarray] = []  # the accepted columns, batch after batch
+    batches: list[np.ndarray] = []  # their orthonormal directions
+    pending = np.arange(b)
+    while pending.size:
+        norms = _m_norms(Y[:, pending], inner)
+        drop = (ref[pending] == 0.0) | (norms <= reject_tol * ref[pending])
+        rejected[pending[drop]] = True
+        pending, norms = pending[~drop], norms[~drop]
+        if not pending.size:
+            break
+        Z = Y[:, pending] / norms
+        take = _cholesky_batch(_gram(Z, inner))
+        cols, Zb = pending[take], Z[:, take]
+        r0 = sum(o.size for o in order)
+        Qb, Rb = _cholesky_qr2(Zb, inner)
+        Rb = Rb * norms[take]
+        if q and float(np.min(np.abs(np.diag(Rb)) / norms[take])) < _REITERATE:
+            # the batch cancelled: its rounding left components along the old basis
+            dC = basis.project(Qb, G)
+            basis.subtract(Qb, G, dC)
+            C[:, cols] += dC @ Rb
+            Qb, R2 = _cholesky_qr2(Qb, inner)
+            Rb = R2 @ Rb
+        R_new[r0 : r0 + cols.size, cols] = Rb
+        order.append(cols)
+        batches.append(Qb)
+        rest = pending[~take]
+        if rest.size:
+            _project_on_batches(basis, G, Y, C, R_new, rest, batches, order, inner)
+        pending = rest
+    r = sum(o.size for o in order)
+    Qnew = np.hstack(batches) if batches else np.zeros((n, 0))
+    rej = np.flatnonzero(rejected)
+    if rej.size and r:
+        # make the rejected residuals orthogonal to every new direction (exact energies)
+        Yr = Y[:, rej]
+        c = inner.gram(Qnew, Yr)
+        Yr -= Qnew @ c
+        R_new[:r, rej] += c
+        Y[:, rej] = Yr
+    Yrej = Y[:, rej].copy()
+    Grej = _gram(Yrej, inner) if rej.size else np.zeros((0, 0))
+    rejected_norms = np.zeros(b)
+    rejected_norms[rej] = np.sqrt(np.maximum(np.diag(Grej), 0.0))
+    # the new directions go to the front of the workspace, in the accepted order
+    Y[:, :r] = Qnew
+    if not inner.is_euclidean and r:
+        MY[:, :r] = inner.apply(Qnew)
+    perm = np.concatenate(order) if order else np.zeros(0, dtype=np.int64)
     scale = np.ldexp(1.0, exps)
+    accepted = np.zeros(b, dtype=bool)
+    accepted[perm] = True
     return BasisExtension(
         coeffs=C * scale,
-        Q_new=Q_new[:, :r].copy(),
-        MQ_new=Q_new[:, :r].copy() if inner.is_euclidean else MQ_new[:, :r].copy(),
         R_new=R_new[:r] * scale,
         accepted=accepted,
-        rejected_norms=rejected * scale,
+        rejected_norms=rejected_norms * scale,
+        rejected_gram=Grej,
+        rejected_exponents=exps[rej],
     )
+
+
+def _project_old(
+    basis: BasisBackend,
+    G: np.ndarray | None,
+    Y: np.ndarray,
+    C: np.ndarray,
+    active: np.ndarray,
+    before: np.ndarray,
+    inner: InnerProduct,
+    *,
+    first: bool,
+) -> None:
+    """Project columns ``active`` of ``Y`` on the basis, again while a pass cancels."""
+    for npass in range(_MAX_PASSES):
+        whole = active.size == Y.shape[1]
+        Ya = Y if whole else Y[:, active]
+        dC = basis.project(Ya, G)
+        basis.subtract(Ya, G, dC)
+        if not whole:
+            Y[:, active] = Ya
+        C[:, active] += dC
+        after = _m_norms(Ya, inner)
+        # one pass is enough unless it cancelled more than half of the norm (DGKS); a
+        # column that arrives here after a cancellation elsewhere gets two passes
+        again = after < _REITERATE * before
+        if npass == 0 and not first:
+            again[:] = True
+        active, before = active[again], after[again]
+        if not active.size:
+            return
+
+
+def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
+    """Columns (in order) of a unit-diagonal Gram whose Schur pivots stay >= ``_DELTA^2``."""
+    c = Gz.shape[0]
+    try:
+        L = np.linalg.cholesky(Gz)
+        if float(np.min(np.diag(L))) >= _DELTA:
+            return np.ones(c, dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
+    take = np.zeros(c, dtype=bool)
+    L = np.zeros((c, c))
+    idx: list[int] = []
+    for k in range(c):
+        if idx:
+            lk = scipy.linalg.solve_triangular(L[np.ix_(idx, idx)], Gz[idx, k], lower=True)
+            piv = float(Gz[k, k] - lk @ lk)
+        else:
+            lk, piv = np.zeros(0), float(Gz[k, k])
+        if piv >= _DELTA * _DELTA:
+            L[k, idx] = lk
+            L[k, k] = math.sqrt(piv)
+            idx.append(k)
+            take[k] = True
+    return take
+
+
+def _cholesky_qr2(Z: np.ndarray, inner: InnerProduct) -> tuple[np.ndarray, np.ndarray]:
+    """``Z = Q R`` by two CholeskyQR passes (``Z`` well conditioned); ``Q`` is new."""
+    Q = np.array(Z, order="F")
+    R = np.eye(Z.shape[1])
+    for _ in range(2):
+        L = np.linalg.cholesky(_gram(Q, inner))
+        Q = blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
+        R = L.T @ R
+    return Q, R
+
+
+def _project_on_batches(
+    basis: BasisBackend,
+    G: np.ndarray | None,
+    Y: np.ndarray,
+    C: np.ndarray,
+    R_new: np.ndarray,
+    rest: np.ndarray,
+    batches: list[np.ndarray],
+    order: list[np.ndarray],
+    inner: InnerProduct,
+) -> None:
+    """CGS2 of the deferred columns on the old basis and the new directions together."""
+    Qn = np.hstack(batches)
+    r = Qn.shape[1]
+    Yr = Y[:, rest]
+    for _ in range(2):
+        c = inner.gram(Qn, Yr)
+        Yr -= Qn @ c
+        R_new[:r, rest] += c
+        if C.shape[0]:
+            dC = basis.project(Yr, G)
+            basis.subtract(Yr, G, dC)
+            C[:, rest] += dC
+    Y[:, rest] = Yr
 
 
 @dataclass(frozen=True)
@@ -208,8 +353,9 @@ class GramSchmidtResult:
     rejected : tuple of int
         Indices of the input columns whose new direction was rejected.
     discarded_energy : float
-        ``sum_k ||r_k||_M^2 ||v_k||^2`` over the rejected columns: an upper bound of
-        ``||U V^T - U_in V_in^T||_F^2`` up to rounding when ``M = I``.
+        ``||Res V_rej^T||_F^2`` (in ``M``) of the rejected residuals, computed exactly from
+        their Gram matrix and that of their right vectors: ``||U V^T - U_in V_in^T||_F^2``
+        up to rounding.
     """
 
     expansion: Expansion
@@ -250,7 +396,7 @@ def orthonormalize(
         A direction is rejected when ``||r_k||_M <= reject_tol * ||u_k||_M``; default
         ``n * eps``.
     block : int
-        Number of columns projected together (BLAS-3) before the column-wise pass.
+        Number of columns extended together (:func:`extend_basis`).
 
     Returns
     -------
@@ -264,27 +410,23 @@ def orthonormalize(
         if reject_tol is None
         else check_nonnegative(reject_tol, "reject_tol")
     )
-    Qbuf = np.empty((n, min(p, n)))
-    MQbuf = Qbuf if ip.is_euclidean else np.empty_like(Qbuf)
+    basis = MemoryBasis(n, ip, capacity=min(p, n) + min(block, p))
     R = np.zeros((min(p, n), p))
-    q = 0
     rejected: list[int] = []
     energy = 0.0
-    vnorms = safe_column_norms(V)
     for start in range(0, p, block):
         stop = min(start + block, p)
-        ext = cgs2_extend(Qbuf[:, :q], MQbuf[:, :q], U[:, start:stop], inner=ip, reject_tol=tol)
-        r = ext.Q_new.shape[1]
+        q = basis.width
+        ext = extend_basis(basis, None, U[:, start:stop], inner=ip, reject_tol=tol)
+        r = ext.rank
         R[:q, start:stop] = ext.coeffs
         R[q : q + r, start:stop] = ext.R_new
-        Qbuf[:, q : q + r] = ext.Q_new
-        if not ip.is_euclidean:
-            MQbuf[:, q : q + r] = ext.MQ_new
-        q += r
+        basis.accept(r)
         bad = np.flatnonzero(~ext.accepted)
         rejected.extend(int(start + k) for k in bad)
-        energy += float(np.sum((ext.rejected_norms[bad] * vnorms[start + bad]) ** 2))
-    Uo = Qbuf[:, :q].copy()
+        energy += ext.rejected_norm(V[:, start + bad]) ** 2
+    q = basis.width
+    Uo = basis.Q.copy()
     Vo = V @ R[:q].T
     return GramSchmidtResult(Expansion(Uo, Vo, inner=ip), tuple(rejected), energy)
 

@@ -169,7 +169,7 @@ def tall_compress(
         Show a progress bar over the columns (tqdm, on stderr).
     **options
         :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
-        ``rule``, ``sweeps``, ``reject_tol``, ``compact_ratio``, ``reorth_tol``,
+        ``rule``, ``sweeps``, ``reject_tol``, ``reorth_tol``,
         ``commit_every``, and ``workdir`` without a store).
 
     Returns

@@ -20,7 +20,7 @@ C. Second projection ``X'' = X' - U C2`` ("twice is enough"), formed on the fly.
    Gram of ``X''`` follows from the pass-B sums; its Cholesky factor, computed column by
    column in the block's order, is that of classical Gram-Schmidt, and a column whose
    residual is ``<= reject_tol * ||x_k||_M`` (or below the Gram's resolution, see
-   below) is rejected exactly as :func:`~streamsvd.gram_schmidt.cgs2_extend` rejects
+   below) is rejected exactly as :func:`~streamsvd.gram_schmidt.extend_basis` rejects
    it. Each chunk returns the Gram sums of ``Q1 = X''[:, acc] L1^{-T}`` and the energy
    of the residual each rejected column leaves out, measured on the vectors.
 D. CholeskyQR2's second pass: ``Q = (Q1 - U C3) L2^{-T}`` is written as a new panel, and
@@ -69,9 +69,10 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg.blas import dsyrk
 
-from ._core import Bound, Truncation, UpdateRecord, core_step, history_array, record_from_row
+from ._core import Truncation, UpdateRecord, core_step, history_array, record_from_row
 from ._scaling import safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
+from .bound import Bound
 from .compress import fix_signs
 from .errors import (
     InputError,
@@ -553,18 +554,15 @@ class TallCompressor:
         return self._options()
 
     def _scalars(self) -> np.ndarray:
-        return np.array(
-            [self._bound.bound2, self._bound.coupling, self._bound.discarded,
-             float(self.source_offset)]
-        )
+        return np.concatenate([self._bound.to_array(), [float(self.source_offset)]])
 
     def _attrs(self, s: _State, scalars: np.ndarray) -> dict[str, Any]:
         return {
             "kind": KIND, "options": self._options(), "chunk_rows": self.chunk_rows,
             "panels": list(s.panels), "previous_panels": list(self._committed[0]),
             "n_seen": s.m, "rank": s.rank, "source_offset": int(scalars[3]),
-            "updates": len(self._history), "error_bound": math.sqrt(scalars[0]),
-            "discarded_energy": float(scalars[2]),
+            "updates": len(self._history), "error_bound": float(scalars[0]),
+            "discarded_norm": float(scalars[2]),
         }
 
     def _commit(self, s: _State, scalars: np.ndarray) -> None:
@@ -587,9 +585,8 @@ class TallCompressor:
         panels = tuple(str(p) for p in attrs["panels"])
         widths = tuple(int(x) for x in a["widths"])
         self._s = _State(panels, widths, a["Gu"], a["H"], a["Vraw"], a["Gv"], a["R"])
-        bound2, coupling, discarded, offset = (float(x) for x in a["scalars"])
-        self._bound = Bound(bound2, coupling, discarded)
-        self.source_offset = int(offset)
+        self._bound = Bound.from_array(a["scalars"])
+        self.source_offset = int(a["scalars"][3])
         self._history = [record_from_row(row) for row in a["history"]]
         self._committed = (panels, tuple(str(p) for p in attrs.get("previous_panels", [])))
         for name, width in zip(panels, widths, strict=True):
@@ -756,7 +753,7 @@ class TallCompressor:
             grown = self._grow(f, ext, Vraw)
             self._update(
                 b, grown, K, ext, created, t0=t0, source_offset=offset,
-                coupling_extra=math.sqrt(ext["rejected_energy"]) * ext["norm"],
+                coupling_extra=math.sqrt(math.sqrt(ext["rejected_energy"]) * ext["norm"]),
             )
         except StreamSVDError:
             self._drop(created)
@@ -959,17 +956,19 @@ class TallCompressor:
             logger.info("re-orthonormalising the basis (||U^T M U - I|| = %.2e)", orth)
             new = _reorthonormalize(new)
             orth = self._orth(new)
-        energy = step.cut_energy + ext["rejected_energy"]
-        bound = self._bound.step(energy, step.coupling, overlapping=False, extra=coupling_extra)
+        discarded = math.hypot(step.cut_norm, math.sqrt(ext["rejected_energy"]))
+        bound = self._bound.step(
+            discarded, step.coupling_root, overlapping=False, extra_root=coupling_extra
+        )
         record = UpdateRecord(
             kind="absorb", columns=columns, rank=new.rank,
             new_directions=int(np.count_nonzero(ext["accepted"])),
             rejected=int(np.count_nonzero(~ext["accepted"])), cut=step.cut,
-            cut_energy=energy, sweeps=step.sweeps, max_cosine=step.max_cosine,
-            orthogonality=orth, error_bound=math.sqrt(bound.bound2),
+            discarded=discarded, sweeps=step.sweeps, max_cosine=step.max_cosine,
+            orthogonality=orth, error_bound=bound.bound,
             seconds=time.perf_counter() - t0,
         )
-        scalars = np.array([bound.bound2, bound.coupling, bound.discarded, float(source_offset)])
+        scalars = np.concatenate([bound.to_array(), [float(source_offset)]])
         self._history.append(record)
         try:
             if self._store is not None and self._uncommitted + 1 >= self.commit_every:
@@ -1017,12 +1016,17 @@ class TallCompressor:
     @property
     def discarded_energy(self) -> float:
         """Sum of the energies discarded by every update."""
+        return self._bound.discarded**2
+
+    @property
+    def discarded_norm(self) -> float:
+        """``sqrt(sum of the discarded energies)``."""
         return self._bound.discarded
 
     @property
     def error_bound(self) -> float:
-        """Guaranteed bound on ``||A - U V^T||_F`` (see the StreamCompressor notes)."""
-        return math.sqrt(self._bound.bound2)
+        """Guaranteed bound on ``||A - U V^T||_F`` (theorem in :mod:`streamsvd.bound`)."""
+        return self._bound.bound
 
     @property
     def history(self) -> tuple[UpdateRecord, ...]:

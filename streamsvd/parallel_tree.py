@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
@@ -47,7 +48,7 @@ __all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
 logger = logging.getLogger(__name__)
 
 COMPRESSOR_OPTIONS = (
-    "inner", "eps", "rtol", "max_rank", "rule", "sweeps", "reject_tol", "compact_ratio",
+    "inner", "eps", "rtol", "max_rank", "rule", "sweeps", "reject_tol",
     "reorth_tol",
 )
 """Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
@@ -235,11 +236,16 @@ def read_range(src: Source, start: int, stop: int, block: int) -> Iterator[tuple
 
 
 def _compress_leaf(
-    spec: SourceSpec, start: int, stop: int, block: int, options: dict[str, Any]
+    spec: SourceSpec,
+    start: int,
+    stop: int,
+    block: int,
+    options: dict[str, Any],
+    blas_threads: int,
 ) -> StreamCompressor:
     """Compress columns ``start:stop`` of the source (runs on a worker)."""
     sc = StreamCompressor(spec.n, **options)
-    with spec.open() as src:
+    with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
         for offset, X in read_range(src, start, stop, block):
             sc.absorb(X, source_offset=offset + X.shape[1])
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
@@ -247,18 +253,38 @@ def _compress_leaf(
     return sc
 
 
-def _merge_pair(left: StreamCompressor, right: StreamCompressor) -> StreamCompressor:
-    """Append ``right``'s columns to ``left`` (runs on a worker).
+def _merge_pair(
+    left: StreamCompressor, right: StreamCompressor, blas_threads: int
+) -> StreamCompressor:
+    """Return a new compressor: ``left`` with ``right``'s columns appended (on a worker).
 
-    ``left`` is updated and returned: each intermediate compressor of the tree is the
-    input of exactly one merge, and :meth:`StreamCompressor.merge` only replaces the
-    compressor's arrays (it never writes into them), so a merge that fails or is re-run
-    on another worker after a crash starts again from an unchanged copy.
+    Neither input is modified (a task's inputs may be shared with the threaded scheduler
+    or re-used when a task is retried after a crash), so a merge that fails or is re-run
+    starts again from the same inputs.
     """
-    left.merge(right)
-    logger.info("merged columns up to %d: rank %d (bound %.3e)", left.source_offset,
-                left.rank, left.error_bound)
-    return left
+    out = left.copy()
+    with threadpool_limits(limits=blas_threads, user_api="blas"):
+        out.merge(right)
+    logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
+                out.rank, out.error_bound)
+    return out
+
+
+def blas_threads_per_task(client: Any) -> int:
+    """BLAS threads each task may use: this machine's cores over the tasks run at once.
+
+    With dask's threaded scheduler (``client=None``) as many tasks run as there are
+    cores, so each gets one BLAS thread; on a cluster, a worker's threads share the cores
+    of its host (workers on this host are counted together).
+    """
+    cores = os.cpu_count() or 1
+    if client is None:
+        return 1
+    try:
+        threads = sum(client.nthreads().values())
+    except Exception:  # a client that cannot report its workers: stay conservative
+        return 1
+    return max(1, cores // max(threads, 1))
 
 
 # ---------------------------------------------------------------------- validation
@@ -278,7 +304,7 @@ def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
     return {
         "inner": probe.inner, "eps": probe.eps, "rtol": probe.rtol,
         "max_rank": probe.max_rank, "rule": probe.rule, "sweeps": probe.sweeps,
-        "reject_tol": probe.reject_tol, "compact_ratio": probe.compact_ratio,
+        "reject_tol": probe.reject_tol,
         "reorth_tol": probe.reorth_tol,
     }
 
@@ -288,7 +314,7 @@ def options_of(sc: StreamCompressor) -> dict[str, Any]:
     return {
         "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
         "rule": sc.rule, "sweeps": sc.sweeps, "reject_tol": sc.reject_tol,
-        "compact_ratio": sc.compact_ratio, "reorth_tol": sc.reorth_tol,
+        "reorth_tol": sc.reorth_tol,
     }
 
 
@@ -338,8 +364,8 @@ def tree_compress(
         Run on this cluster; the threaded scheduler of this process when omitted.
     store : str or path-like, optional
         Write the result to a basis store there. A new store is created only once the
-        whole tree is computed, and the root is merged into its empty compressor (one
-        commit; the merge runs one more sweep on the small core). With ``resume=True``
+        whole tree is computed, and the root is written into it as it is (one commit, no
+        further update: the stored basis is the tree's). With ``resume=True``
         the store's compressor is reopened first (taking its writer lock), the columns
         from its recorded source offset on are compressed, and the root is merged into
         it (one commit). A failure anywhere before that commit leaves an existing store
@@ -352,7 +378,7 @@ def tree_compress(
     **options
         Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
         ``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ``reject_tol``,
-        ``compact_ratio``, ``reorth_tol``.
+        ``reorth_tol``.
 
     Returns
     -------
@@ -423,8 +449,10 @@ def tree_compress(
         if target is None and path is None:
             return root if root is not None else StreamCompressor(spec.n, **opts)
         if target is None:
-            target = StreamCompressor(spec.n, store=path, **opts)
-        if root is not None:
+            # a new store: the root is written as it is (one commit, no further update)
+            target = root if root is not None else StreamCompressor(spec.n, **opts)
+            target.save(path)
+        elif root is not None:
             target.merge(root)
     except BaseException:
         if target is not None:
@@ -453,9 +481,11 @@ def _run_tree(
                                                                                block)
     ranges = leaf_ranges(start, stop, width)
     tag = uuid.uuid4().hex[:12]
+    blas = blas_threads_per_task(client)
     nodes = [
         dask.delayed(_compress_leaf, pure=False)(
-            spec.window(a, b), a, b, block, opts, dask_key_name=f"streamsvd-leaf-{a}-{b}-{tag}"
+            spec.window(a, b), a, b, block, opts, blas,
+            dask_key_name=f"streamsvd-leaf-{a}-{b}-{tag}",
         )
         for a, b in ranges
     ]
@@ -467,7 +497,7 @@ def _run_tree(
         for i in range(0, len(nodes) - 1, 2):
             a, b = spans[i][0], spans[i + 1][1]
             merged.append(dask.delayed(_merge_pair, pure=False)(
-                nodes[i], nodes[i + 1], dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}"
+                nodes[i], nodes[i + 1], blas, dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}"
             ))
             merged_spans.append((a, b))
         if len(nodes) % 2:

@@ -1,0 +1,220 @@
+"""The n-sized factor of an expansion: the stored basis ``Q`` and the few products on it.
+
+An update of a compressor touches the ``n``-sized data only through a handful of
+operations, all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
+``gram_schmidt`` once over its vector arrays):
+
+* ``project(X, G)``: ``G^T (MQ^T X)``, the coefficients of a block on the basis ``Q G``;
+* ``subtract(X, G, C)``: ``X -= Q (G C)``;
+* ``workspace(b)``: room for ``b`` new columns right after the stored ones, where a block
+  is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns;
+* ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
+  written into a spare buffer first so that nothing stored changes before ``swap``;
+* ``cross(r)``: ``MQ^T Y`` for the ``r`` workspace columns; ``take(G)``: ``Q G``.
+
+:class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
+column-major buffers whose capacity grows geometrically, so appending columns never
+copies the basis (the buffers are reallocated ``O(log)`` times over a stream, counted in
+:attr:`MemoryBasis.reallocations`); a compaction writes into a second buffer of the same
+capacity, swapped in by ``swap``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from .inner import InnerProduct
+
+__all__ = ["BasisBackend", "MemoryBasis"]
+
+_GROWTH = 2.0  # capacity factor when the buffers are full
+
+
+class BasisBackend(Protocol):
+    """What an update needs from the n-sized factor (see the module docstring)."""
+
+    n: int
+
+    @property
+    def width(self) -> int:
+        """Number of stored columns ``w``."""
+
+    def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
+        """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
+
+    def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
+        """``X -= Q (G C)`` in place."""
+
+    def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return views ``(Y, MY)`` of ``b`` columns after the stored ones."""
+
+    def accept(self, r: int) -> None:
+        """Make the first ``r`` workspace columns stored columns."""
+
+    def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first ``r`` workspace columns and their ``M`` image."""
+
+    def planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Return the stored columns after ``accept(r)`` or ``swap``."""
+
+    def compact_planned(self, G: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Write ``[Q, Y[:, :r]] G`` aside; return it and its ``M`` image."""
+
+    def swap(self, p: int) -> None:
+        """Make the basis written by ``compact_planned`` the stored one."""
+
+    def cross(self, r: int) -> np.ndarray:
+        """Return ``MQ^T Y[:, :r]`` for the workspace columns."""
+
+    def take(self, G: np.ndarray) -> np.ndarray:
+        """Return ``Q G`` as a new array."""
+
+
+class MemoryBasis:
+    """In-memory basis buffer (see the module docstring).
+
+    Parameters
+    ----------
+    n : int
+        Rows (size of a snapshot).
+    inner : InnerProduct
+        The inner product ``M`` (``M Q`` is kept beside ``Q`` unless it is Euclidean).
+    capacity : int
+        Initial number of columns the buffers hold.
+    """
+
+    def __init__(self, n: int, inner: InnerProduct, *, capacity: int = 0) -> None:
+        self.n = int(n)
+        self.inner = inner
+        self._w = 0
+        self.reallocations = 0
+        self._bufs = self._allocate(int(capacity))
+        self._spare: tuple[np.ndarray, np.ndarray] | None = None
+        self._planned_width = 0
+
+    # ------------------------------------------------------------------ buffers
+    def _allocate(self, cap: int) -> tuple[np.ndarray, np.ndarray]:
+        Q = np.empty((self.n, cap), order="F")
+        MQ = Q if self.inner.is_euclidean else np.empty((self.n, cap), order="F")
+        return Q, MQ
+
+    @property
+    def capacity(self) -> int:
+        """Number of columns the buffers hold."""
+        return int(self._bufs[0].shape[1])
+
+    def _ensure(self, cols: int) -> None:
+        if cols <= self.capacity:
+            return
+        cap = max(cols, int(_GROWTH * self.capacity), 8)
+        Q, MQ = self._allocate(cap)
+        w = self._w
+        Q[:, :w] = self._bufs[0][:, :w]
+        if not self.inner.is_euclidean:
+            MQ[:, :w] = self._bufs[1][:, :w]
+        self._bufs = (Q, MQ)
+        self._spare = None
+        self.reallocations += 1
+
+    @property
+    def width(self) -> int:
+        """Number of stored columns ``w``."""
+        return self._w
+
+    @property
+    def Q(self) -> np.ndarray:
+        """The stored columns (a view, ``n x w``)."""
+        return self._bufs[0][:, : self._w]
+
+    @property
+    def MQ(self) -> np.ndarray:
+        """``M Q`` (the same view as :attr:`Q` for the Euclidean inner product)."""
+        return self._bufs[1][:, : self._w]
+
+    # ------------------------------------------------------------------ products
+    def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
+        """Return ``G^T (MQ^T X)``, the coefficients of ``X`` on the basis ``Q G``.
+
+        ``G = None`` stands for the identity (the basis is ``Q`` itself).
+        """
+        C = self.MQ.T @ X
+        return C if G is None else G.T @ C
+
+    def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
+        """``X -= Q (G C)`` in place (``G = None``: the identity)."""
+        X -= self.Q @ (C if G is None else G @ C)
+
+    def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return views ``(Y, MY)`` of ``b`` columns after the stored ones.
+
+        Their content is scratch until :meth:`accept`; the stored columns are untouched
+        (the buffers may be reallocated here, never afterwards in the same update).
+        """
+        w = self._w
+        self._ensure(w + b)
+        Q, MQ = self._bufs
+        return Q[:, w : w + b], MQ[:, w : w + b]
+
+    def accept(self, r: int) -> None:
+        """Make the first ``r`` workspace columns stored columns."""
+        self._w += int(r)
+
+    def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first ``r`` workspace columns and their ``M`` image (views)."""
+        w = self._w
+        Q, MQ = self._bufs
+        return Q[:, w : w + r], MQ[:, w : w + r]
+
+    def planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Return the stored columns after :meth:`accept` (``r``) or :meth:`swap` (views)."""
+        if compacted:
+            assert self._spare is not None
+            p = self._planned_width
+            return self._spare[0][:, :p], self._spare[1][:, :p]
+        w = self._w + r
+        return self._bufs[0][:, :w], self._bufs[1][:, :w]
+
+    def compact_planned(self, G: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Write ``[Q, Y[:, :r]] G`` into the spare buffer; :meth:`swap` makes it the basis.
+
+        Returns views of the planned basis and its ``M`` image. The stored columns are
+        untouched until :meth:`swap`.
+        """
+        p = G.shape[1]
+        if self._spare is None or self._spare[0].shape[1] < self.capacity:
+            self._spare = self._allocate(self.capacity)
+        S, MS = self._spare
+        w = self._w + r
+        np.matmul(self._bufs[0][:, :w], G, out=S[:, :p])
+        if not self.inner.is_euclidean:
+            np.matmul(self._bufs[1][:, :w], G, out=MS[:, :p])
+        self._planned_width = p
+        return S[:, :p], MS[:, :p]
+
+    def swap(self, p: int) -> None:
+        """Make the spare buffer written by :meth:`compact_planned` the stored basis."""
+        assert self._spare is not None and p == self._planned_width
+        self._spare, self._bufs = self._bufs, self._spare
+        self._w = p
+
+    def cross(self, r: int) -> np.ndarray:
+        """Return ``MQ^T Y[:, :r]`` for the first ``r`` workspace columns."""
+        w = self._w
+        return self.MQ.T @ self._bufs[0][:, w : w + r]
+
+    def take(self, G: np.ndarray) -> np.ndarray:
+        """Return ``Q G`` as a new array."""
+        return self.Q @ G
+
+    def restore(self, Q: np.ndarray, MQ: np.ndarray | None, *, capacity: int) -> None:
+        """Load stored columns (from a store), with the capacity they were written with."""
+        w = Q.shape[1]
+        self._bufs = self._allocate(max(capacity, w))
+        self._spare = None
+        self._bufs[0][:, :w] = Q
+        if not self.inner.is_euclidean:
+            assert MQ is not None
+            self._bufs[1][:, :w] = MQ
+        self._w = w

@@ -1,0 +1,174 @@
+"""The m-sized factor: the right vectors ``V = V0 Vp`` kept in Brand's row-append form.
+
+``V0`` (``m x wv``) lives in a row buffer whose capacity grows geometrically; ``Vp``
+(``wv x p``) is small. An update acts on ``Vp`` only and appends its new rows once:
+
+* the old rows change by a small matrix: ``V_old <- V_old T_old`` is ``Vp <- Vp T_old``;
+* new rows ``N`` (``b x p``, in the current coordinates) are written as
+  ``V0_new = N Vp^+``, which is exact when ``Vp`` has full column rank.
+
+So an update never reads or writes an old row of ``V`` (:attr:`RowFactor.old_rows_touched`
+counts the ones that were). Brand's ``Vp`` loses conditioning when an update rotates old
+terms out (the old rows then carry little of the new terms), and ``N Vp^+`` would amplify
+rounding by ``cond(Vp)``. Instead of inverting an ill-conditioned ``Vp``, the directions
+of ``Vp`` whose singular value is below ``s_max / cond_limit`` (and, when the rank grows
+beyond ``wv``, the missing ones) get new columns of ``V0``, zero in every old row: with
+``Vp <- [Vp; s_max Y_bad^T]`` the old rows are unchanged, ``cond(Vp) <= cond_limit``
+afterwards, and the new rows are written with a rounding of at most ``cond_limit * eps``.
+When ``wv`` exceeds ``width_limit * p`` the factor is *rebased*, ``V0 <- V0 Vp`` and
+``Vp <- I`` (the only operation that reads and writes every row, ``O(m wv p)``), counted
+in :attr:`RowFactor.rebases`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["RowFactor"]
+
+COND_LIMIT = 16.0  # largest cond(Vp) through which new rows are written
+WIDTH_LIMIT = 4.0  # rebase when wv > WIDTH_LIMIT * p
+_GROWTH = 2.0
+_CHUNK_ROWS = 4096  # rows per block of an in-place rebase
+
+
+class RowFactor:
+    """Right vectors ``V = V0 Vp`` (see the module docstring); empty when created."""
+
+    def __init__(self) -> None:
+        self._V0 = np.zeros((0, 0))
+        self._m = 0
+        self._wv = 0
+        self.Vp = np.zeros((0, 0))
+        self.old_rows_touched = 0
+        self.rebases = 0
+        self.reallocations = 0
+
+    # ------------------------------------------------------------------ buffer
+    @property
+    def m(self) -> int:
+        """Number of rows (snapshots)."""
+        return self._m
+
+    @property
+    def width(self) -> int:
+        """Stored width ``wv``."""
+        return self._wv
+
+    @property
+    def capacity(self) -> tuple[int, int]:
+        """Rows and columns the buffer holds."""
+        return (int(self._V0.shape[0]), int(self._V0.shape[1]))
+
+    @property
+    def V0(self) -> np.ndarray:
+        """The stored rows (a view, ``m x wv``)."""
+        return self._V0[: self._m, : self._wv]
+
+    def _ensure(self, rows: int, cols: int) -> None:
+        cap_r, cap_c = self.capacity
+        if rows <= cap_r and cols <= cap_c:
+            return
+        new_r = cap_r if rows <= cap_r else max(rows, int(_GROWTH * cap_r), 64)
+        new_c = cap_c if cols <= cap_c else max(cols, int(_GROWTH * cap_c), 8)
+        buf = np.zeros((new_r, new_c))
+        buf[: self._m, : self._wv] = self.V0
+        self._V0 = buf
+        self.reallocations += 1
+
+    def value(self) -> np.ndarray:
+        """Return ``V = V0 Vp`` (``m x p``, a new array)."""
+        return self.V0 @ self.Vp
+
+    # ------------------------------------------------------------------ updates
+    def stage(self, Vp_old_part: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """Write the new rows ``N`` after the stored ones; return the new ``Vp``.
+
+        Parameters
+        ----------
+        Vp_old_part : ndarray, shape (wv, p')
+            ``Vp T_old``: the old rows' factor after the update.
+        N : ndarray, shape (b, p')
+            The new rows in the update's coordinates.
+
+        The rows are written beyond the stored ones (scratch until :meth:`commit`), and
+        new columns are zero in every old row, so the stored ``V`` is unchanged until then.
+        """
+        wv, p = Vp_old_part.shape
+        b = N.shape[0]
+        if wv:
+            _, s, Yt = np.linalg.svd(Vp_old_part, full_matrices=wv < p)
+        else:
+            s, Yt = np.zeros(0), np.eye(p)
+        s_full = np.zeros(p)
+        s_full[: s.size] = s[:p]
+        s_max = float(s_full.max()) if p else 0.0
+        bad = np.flatnonzero(s_full <= s_max / COND_LIMIT) if s_max > 0 else np.arange(p)
+        scale = s_max if s_max > 0 else 1.0
+        Vp = np.vstack([Vp_old_part, scale * Yt[bad]]) if bad.size else Vp_old_part
+        # Vp^T Vp = Y diag(s^2 + scale^2 [bad]) Y^T, so Vp^+ = Y diag(1 / .) Y^T Vp^T
+        g = s_full**2
+        g[bad] += scale * scale
+        rows = ((N @ Yt.T) / g) @ (Yt @ Vp.T) if p else np.zeros((b, Vp.shape[0]))
+        self._ensure(self._m + b, Vp.shape[0])
+        # the whole row span is written: a staged row never keeps a stale entry from an
+        # update that failed before its commit
+        self._V0[self._m : self._m + b, :] = 0.0
+        self._V0[self._m : self._m + b, : Vp.shape[0]] = rows
+        return Vp
+
+    def planned(self, b: int, Vp: np.ndarray) -> np.ndarray:
+        """Return the stored rows after ``commit(Vp, b)`` (a view, before any rebase)."""
+        return self._V0[: self._m + b, : Vp.shape[0]]
+
+    def commit(self, Vp: np.ndarray, b: int) -> None:
+        """Make the ``b`` staged rows stored rows and ``Vp`` the small factor."""
+        self._m += int(b)
+        self._wv = int(Vp.shape[0])
+        self.Vp = Vp
+
+    def rebase_if_wide(self) -> None:
+        """Rebase when ``wv > WIDTH_LIMIT * p``: before an update plans its rows.
+
+        The rebase leaves ``V`` unchanged; done at the start of an update (not at the end
+        of the previous one) it sees exactly the state a store holds, so that a stream
+        resumed from its store rebases at the same update, bit for bit.
+        """
+        if self._wv > WIDTH_LIMIT * max(self.Vp.shape[1], 1):
+            self.rebase()
+
+    def transform(self, G: np.ndarray) -> None:
+        """``V <- V G`` (``Vp <- Vp G``; no row is touched)."""
+        self.Vp = self.Vp @ G
+
+    def rebase(self) -> None:
+        """``V0 <- V0 Vp``, ``Vp <- I``, in place by blocks of rows."""
+        m, wv = self._m, self._wv
+        p = self.Vp.shape[1]
+        self._ensure(m, p)
+        for start in range(0, m, _CHUNK_ROWS):
+            stop = min(start + _CHUNK_ROWS, m)
+            block = self._V0[start:stop, :wv] @ self.Vp
+            self._V0[start:stop, :p] = block
+            self._V0[start:stop, p:wv] = 0.0
+        self._wv = p
+        self.Vp = np.eye(p)
+        self.old_rows_touched += m
+        self.rebases += 1
+
+    def replace(self, V: np.ndarray) -> None:
+        """Set ``V`` outright (``V0 <- V``, ``Vp <- I``): an increment that spans every row."""
+        m, p = V.shape
+        self._V0 = np.zeros((max(m, 64), max(p, 8)))
+        self._V0[:m, :p] = V
+        self._m, self._wv = m, p
+        self.Vp = np.eye(p)
+        self.old_rows_touched += m
+
+    def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int]) -> None:
+        """Load the factor from a store, with the capacity it was written with."""
+        m, wv = V0.shape
+        self._V0 = np.zeros((max(capacity[0], m), max(capacity[1], wv)))
+        self._V0[:m, :wv] = V0
+        self._m, self._wv = m, wv
+        self.Vp = Vp

@@ -1,0 +1,361 @@
+"""The one update step of a compressor (absorb, add, merge), over a basis backend.
+
+State. ``U = Q Gu`` with ``Q`` the stored basis (a :class:`~streamsvd.basis.BasisBackend`,
+``n x w``) and ``Gu`` small (``w x p``); ``H = Q^T M Q`` (small) measures orthogonality;
+``R`` (``k x p``) is the core of the right factor, ``V^T V = R^T R``; the right vectors
+themselves, when kept, are ``V = V0 Vp`` (:class:`~streamsvd.rows.RowFactor`).
+
+Every update is planned first (:func:`plan_absorb`, :func:`plan_add`,
+:func:`plan_merge`): the new directions are orthonormalised in the backend's workspace,
+the small core ``K`` is rotated, sorted and truncated (:func:`streamsvd._core.core_step`),
+a compaction ``Q <- [Q, Q_new] Gu`` is written into the backend's spare buffer when it
+pays, and the new rows of ``V`` are written after the stored ones. Nothing stored changes
+until :func:`apply_plan`, so an exception anywhere in the planning, or in a commit to a
+store between the two, leaves the state exactly as it was.
+
+Cost of absorbing ``b`` columns at rank ``p`` (stored width ``w``): one or two block
+projections (``4 n w b`` flops each, the second only for the columns the first cancelled),
+CholeskyQR2 of the residual (``~4 n b^2``), the small core step (``O((p + b)^3)``), a
+compaction when it pays (``2 n (w + r) p``) and ``b`` new rows of ``V`` (``O(b w p)``).
+Nothing depends on the number ``m`` of snapshots already absorbed (except the rare rebase
+of :mod:`streamsvd.rows`). ``add`` costs ``O(m p^2)`` more (its increment spans every row).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from ._core import CoreStep, Truncation, UpdateRecord, core_step, r_factor
+from ._scaling import safe_column_norms
+from .basis import MemoryBasis
+from .bound import Bound
+from .gram_schmidt import BasisExtension, extend_basis
+from .inner import InnerProduct
+from .rows import RowFactor
+
+__all__ = ["Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_merge"]
+
+# Compaction pays when the projections wasted on the extra width since the last one
+# (about 4 flops per extra column, per snapshot, per row) reach its own cost
+# (2 flops per stored column, per kept term, per row).
+_WASTE_PER_COLUMN = 4.0
+_COMPACT_PER_COLUMN = 2.0
+
+
+@dataclass(frozen=True)
+class StepOptions:
+    """Options of the update step (validated by the facade)."""
+
+    inner: InnerProduct
+    rule: str
+    sweeps: int | None
+    truncation: Truncation
+    reject_tol: float
+    reorth_tol: float
+
+
+@dataclass
+class State:
+    """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`."""
+
+    basis: MemoryBasis
+    rows: RowFactor | None
+    Gu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    m: int = 0
+    waste: float = 0.0
+    bound: Bound = field(default_factory=Bound)
+
+    @property
+    def rank(self) -> int:
+        """Number of terms ``p``."""
+        return int(self.Gu.shape[1])
+
+    def orthogonality(self) -> float:
+        """``||U^T M U - I||_2`` from the small Gram matrices."""
+        return _orthogonality(self.Gu, self.H)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything an update computed, applied by :func:`apply_plan`."""
+
+    new_directions: int
+    compact: bool
+    Gu: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    m: int
+    waste: float
+    bound: Bound
+    record: UpdateRecord
+    rows_appended: int = 0
+    Vp: np.ndarray | None = None
+    V_replace: np.ndarray | None = None
+
+    def stored_basis(self, state: State) -> tuple[np.ndarray, np.ndarray]:
+        """Return the stored basis ``(Q, MQ)`` this plan leads to (views, for a commit)."""
+        return state.basis.planned(self.new_directions, compacted=self.compact)
+
+    def stored_rows(self, state: State) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return ``(V0, Vp)`` this plan leads to (views, for a commit); None without rows."""
+        if state.rows is None:
+            return None
+        if self.V_replace is not None:
+            return self.V_replace, np.eye(self.V_replace.shape[1])
+        assert self.Vp is not None
+        return state.rows.planned(self.rows_appended, self.Vp), self.Vp
+
+
+def apply_plan(state: State, plan: Plan) -> None:
+    """Switch the state to the planned one (cannot fail half-way)."""
+    if plan.compact:
+        state.basis.swap(plan.Gu.shape[1])
+    else:
+        state.basis.accept(plan.new_directions)
+    if state.rows is not None:
+        if plan.V_replace is not None:
+            state.rows.replace(plan.V_replace)
+        else:
+            assert plan.Vp is not None
+            state.rows.commit(plan.Vp, plan.rows_appended)
+    state.Gu, state.H, state.R = plan.Gu, plan.H, plan.R
+    state.m, state.waste, state.bound = plan.m, plan.waste, plan.bound
+
+
+# ---------------------------------------------------------------------------- planning
+def plan_absorb(
+    state: State, X: np.ndarray, opts: StepOptions, *, t0: float
+) -> Plan:
+    """Plan the absorption of a block of snapshots ``X`` (``n x b``)."""
+    ext = extend_basis(
+        state.basis, state.Gu, X, inner=opts.inner, reject_tol=opts.reject_tol
+    )
+    b = X.shape[1]
+    k, p = state.R.shape
+    K = np.zeros((k + b, p + ext.rank))
+    K[:k, :p] = state.R
+    K[k:, :p] = ext.coeffs.T
+    K[k:, p:] = ext.R_new.T
+    d_rej = ext.rejected_norm()
+    block_norm = _m_norm_fro(X, opts.inner)
+    return _plan(
+        state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0,
+        new_rows=np.hstack([ext.coeffs.T, ext.R_new.T]), d_rej=d_rej,
+        extra_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
+    )
+
+
+def plan_add(
+    state: State,
+    U_k: np.ndarray,
+    V_k: np.ndarray,
+    dV: np.ndarray | None,
+    opts: StepOptions,
+    *,
+    t0: float,
+) -> Plan:
+    """Plan the increment ``U dV^T + U_k V_k^T`` (``dV`` in the internal term order)."""
+    assert state.rows is not None
+    ref = _energy_reference(_m_norms(U_k, opts.inner), safe_column_norms(V_k))
+    ext = extend_basis(
+        state.basis, state.Gu, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref,
+    )
+    V_old = state.rows.value() if state.rank else np.zeros((V_k.shape[0], 0))
+    if dV is not None:
+        V_old = V_old + dV
+    V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
+    rej = ~ext.accepted
+    return _plan(
+        state, ext, r_factor(V_new), opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
+        t0=t0, V_full=V_new, d_rej=ext.rejected_norm(V_k[:, rej]), extra_root=0.0,
+        prior=state.bound, overlapping=True,
+    )
+
+
+def plan_merge(
+    state: State,
+    U_o: np.ndarray,
+    R_o: np.ndarray,
+    V_o: np.ndarray | None,
+    m_o: int,
+    prior: Bound,
+    opts: StepOptions,
+    *,
+    t0: float,
+) -> Plan:
+    """Plan appending ``m_o`` later snapshots represented by ``U_o V_o^T``.
+
+    ``R_o`` is the core of ``V_o`` (``V_o^T V_o = R_o^T R_o``); ``V_o`` itself is needed
+    only when the right vectors are kept. A term is rejected when its residual carries
+    ``||r_j||_M ||v_j|| <= reject_tol * max_i ||u_i||_M ||v_i||``: relative to the energy
+    of the expansion merged, as a snapshot's residual is relative to the snapshot.
+    """
+    ref = _energy_reference(_m_norms(U_o, opts.inner), safe_column_norms(R_o))
+    ext = extend_basis(
+        state.basis, state.Gu, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref,
+    )
+    k, p = state.R.shape
+    ko = R_o.shape[0]
+    K = np.zeros((k + ko, p + ext.rank))
+    K[:k, :p] = state.R
+    K[k:, :p] = R_o @ ext.coeffs.T
+    K[k:, p:] = R_o @ ext.R_new.T
+    new_rows = None
+    if state.rows is not None:
+        assert V_o is not None
+        new_rows = V_o @ np.hstack([ext.coeffs.T, ext.R_new.T])
+    rej = ~ext.accepted
+    return _plan(
+        state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
+        new_rows=new_rows, d_rej=ext.rejected_norm(R_o[:, rej]), extra_root=0.0,
+        prior=prior,
+    )
+
+
+def _plan(
+    state: State,
+    ext: BasisExtension,
+    K: np.ndarray,
+    opts: StepOptions,
+    *,
+    kind: str,
+    columns: int,
+    m: int,
+    t0: float,
+    d_rej: float,
+    extra_root: float,
+    prior: Bound,
+    new_rows: np.ndarray | None = None,
+    V_full: np.ndarray | None = None,
+    overlapping: bool = False,
+) -> Plan:
+    step = core_step(
+        K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind
+    )
+    p, r = state.rank, ext.rank
+    w = state.basis.width
+    T = step.T
+    p_new = T.shape[1]
+    # the basis [Q, Q_new] with Gu_ext = blockdiag(Gu, I_r); compact when it pays
+    waste = state.waste + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1)
+    compact = waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1) or p_new == 0
+    Gu = np.vstack([state.Gu @ T[:p], T[p:]])
+    if compact:
+        Q, MQ = state.basis.compact_planned(Gu, r)
+        H = _gram(Q, MQ)
+        Gu, waste = np.eye(p_new), 0.0
+    else:
+        H = _extended_gram(state, r)
+    R = step.R
+    L = None
+    orth = _orthogonality(Gu, H)
+    if orth > opts.reorth_tol:
+        # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged
+        G = Gu.T @ H @ Gu
+        L = np.linalg.cholesky(0.5 * (G + G.T))
+        Gu = scipy.linalg.solve_triangular(L, Gu.T, lower=True).T
+        R = R @ L
+        orth = _orthogonality(Gu, H)
+    Vp = V_replace = None
+    appended = 0
+    if state.rows is not None:
+        if V_full is not None:
+            V_replace = V_full @ T if L is None else (V_full @ T) @ L
+        else:
+            assert new_rows is not None
+            state.rows.rebase_if_wide()
+            Vp_old = state.rows.Vp @ T[:p]
+            N = new_rows @ T
+            if L is not None:
+                Vp_old, N = Vp_old @ L, N @ L
+            Vp = state.rows.stage(Vp_old, N)
+            appended = N.shape[0]
+    discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
+    bound = prior.step(
+        discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
+    )
+    record = _record(kind, columns, p_new, ext, step, discarded, orth, bound, t0)
+    return Plan(
+        new_directions=r, compact=compact, Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound,
+        record=record, rows_appended=appended, Vp=Vp, V_replace=V_replace,
+    )
+
+
+def _record(
+    kind: str,
+    columns: int,
+    rank: int,
+    ext: BasisExtension,
+    step: CoreStep,
+    discarded: float,
+    orth: float,
+    bound: Bound,
+    t0: float,
+) -> UpdateRecord:
+    return UpdateRecord(
+        kind=kind, columns=columns, rank=rank, new_directions=ext.rank,
+        rejected=int(np.count_nonzero(~ext.accepted)), cut=step.cut, discarded=discarded,
+        sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
+        error_bound=bound.bound, seconds=time.perf_counter() - t0,
+    )
+
+
+# ---------------------------------------------------------------------------- helpers
+def _extended_gram(state: State, r: int) -> np.ndarray:
+    """``H`` of ``[Q, Q_new]``: the cross block ``MQ^T Q_new`` and ``Q_new^T M Q_new``."""
+    w = state.basis.width
+    H = np.zeros((w + r, w + r))
+    H[:w, :w] = state.H
+    if r:
+        cross = state.basis.cross(r)
+        Qn, MQn = state.basis.planned_new(r)
+        H[:w, w:] = cross
+        H[w:, :w] = cross.T
+        G = MQn.T @ Qn
+        H[w:, w:] = 0.5 * (G + G.T)
+    return H
+
+
+def _gram(Q: np.ndarray, MQ: np.ndarray) -> np.ndarray:
+    G = MQ.T @ Q
+    return 0.5 * (G + G.T)
+
+
+def _orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
+    p = Gu.shape[1]
+    if p == 0:
+        return 0.0
+    return float(np.linalg.norm(Gu.T @ H @ Gu - np.eye(p), 2))
+
+
+def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    if inner.is_euclidean:
+        return safe_column_norms(X)
+    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, inner.apply(X)), 0.0))
+
+
+def _m_norm_fro(X: np.ndarray, inner: InnerProduct) -> float:
+    """``||X||_M`` (Frobenius in ``M``) of a block, overflow-safe."""
+    return math.hypot(*_m_norms(X, inner).tolist())
+
+
+def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
+    """Return reference norms: a term's rejection relative to the largest term's energy.
+
+    The residual ``r_j`` of ``u_j`` is rejected when ``||r_j|| <= tol * ref_j`` with
+    ``ref_j = max_i(||u_i|| ||v_i||) / ||v_j||``; a term with ``v_j = 0`` carries nothing
+    (reference 0: rejected).
+    """
+    top = float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
+    with np.errstate(divide="ignore"):
+        ref = np.where(v_norms > 0, top / np.where(v_norms > 0, v_norms, 1.0), 0.0)
+    return ref

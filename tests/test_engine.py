@@ -1,0 +1,256 @@
+"""The update engine: nothing grows with the stream, BLAS-3 Gram-Schmidt without lost digits,
+Brand's row-append form of V, the left-only mode, and a bound that always holds."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import streamsvd as ss
+from streamsvd.bound import Bound
+from streamsvd.rows import COND_LIMIT, RowFactor
+from streamsvd.testing import with_spectrum
+
+EPS = np.finfo(float).eps
+
+
+def _m_fro(X, inner):
+    """Frobenius norm in the inner product of a compressor."""
+    if inner.is_euclidean:
+        return float(np.linalg.norm(X))
+    return float(np.sqrt(max(np.sum(X * inner.apply(X)), 0.0)))
+
+
+# ------------------------------------------------------------------ no growth with m
+def test_an_update_touches_no_old_row_of_v_and_never_copies_the_basis(rng):
+    """A stream from a fixed 8-dimensional subspace, capped at rank 12: after the rank
+    settles, every update appends its b rows and nothing else (counted, not timed)."""
+    n, b = 300, 5
+    basis = np.linalg.qr(rng.standard_normal((n, 8)))[0]
+    sc = ss.StreamCompressor(n, max_rank=12, rule="jacobi", sweeps=None)
+    for _ in range(4):
+        sc.absorb(basis @ rng.standard_normal((8, b)))
+    rows, Q = sc._state.rows, sc._state.basis
+    touched, realloc_q = rows.old_rows_touched, Q.reallocations
+    for _ in range(400):
+        sc.absorb(basis @ rng.standard_normal((8, b)))
+    assert rows.old_rows_touched == touched  # no row of V read or rewritten
+    assert rows.rebases == 0
+    assert Q.reallocations == realloc_q  # the basis buffer is never copied again
+    assert rows.reallocations <= math.ceil(math.log2(sc.n_seen / 64)) + 2  # geometric growth
+    assert sc.n_seen == 404 * b and rows.m == sc.n_seen
+
+
+def test_row_factor_extends_instead_of_inverting_an_ill_conditioned_vp(rng):
+    """New rows go through Vp^+ only where Vp is well conditioned; elsewhere V0 gets new
+    columns, zero in every old row. A rebase changes the representation, not V."""
+    rows = RowFactor()
+    N0 = rng.standard_normal((50, 4))
+    rows.commit(rows.stage(np.zeros((0, 4)), N0), 50)
+    np.testing.assert_array_equal(rows.value(), N0)
+    # an update that nearly rotates term 3 out of the old rows, and adds a fifth term
+    T_old = np.linalg.qr(rng.standard_normal((4, 4)))[0] @ np.diag([1, 1, 1, 1e-9])
+    T_old = np.hstack([T_old, np.zeros((4, 1))])
+    Vp_old = rows.Vp @ T_old
+    N = rng.standard_normal((7, 5))
+    before = rows.old_rows_touched
+    Vp = rows.stage(Vp_old, N)
+    rows.commit(Vp, 7)
+    assert rows.old_rows_touched == before and rows.width == 6  # two directions added
+    assert np.linalg.cond(rows.Vp) <= COND_LIMIT * 1.01
+    V = rows.value()
+    np.testing.assert_allclose(V[:50], N0 @ T_old, rtol=0, atol=10 * EPS * np.abs(N0).max())
+    np.testing.assert_allclose(V[50:], N, rtol=0, atol=100 * EPS * np.abs(N).max())
+    rows.rebase()
+    assert rows.rebases == 1 and rows.width == 5 and rows.old_rows_touched == before + 57
+    np.testing.assert_allclose(rows.value(), V, rtol=0, atol=10 * EPS * np.abs(V).max())
+
+
+def test_streamed_right_vectors_match_their_core(rng):
+    """V kept in row-append form is the right factor the small core describes:
+    V^T V = R^T R to rounding, after a long stream with truncations."""
+    n, b, k = 120, 6, 10
+    sc = ss.StreamCompressor(n, max_rank=k, rule="paper", sweeps=1)
+    A = rng.standard_normal((n, 900)) * np.logspace(0, -2, 900)
+    for j in range(0, 900, b):
+        sc.absorb(A[:, j : j + b])
+    s = sc._state
+    V = s.rows.value()
+    R = s.R
+    assert np.linalg.norm(V.T @ V - R.T @ R) <= 1e3 * EPS * np.linalg.norm(R) ** 2
+    err = np.linalg.norm(A - sc.expansion.to_dense())
+    assert err <= sc.error_bound * (1 + 1e-9)
+
+
+def test_left_only_mode_gives_the_same_basis_bit_for_bit(rng):
+    A = with_spectrum(np.logspace(0, -8, 60), 200, 240, rng)
+    full = ss.StreamCompressor(200, max_rank=20, rule="paper", sweeps=1)
+    left = ss.StreamCompressor(200, max_rank=20, rule="paper", sweeps=1, right_vectors=False)
+    for j in range(0, 240, 7):
+        full.absorb(A[:, j : j + 7])
+        left.absorb(A[:, j : j + 7])
+    assert np.array_equal(full.left_vectors, left.left_vectors)
+    assert np.array_equal(full.amplitudes, left.amplitudes)
+    assert full.error_bound == left.error_bound and left.n_seen == 240
+    assert left._state.rows is None
+    with pytest.raises(ss.InputError, match=r"right_vectors=False"):
+        _ = left.expansion
+    with pytest.raises(ss.InputError, match=r"`add` needs the right vectors"):
+        left.add(np.ones((200, 1)), np.ones((240, 1)))
+
+
+# ------------------------------------------------------------------ Gram-Schmidt digits
+@pytest.mark.parametrize("delta", [1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-12])
+def test_nearly_parallel_columns_keep_their_rank_and_digits(rng, delta):
+    """[x, x + delta y]: the second direction is real (delta >> n eps) and must survive with
+    the product exact, in the standalone Gram-Schmidt and in the stream."""
+    n = 4000
+    x, y = rng.standard_normal(n), rng.standard_normal(n)
+    X = np.column_stack([x, x + delta * y])
+    g = ss.orthonormalize(X, np.eye(2))
+    assert g.expansion.rank == 2 and g.rejected == ()
+    assert g.expansion.orthogonality_error() <= 50 * n * EPS
+    assert np.linalg.norm(g.expansion.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X)
+    sc = ss.StreamCompressor(n, rule="jacobi", sweeps=None)
+    sc.absorb(X)
+    e = sc.expansion
+    assert e.rank == 2 and sc.history[-1].rejected == 0
+    s = np.linalg.svd(X, compute_uv=False)
+    assert abs(e.amplitudes[1] - s[1]) <= 50 * n * EPS * s[0]
+    assert np.linalg.norm(e.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X)
+    assert e.orthogonality_error() <= 50 * n * EPS
+
+
+def test_block_with_dependent_and_tiny_columns_in_one_absorb(rng):
+    """Dependencies inside one block are found by the batched CholeskyQR, not by a Gram of
+    the data: duplicates and combinations are rejected, small real directions kept."""
+    n = 500
+    B = rng.standard_normal((n, 6))
+    X = np.column_stack([B, B[:, 0], B @ rng.standard_normal(6), B[:, 1] + 1e-9 * B[:, 2],
+                         1e-200 * B[:, 3], B[:, 4] + 1e-15 * rng.standard_normal(n)])
+    sc = ss.StreamCompressor(n, rule="jacobi", sweeps=None)
+    rec = sc.absorb(X)
+    assert rec.new_directions == 6 and rec.rejected == 5
+    e = sc.expansion
+    assert e.orthogonality_error() <= 50 * n * EPS
+    assert np.linalg.norm(e.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X) + sc.error_bound
+    assert sc.error_bound <= 1e-12 * np.linalg.norm(X)
+
+
+# ------------------------------------------------------------------ the bound
+def test_rejected_residuals_of_an_increment_share_columns(rng):
+    """50 copies of a column nearly parallel to the basis, rejected: their residuals add
+    coherently, and the bound must follow (it is computed from the Gram matrices)."""
+    n, m = 200, 30
+    sc = ss.StreamCompressor(n, reject_tol=1e-6)
+    sc.absorb(rng.standard_normal((n, m)))
+    u = sc.expansion.U[:, 0] + 1e-8 * rng.standard_normal(n)
+    Uk = np.repeat(u[:, None], 50, axis=1)
+    Vk = np.repeat(rng.standard_normal((m, 1)), 50, axis=1)
+    before = sc.expansion.to_dense()
+    sc.add(Uk, Vk)
+    assert sc.history[-1].rejected == 50
+    err = np.linalg.norm(before + Uk @ Vk.T - sc.expansion.to_dense())
+    assert err <= sc.error_bound * (1 + 1e-9)
+    assert sc.error_bound <= 1.01 * err + 1e-12  # and the bound is sharp here
+
+
+def test_bound_stays_finite_for_amplitudes_up_to_1e300(rng):
+    A = with_spectrum(np.logspace(0, -6, 20), 60, 80, rng) * 1e300
+    sc = ss.StreamCompressor(60, max_rank=5, rule="jacobi", sweeps=1)
+    for j in range(0, 80, 8):
+        sc.absorb(A[:, j : j + 8])
+    assert math.isfinite(sc.error_bound) and sc.error_bound > 1e290
+    err = np.linalg.norm((A - sc.expansion.to_dense()) / 1e300) * 1e300
+    assert err <= sc.error_bound * (1 + 1e-9)
+    b = Bound().step(1e300, 0.0, overlapping=False).step(1e300, 0.0, overlapping=False)
+    assert math.isfinite(b.bound) and b.bound == pytest.approx(math.sqrt(2) * 1e300)
+
+
+_OPS = st.lists(
+    st.tuples(st.sampled_from(["absorb", "absorb_near", "add", "add_coef", "merge"]),
+              st.integers(1, 6), st.integers(0, 2**31 - 1)),
+    min_size=1, max_size=8,
+)
+
+
+@settings(max_examples=40, deadline=None)
+@given(ops=_OPS, weighted=st.booleans(), rule=st.sampled_from(["paper", "jacobi"]),
+       trunc=st.sampled_from([{"max_rank": 4}, {"rtol": 1e-2}, {"eps": 1e-1}, {}]),
+       reject_tol=st.sampled_from([None, 1e-6, 1e-3]))
+def test_error_bound_holds_after_every_operation(ops, weighted, rule, trunc, reject_tol):
+    n = 40
+    rng = np.random.default_rng(len(ops))
+    inner = rng.uniform(0.5, 2.0, n) if weighted else None
+    sc = ss.StreamCompressor(n, inner=inner, rule=rule, sweeps=1, reject_tol=reject_tol, **trunc)
+    ip = sc.inner
+    A = np.zeros((n, 0))
+    for op, k, seed in ops:
+        r = np.random.default_rng(seed)
+        if op in ("absorb", "absorb_near"):
+            B = r.standard_normal((n, 3)) @ r.standard_normal((3, k)) * r.uniform(0.1, 10)
+            if op == "absorb_near" and sc.rank:
+                B = sc.left_vectors[:, :1] @ r.standard_normal((1, k)) + 1e-5 * B
+            sc.absorb(B)
+            A = np.hstack([A, B])
+        elif op in ("add", "add_coef") and sc.n_seen:
+            m = sc.n_seen
+            Uk = r.standard_normal((n, k))
+            if sc.rank:  # nearly inside the basis: rejections happen
+                Uk = sc.left_vectors[:, :1] @ r.standard_normal((1, k)) + 1e-5 * Uk
+            Vk = r.standard_normal((m, k))
+            if op == "add_coef" and sc.rank:
+                e = sc.expansion
+                dV = 0.1 * r.standard_normal((m, e.rank))
+                sc.add(Uk, Vk, coefficients=dV)
+                A = A + e.U @ dV.T + Uk @ Vk.T
+            else:
+                sc.add(Uk, Vk)
+                A = A + Uk @ Vk.T
+        elif op == "merge":
+            other = ss.StreamCompressor(n, inner=inner, rule=rule, sweeps=1, **trunc)
+            B = r.standard_normal((n, 2)) @ r.standard_normal((2, k + 2))
+            other.absorb(B[:, :2])
+            other.absorb(B[:, 2:])
+            state = (other.expansion.U.copy(), other.expansion.V.copy(), other.error_bound)
+            sc.merge(other)
+            after = other.expansion
+            assert np.array_equal(after.U, state[0]) and np.array_equal(after.V, state[1])
+            A = np.hstack([A, B])
+        if sc.n_seen == 0:
+            continue
+        err = _m_fro(A - sc.expansion.to_dense(), ip)
+        slack = 1e3 * n * EPS * max(_m_fro(A, ip), 1.0)
+        assert err <= sc.error_bound + slack, (op, err, sc.error_bound)
+        assert sc.orthogonality_error() <= 50 * n * EPS
+
+
+# ------------------------------------------------------------------ tree merges
+def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
+    """A rank-80 matrix compressed in a tree of 60-column leaves: rounding-noise terms of
+    the leaves are rejected relative to the energy they carry, so the tree's rank is the
+    stream's; a merge task returns a new compressor and leaves both inputs as they were."""
+    from streamsvd.parallel import tree_compress
+    from streamsvd.parallel_tree import _merge_pair
+
+    A = with_spectrum(np.logspace(0, -10, 80), 4000, 240, rng)
+    opts = dict(rule="jacobi", sweeps=None)
+    sc = ss.StreamCompressor(4000, **opts)
+    for j in range(0, 240, 20):
+        sc.absorb(A[:, j : j + 20])
+    tree = tree_compress(A, block=20, leaf_columns=60, **opts)
+    assert sc.rank == 80 and tree.rank == sc.rank
+    s = np.linalg.svd(A, compute_uv=False)
+    assert np.max(np.abs(tree.amplitudes - s[:80])) <= 50 * 4000 * EPS * s[0]
+    left, right = ss.StreamCompressor(4000, **opts), ss.StreamCompressor(4000, **opts)
+    left.absorb(A[:, :60])
+    right.absorb(A[:, 60:120])
+    before = (left.expansion.U.copy(), left.expansion.V.copy(), left.n_seen, right.n_seen)
+    out = _merge_pair(left, right, 1)
+    assert out is not left and out.n_seen == 120
+    assert np.array_equal(left.expansion.U, before[0]) and np.array_equal(left.expansion.V, before[1])
+    assert (left.n_seen, right.n_seen) == before[2:]
+    again = _merge_pair(left, right, 1)  # a retried task gives the same result
+    assert np.array_equal(again.expansion.U, out.expansion.U)
