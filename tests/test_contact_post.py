@@ -36,3 +36,19 @@ def test_cone_violation_is_relative_to_the_admissible_tangential_traction():
 def test_cone_violation_without_friction_is_relative_to_the_normal_traction():
     P, w, lam = sticking_state(0.0, [0.0, 0.02, 0.0, 0.0, 0.0])
     assert contact.check_laws(P, w, lam).cone == pytest.approx(0.02)
+
+
+def test_slip_tests_are_relative_to_the_admissible_tangential_traction():
+    P, w, lam = sticking_state(0.1, [0.0, 0.0, 0.0, 0.0, 0.0])
+    nc = P.nc
+    # node 0 is separated by 1 (so G = 1); node 2 slips by 1 at the second instant
+    w[0], lam[0] = -1.0, 0.0
+    w[nc + 2, 1] = 1.0
+    # inside the cone, 5% of mu |lam_N| short of it: slip is not allowed there
+    lam[nc + 2, 1] = -0.095
+    assert contact.check_laws(P, w, lam).stick_slip == pytest.approx(0.05)
+    # on the cone but along the slip: the traction must oppose it
+    lam[nc + 2, 1] = 0.1
+    check = contact.check_laws(P, w, lam)
+    assert check.slip_direction == pytest.approx(1.0)
+    assert check.cone == 0.0 and check.stick_slip == 0.0
