@@ -82,8 +82,8 @@ def default_search_direction(problem: Problem) -> float:
     contact zone: the area of the mesh (in its own plane) divided by the length of the
     polyline of the contact nodes. ``E / h`` is the order of magnitude of the stiffness
     of the body seen from the contact zone, the classical LATIN choice. For the billet
-    (``h`` about 6.8 mm, close to its radius) it is near the best constant direction
-    measured (see ``contact/README.md``).
+    (``h`` about 8.7 mm, close to its mean radius of 8 mm) it is near the best constant
+    direction measured (see ``contact/README.md``).
     """
     X = problem.mesh.coords[problem.mesh.quads]
     x, y = X[:, :, 0], X[:, :, 1]

@@ -222,8 +222,11 @@ def solve(
     max_iter : int
         Largest number of iterations.
     k : float, optional
-        Search direction; default :func:`contact.globalstage.default_search_direction`
-        (``E`` over the length of the contact zone).
+        Search direction (a stiffness per unit area, MPa/mm for the billet); default
+        :func:`contact.globalstage.default_search_direction`: ``k = E / h``, with
+        ``h = |Omega| / |Gamma_c|`` the mean depth of the body behind its candidate
+        contact zone, the area of the mesh in its own plane divided by the length of the
+        polyline of the contact nodes (``h`` = 8.7 mm for the billet).
     callback : callable, optional
         ``callback(state)`` with an :class:`IterationState` after every iteration;
         returning ``True`` stops the iteration.

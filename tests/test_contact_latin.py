@@ -101,6 +101,16 @@ def test_search_direction_changes_the_path_not_the_solution():
     assert rel(a.displacement(), b.displacement()) < 1e-8
 
 
+def test_default_search_direction_is_E_over_the_depth_behind_the_contact_zone():
+    # block 3 x 0.5 on the floor: area 1.5 over a contact length 3, h = 0.5
+    P = contact.block(np.array([0.0, -0.01]), nx=6, ny=2, width=3.0, height=0.5, E=200.0)
+    assert contact.default_search_direction(P) == pytest.approx(200.0 / 0.5)
+    assert contact.solve(P, "latin", max_iter=1).k == pytest.approx(400.0)
+    # the billet: h = 8.7 mm, the value the docstrings quote
+    B = contact.billet()
+    assert B.E / contact.default_search_direction(B) == pytest.approx(8.7, abs=0.05)
+
+
 def test_max_iter_gives_an_unconverged_result():
     P = contact.billet(dt=0.05)
     L = contact.solve(P, "latin", tol=1e-14, max_iter=3)
