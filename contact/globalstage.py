@@ -103,6 +103,11 @@ class GlobalStage:
     problem : Problem
     k : float
         Search direction.
+
+    Attributes
+    ----------
+    bandwidth : int
+        Half-bandwidth of the factorised operator after reverse Cuthill-McKee.
     """
 
     def __init__(self, problem: Problem, k: float) -> None:
@@ -119,6 +124,7 @@ class GlobalStage:
         A = Kf[:, self.free] + self.k * (self.G @ self.Cf)
         self.A = A.tocsr()
         self._factor = BandedCholesky(A)
+        self.bandwidth = self._factor.bandwidth
         # lift: elastic extension of the separated Dirichlet data (a thin SVD of the data)
         Ud, s, Vdt = np.linalg.svd(P.dirichlet_values, full_matrices=False)
         r = int(np.sum(s > 1e-13 * s[0])) if s.size and s[0] > 0 else 0

@@ -291,6 +291,9 @@ def _solve(
             fixed_point=fixed_point,
         )
     setup = time.process_time() - c0
+    log.info("%s: global operator factorised (%d free dofs, half-bandwidth %d, k = %.4g) "
+             "and lift computed in %.2f s CPU", method, len(stage.free), stage.bandwidth, k,
+             setup)
     P = problem
     L = P.weights
     Lc = np.concatenate([L, L])
@@ -333,8 +336,8 @@ def _solve(
         field[stage.free] = variant.y
     else:
         correction = info.pop("expansion")
-    log.info("%s: %d iterations, indicator %.3e, converged %s", method, len(etas),
-             etas[-1], converged)
+    log.info("%s: %d iterations in %.2f s CPU, indicator %.3e, converged %s", method,
+             len(etas), setup + sum(cpus), etas[-1], converged)
     return LatinResult(
         method, k, converged, np.array(etas), np.array(sizes, dtype=int), np.array(cpus),
         np.array(walls), setup, w, lam, w_hat, lam_hat, lift, field, correction, info,
