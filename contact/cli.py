@@ -139,17 +139,37 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _table(summary: dict[str, Any]) -> str:
+    """Return the summary table printed by ``contact billet``.
+
+    Where a number does not exist, a word stands in its place and a note under the table
+    says why: ``never`` for a method that did not reach the indicator level, ``full``
+    for the basis of the full-field method.
+    """
     head = (f"{'method':<28s} {'iter':>5s} {'it@lvl':>6s} {'cpu@lvl(s)':>10s} "
             f"{'basis':>5s} {'opt':>4s} {'mem(kB)':>8s} {'err u':>9s}")
     lines = [head, "-" * len(head)]
+    never, full = [], []
     for r in summary["table"]:
+        it_lvl = r["iterations_to_level"]
         cpu = r["cpu_time_to_level_s"]
-        cpu_text = "-" if cpu is None else f"{cpu:.3f}"
+        basis = r["final_basis_size"]
+        if it_lvl is None:
+            never.append(r["method"])
+        if basis is None:
+            full.append(r["method"])
         lines.append(
-            f"{r['method']:<28s} {r['iterations']:>5d} {str(r['iterations_to_level']):>6s} "
-            f"{cpu_text:>10s} {str(r['final_basis_size']):>5s} "
+            f"{r['method']:<28s} {r['iterations']:>5d} "
+            f"{'never' if it_lvl is None else str(it_lvl):>6s} "
+            f"{'-' if cpu is None else f'{cpu:.3f}':>10s} "
+            f"{'full' if basis is None else str(basis):>5s} "
             f"{r['optimal_svd_size']:>4d} {r['memory_bytes'] / 1e3:>8.1f} "
             f"{r['error_u_vs_reference']:>9.2e}"
         )
     lines.append(f"full space-time field: {summary['full_field_bytes'] / 1e3:.1f} kB")
+    for method in never:
+        lines.append(f"{method}: it@lvl 'never', cpu@lvl '-': the indicator did not reach "
+                     f"the level {summary['level']:g} within the iterations run")
+    for method in full:
+        lines.append(f"{method}: basis 'full': no basis, the full space-time field is "
+                     "solved for")
     return "\n".join(lines)

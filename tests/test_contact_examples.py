@@ -45,15 +45,21 @@ def test_cli_writes_the_figures(tmp_path, capsys):
 def test_cli_reports_progress_on_stderr_and_the_table_on_stdout(tmp_path, capsys):
     handlers = list(logging.getLogger("contact").handlers)
     out = tmp_path / "cli"
+    # no method reaches the level 1e-12: the table must say so, not print None
     code = main(["billet", "--out", str(out), "--dt", "0.05", "--max-iter", "60",
-                 "--fine-trunc", "0", "--verbose"])
+                 "--fine-trunc", "0", "--level", "1e-12", "--verbose"])
     assert code == 0
     captured = capsys.readouterr()
     assert logging.getLogger("contact").handlers == handlers  # nothing left behind
     # stdout: the table only
+    assert "None" not in captured.out
     assert "INFO" not in captured.out and "it/s" not in captured.out
     rows = {line.split()[0]: line.split() for line in captured.out.splitlines()[2:5]}
     assert list(rows) == ["latin", "latin-p3", "latin-pgd"]
+    assert all(r[2] == "never" and r[3] == "-" for r in rows.values())
+    assert rows["latin"][4] == "full" and rows["latin-p3"][4].isdigit()
+    assert "latin: basis 'full': no basis" in captured.out
+    assert "latin-pgd: it@lvl 'never', cpu@lvl '-'" in captured.out
     # stderr: every stage, in order, then each file written
     stages = [
         "contact billet: writing Figs. 5-9 and summary.json into",
