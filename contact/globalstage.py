@@ -82,8 +82,8 @@ def default_search_direction(problem: Problem) -> float:
     contact zone: the area of the mesh (in its own plane) divided by the length of the
     polyline of the contact nodes. ``E / h`` is the order of magnitude of the stiffness
     of the body seen from the contact zone, the classical LATIN choice. For the billet
-    (``h`` about 6.8 mm, close to its radius) it is near the best constant direction
-    measured (see ``contact/README.md``).
+    (``h`` about 8.7 mm, close to its mean radius of 8 mm) it is near the best constant
+    direction measured (see ``contact/README.md``).
     """
     X = problem.mesh.coords[problem.mesh.quads]
     x, y = X[:, :, 0], X[:, :, 1]
@@ -103,6 +103,11 @@ class GlobalStage:
     problem : Problem
     k : float
         Search direction.
+
+    Attributes
+    ----------
+    bandwidth : int
+        Half-bandwidth of the factorised operator after reverse Cuthill-McKee.
     """
 
     def __init__(self, problem: Problem, k: float) -> None:
@@ -119,6 +124,7 @@ class GlobalStage:
         A = Kf[:, self.free] + self.k * (self.G @ self.Cf)
         self.A = A.tocsr()
         self._factor = BandedCholesky(A)
+        self.bandwidth = self._factor.bandwidth
         # lift: elastic extension of the separated Dirichlet data (a thin SVD of the data)
         Ud, s, Vdt = np.linalg.svd(P.dirichlet_values, full_matrices=False)
         r = int(np.sum(s > 1e-13 * s[0])) if s.size and s[0] > 0 else 0

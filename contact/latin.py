@@ -222,8 +222,11 @@ def solve(
     max_iter : int
         Largest number of iterations.
     k : float, optional
-        Search direction; default :func:`contact.globalstage.default_search_direction`
-        (``E`` over the length of the contact zone).
+        Search direction (a stiffness per unit area, MPa/mm for the billet); default
+        :func:`contact.globalstage.default_search_direction`: ``k = E / h``, with
+        ``h = |Omega| / |Gamma_c|`` the mean depth of the body behind its candidate
+        contact zone, the area of the mesh in its own plane divided by the length of the
+        polyline of the contact nodes (``h`` = 8.7 mm for the billet).
     callback : callable, optional
         ``callback(state)`` with an :class:`IterationState` after every iteration;
         returning ``True`` stops the iteration.
@@ -288,6 +291,9 @@ def _solve(
             fixed_point=fixed_point,
         )
     setup = time.process_time() - c0
+    log.info("%s: global operator factorised (%d free dofs, half-bandwidth %d, k = %.4g) "
+             "and lift computed in %.2f s CPU", method, len(stage.free), stage.bandwidth, k,
+             setup)
     P = problem
     L = P.weights
     Lc = np.concatenate([L, L])
@@ -330,8 +336,8 @@ def _solve(
         field[stage.free] = variant.y
     else:
         correction = info.pop("expansion")
-    log.info("%s: %d iterations, indicator %.3e, converged %s", method, len(etas),
-             etas[-1], converged)
+    log.info("%s: %d iterations in %.2f s CPU, indicator %.3e, converged %s", method,
+             len(etas), setup + sum(cpus), etas[-1], converged)
     return LatinResult(
         method, k, converged, np.array(etas), np.array(sizes, dtype=int), np.array(cpus),
         np.array(walls), setup, w, lam, w_hat, lam_hat, lift, field, correction, info,

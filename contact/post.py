@@ -83,8 +83,10 @@ def mac(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 class LawCheck:
     """Violations of the contact laws by a state ``(w, lam)``, each made dimensionless.
 
-    Scales: ``G = max(max gap, max |w_N|)`` for displacements and ``F = max |lam_N|`` for
-    tractions; ``dw_T`` is the tangential increment between instants.
+    Scales: ``G = max(max gap, max |w_N|)`` for displacements, ``F = max |lam_N|`` for
+    normal tractions and ``F_T = mu F`` (``F`` when ``mu = 0``), the largest admissible
+    ``|lam_T|``, for the tangential traction; ``dw_T`` is the tangential increment between
+    instants.
 
     Attributes
     ----------
@@ -95,11 +97,12 @@ class LawCheck:
     complementarity : float
         ``max |lam_N (g - w_N)| / (F G)``.
     cone : float
-        ``max(|lam_T| + mu lam_N, 0) / F`` (inside the Coulomb cone).
+        ``max(|lam_T| + mu lam_N, 0) / F_T`` (inside the Coulomb cone): the excess of
+        ``|lam_T|`` over ``-mu lam_N`` relative to the largest admissible ``|lam_T|``.
     slip_direction : float
-        ``max(lam_T dw_T, 0) / (F G)`` (slip opposite to the tangential traction).
+        ``max(lam_T dw_T, 0) / (F_T G)`` (slip opposite to the tangential traction).
     stick_slip : float
-        ``max |dw_T| (mu |lam_N| - |lam_T|) / (F G)`` (slip only on the cone).
+        ``max |dw_T| (mu |lam_N| - |lam_T|) / (F_T G)`` (slip only on the cone).
     dissipation : float
         Total frictional dissipation ``-sum L lam_T dw_T`` (N mm, per radian when
         axisymmetric); non-negative for an admissible state.
@@ -129,14 +132,15 @@ def check_laws(problem: Problem, w: np.ndarray, lam: np.ndarray) -> LawCheck:
     G = max(float(np.max(problem.gaps, initial=0.0)), float(np.max(np.abs(wN))), 1e-300)
     F = max(float(np.max(np.abs(lN))), 1e-300)
     mu = problem.mu
+    FT = max(mu * F, 1e-300) if mu > 0 else F  # scale of the tangential traction
     D = -lT * dwT
     return LawCheck(
         penetration=float(np.max(np.maximum(wN - g, 0.0))) / G,
         tension=float(np.max(np.maximum(lN, 0.0))) / F,
         complementarity=float(np.max(np.abs(lN * (g - wN)))) / (F * G),
-        cone=float(np.max(np.maximum(np.abs(lT) + mu * lN, 0.0))) / F,
-        slip_direction=float(np.max(np.maximum(-D, 0.0))) / (F * G),
+        cone=float(np.max(np.maximum(np.abs(lT) + mu * lN, 0.0))) / FT,
+        slip_direction=float(np.max(np.maximum(-D, 0.0))) / (FT * G),
         stick_slip=float(np.max(np.abs(dwT) * np.maximum(mu * np.abs(lN) - np.abs(lT), 0.0)))
-        / (F * G),
+        / (FT * G),
         dissipation=float(np.sum(problem.weights[:, None] * D)),
     )

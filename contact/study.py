@@ -66,6 +66,14 @@ def billet_study(
         Iterations whose bases are drawn in the MAC diagrams, besides the last one.
     progress : callable, optional
         ``progress(label, max_iter)`` returns a per-iteration callback (a progress bar).
+        When the callback has a ``close()`` method, it is called once the solve of that
+        method has ended (converged or not).
+
+    Notes
+    -----
+    Every stage is logged at INFO level on the ``contact`` loggers: the mesh and
+    operators, the reference solve, each method's factorisation and solve, the SVD and
+    each file written. ``contact billet`` shows these messages on stderr.
 
     Returns
     -------
@@ -74,8 +82,12 @@ def billet_study(
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    log.info("building the billet mesh and its operators (refine %d, dt %g s)", refine, dt)
     P = billet(refine=refine, dt=dt)
-    log.info("billet: %s", P.summary())
+    log.info("billet: %d dofs (%d free), %d contact nodes, %d instants", P.n,
+             len(P.free_dofs), P.nc, P.m)
+    log.debug("billet: %s", P.summary())
+    log.info("reference solve: semi-smooth Newton, instant after instant (%d instants)", P.m)
     ref = reference_solve(P)
     runs: dict[str, tuple[str, dict[str, Any]]] = {
         "latin": ("latin", {}),
@@ -87,6 +99,7 @@ def billet_study(
     results: dict[str, LatinResult] = {}
     snapshots: dict[str, list[tuple[int, np.ndarray]]] = {}
     for label, (method, opts) in runs.items():
+        log.info("%s: solving (tol %g, at most %d iterations)", label, tol, max_iter)
         bar = progress(label, max_iter) if progress is not None else None
         snaps: list[tuple[int, np.ndarray]] = []
 
@@ -96,19 +109,27 @@ def billet_study(
             if bar is not None:
                 bar(state)
 
-        results[label] = solve(P, method, tol=tol, max_iter=max_iter, callback=callback,
-                               **opts)
+        try:
+            results[label] = solve(P, method, tol=tol, max_iter=max_iter,
+                                   callback=callback, **opts)
+        finally:
+            close = getattr(bar, "close", None)
+            if callable(close):
+                close()
         snapshots[label] = snaps
     lift = results["latin"].lift.to_dense()
     y_ref = ref.u - lift
     svd = svd_modes(y_ref)
     svd_u = svd_modes(ref.u)
     n_opt = svd.rank(trunc)
+    log.info("SVD of the reference correction: %d modes above %g of the largest", n_opt,
+             trunc)
 
-    figures.save(figures.fig5_convergence(results, optimal=n_opt, level=level),
-                 out / "fig5_convergence.png")
-    figures.save(figures.fig6_svd(svd, P.times, rtol=trunc), out / "fig6_svd.png")
-    figures.save(figures.fig7_space_modes(P, svd), out / "fig7_space_modes.png")
+    log.info("drawing Figs. 5-9 into %s", out)
+    _save(figures.fig5_convergence(results, optimal=n_opt, level=level),
+          out / "fig5_convergence.png")
+    _save(figures.fig6_svd(svd, P.times, rtol=trunc), out / "fig6_svd.png")
+    _save(figures.fig7_space_modes(P, svd), out / "fig7_space_modes.png")
     q = max(n_opt, 1)
     free = P.free_dofs
     for fig_name, label in (("fig8_mac_p3.png", "latin-p3"), ("fig9_mac_pgd.png", "latin-pgd")):
@@ -120,7 +141,7 @@ def billet_study(
         final = results[label].correction
         if final is not None:
             bases.append((f"last iteration ({results[label].iterations})", final.U))
-        figures.save(
+        _save(
             figures.fig_mac(bases, svd.space[:, :q],
                             title=f"MAC of the {label.upper()} basis against the SVD "
                                   f"basis of the reference (Fig. {fig_name[3]})"),
@@ -187,7 +208,13 @@ def billet_study(
     (out / "summary.json").write_text(
         json.dumps(summary, indent=1, default=_json_default, allow_nan=False)
     )
+    log.info("wrote %s", out / "summary.json")
     return summary
+
+
+def _save(fig: Any, path: Path) -> None:
+    figures.save(fig, path)
+    log.info("wrote %s", path)
 
 
 def _finite(x: float) -> float | None:

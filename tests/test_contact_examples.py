@@ -1,4 +1,5 @@
 import json
+import logging
 import runpy
 from pathlib import Path
 
@@ -36,7 +37,53 @@ def test_cli_writes_the_figures(tmp_path, capsys):
     assert (out / "fig5_convergence.png").exists()
     summary = json.loads((out / "summary.json").read_text())
     assert [r["method"] for r in summary["table"]] == ["latin", "latin-p3", "latin-pgd"]
-    assert capsys.readouterr().out == ""
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == ""  # --quiet: no progress messages, no bars
+
+
+def test_cli_reports_progress_on_stderr_and_the_table_on_stdout(tmp_path, capsys):
+    handlers = list(logging.getLogger("contact").handlers)
+    out = tmp_path / "cli"
+    # no method reaches the level 1e-12: the table must say so, not print None
+    code = main(["billet", "--out", str(out), "--dt", "0.05", "--max-iter", "60",
+                 "--fine-trunc", "0", "--level", "1e-12", "--verbose"])
+    assert code == 0
+    captured = capsys.readouterr()
+    assert logging.getLogger("contact").handlers == handlers  # nothing left behind
+    # stdout: the table only
+    assert "None" not in captured.out
+    assert "INFO" not in captured.out and "it/s" not in captured.out
+    rows = {line.split()[0]: line.split() for line in captured.out.splitlines()[2:5]}
+    assert list(rows) == ["latin", "latin-p3", "latin-pgd"]
+    assert all(r[2] == "never" and r[3] == "-" for r in rows.values())
+    assert rows["latin"][4] == "full" and rows["latin-p3"][4].isdigit()
+    assert "latin: basis 'full': no basis" in captured.out
+    assert "latin-pgd: it@lvl 'never', cpu@lvl '-'" in captured.out
+    # stderr: every stage, in order, then each file written
+    stages = [
+        "contact billet: writing Figs. 5-9 and summary.json into",
+        "building the billet mesh",
+        "billet: 368 dofs (318 free), 42 contact nodes, 21 instants",
+        "reference solve: semi-smooth Newton",
+        "reference solve: 21 instants",
+        "latin: solving",
+        "latin: global operator factorised",
+        " iterations in ",
+        "latin-p3: solving",
+        "latin-p3: global operator factorised",
+        "latin-pgd: solving",
+        "latin-pgd: global operator factorised",
+        "SVD of the reference correction",
+    ] + [f"wrote {out / name}" for name in (
+        "fig5_convergence.png", "fig6_svd.png", "fig7_space_modes.png", "fig8_mac_p3.png",
+        "fig9_mac_pgd.png", "summary.json")]
+    err = captured.err
+    positions = [err.find(stage) for stage in stages]
+    assert -1 not in positions, [s for s, p in zip(stages, positions, strict=True) if p < 0]
+    assert positions == sorted(positions)
+    assert "latin-pgd:" in err and "it/s" in err  # the progress bars
+    assert "latin-pgd iteration 50: indicator" in err  # --verbose: DEBUG messages
 
 
 def test_cli_reports_a_bad_option_as_an_error(tmp_path, capsys):
