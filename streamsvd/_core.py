@@ -223,7 +223,10 @@ def core_step(
     coupling_root = 0.0
     if cut.size and kept.size:
         W_kd = Rt[kept] @ Rt[cut].T
-        coupling_root = math.ldexp(math.sqrt(float(np.sum(scipy.linalg.svdvals(W_kd)))), e)
+        # the nuclear norm; of a single row or column it is the Euclidean norm
+        nuclear = (float(np.linalg.norm(W_kd)) if min(W_kd.shape) == 1
+                   else float(np.sum(scipy.linalg.svdvals(W_kd))))
+        coupling_root = math.ldexp(math.sqrt(nuclear), e)
     if cut.size:
         logger.info(
             "%s: cut %d terms of norm %.3e (amplitudes %.3e .. %.3e)",

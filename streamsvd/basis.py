@@ -9,7 +9,9 @@ operations, all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
 * ``workspace(b)``: room for ``b`` new columns right after the stored ones, where a block
   is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns;
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
-  written into a spare buffer first so that nothing stored changes before ``swap``;
+  written aside first so that nothing stored changes before ``swap``; its Gram is
+  measured from the written columns;
+* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``: what a commit to a store needs.
 * ``cross(r)``: ``MQ^T Y`` for the ``r`` workspace columns; ``take(G)``: ``Q G``.
 
 :class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
@@ -24,6 +26,7 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
+import scipy.linalg.blas as blas
 
 from .inner import InnerProduct
 
@@ -56,14 +59,23 @@ class BasisBackend(Protocol):
     def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
         """Return the first ``r`` workspace columns and their ``M`` image."""
 
-    def planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Return the stored columns after ``accept(r)`` or ``swap``."""
+    def stage_new(self, r: int) -> None:
+        """Make the first ``r`` workspace columns durable before a commit refers to them."""
 
-    def compact_planned(self, G: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
-        """Write ``[Q, Y[:, :r]] G`` aside; return it and its ``M`` image."""
+    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
+        """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
 
     def swap(self, p: int) -> None:
         """Make the basis written by ``compact_planned`` the stored one."""
+
+    def discard_planned(self) -> None:
+        """Forget what a plan staged (the update was abandoned)."""
+
+    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+        """Return the arrays and attributes a commit of the planned basis writes."""
+
+    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
+        """Load the basis a commit wrote."""
 
     def cross(self, r: int) -> np.ndarray:
         """Return ``MQ^T Y[:, :r]`` for the workspace columns."""
@@ -167,7 +179,10 @@ class MemoryBasis:
         Q, MQ = self._bufs
         return Q[:, w : w + r], MQ[:, w : w + r]
 
-    def planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
+    def stage_new(self, r: int) -> None:
+        """Nothing to do: the workspace columns are in memory until :meth:`accept`."""
+
+    def _planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
         """Return the stored columns after :meth:`accept` (``r``) or :meth:`swap` (views)."""
         if compacted:
             assert self._spare is not None
@@ -176,11 +191,12 @@ class MemoryBasis:
         w = self._w + r
         return self._bufs[0][:, :w], self._bufs[1][:, :w]
 
-    def compact_planned(self, G: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` into the spare buffer; :meth:`swap` makes it the basis.
 
-        Returns views of the planned basis and its ``M`` image. The stored columns are
-        untouched until :meth:`swap`.
+        Returns the Gram ``Q'^T M Q'`` of the columns written (the orthogonality is
+        measured from the factor itself). The stored columns are untouched until
+        :meth:`swap`.
         """
         p = G.shape[1]
         if self._spare is None or self._spare[0].shape[1] < self.capacity:
@@ -191,7 +207,16 @@ class MemoryBasis:
         if not self.inner.is_euclidean:
             np.matmul(self._bufs[1][:, :w], G, out=MS[:, :p])
         self._planned_width = p
-        return S[:, :p], MS[:, :p]
+        if p == 0:
+            return np.zeros((0, 0))
+        if self.inner.is_euclidean:
+            H = blas.dsyrk(1.0, S[:, :p], trans=1)
+            return np.triu(H) + np.triu(H, 1).T
+        H = MS[:, :p].T @ S[:, :p]
+        return 0.5 * (H + H.T)
+
+    def discard_planned(self) -> None:
+        """Nothing to undo: a plan only wrote scratch columns and the spare buffer."""
 
     def swap(self, p: int) -> None:
         """Make the spare buffer written by :meth:`compact_planned` the stored basis."""
@@ -208,13 +233,19 @@ class MemoryBasis:
         """Return ``Q G`` as a new array."""
         return self.Q @ G
 
-    def restore(self, Q: np.ndarray, MQ: np.ndarray | None, *, capacity: int) -> None:
-        """Load stored columns (from a store), with the capacity they were written with."""
+    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+        """Return the arrays (views) and attributes a commit of the planned basis writes."""
+        Q, MQ = self._planned(r, compacted=compacted)
+        arrays = {"Q": Q} if self.inner.is_euclidean else {"Q": Q, "MQ": MQ}
+        return arrays, {"capacity": self.capacity}
+
+    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
+        """Load the stored columns, with the capacity they were written with."""
+        Q = arrays["Q"]
         w = Q.shape[1]
-        self._bufs = self._allocate(max(capacity, w))
+        self._bufs = self._allocate(max(int(attrs["capacity"]), w))
         self._spare = None
         self._bufs[0][:, :w] = Q
         if not self.inner.is_euclidean:
-            assert MQ is not None
-            self._bufs[1][:, :w] = MQ
+            self._bufs[1][:, :w] = arrays["MQ"]
         self._w = w

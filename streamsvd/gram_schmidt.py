@@ -62,6 +62,9 @@ def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
 
 def _gram(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
     """``X^T M X`` (symmetric; a rank-k update for the Euclidean product)."""
+    if inner.is_euclidean and X.shape[1] <= 8:  # too narrow for syrk to pay
+        G = X.T @ X
+        return 0.5 * (G + G.T)
     if inner.is_euclidean:
         H = blas.dsyrk(1.0, np.asfortranarray(X), trans=1)
         return np.triu(H) + np.triu(H, 1).T
@@ -281,6 +284,8 @@ def _project_old(
 def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
     """Columns (in order) of a unit-diagonal Gram whose Schur pivots stay >= ``_DELTA^2``."""
     c = Gz.shape[0]
+    if c == 1:
+        return np.ones(1, dtype=bool)
     try:
         L = np.linalg.cholesky(Gz)
         if float(np.min(np.diag(L))) >= _DELTA:

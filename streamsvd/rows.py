@@ -22,6 +22,8 @@ in :attr:`RowFactor.rebases`.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["RowFactor"]
@@ -96,20 +98,17 @@ class RowFactor:
         """
         wv, p = Vp_old_part.shape
         b = N.shape[0]
-        if wv:
-            _, s, Yt = np.linalg.svd(Vp_old_part, full_matrices=wv < p)
-        else:
-            s, Yt = np.zeros(0), np.eye(p)
-        s_full = np.zeros(p)
-        s_full[: s.size] = s[:p]
-        s_max = float(s_full.max()) if p else 0.0
-        bad = np.flatnonzero(s_full <= s_max / COND_LIMIT) if s_max > 0 else np.arange(p)
-        scale = s_max if s_max > 0 else 1.0
-        Vp = np.vstack([Vp_old_part, scale * Yt[bad]]) if bad.size else Vp_old_part
-        # Vp^T Vp = Y diag(s^2 + scale^2 [bad]) Y^T, so Vp^+ = Y diag(1 / .) Y^T Vp^T
-        g = s_full**2
-        g[bad] += scale * scale
-        rows = ((N @ Yt.T) / g) @ (Yt @ Vp.T) if p else np.zeros((b, Vp.shape[0]))
+        # Vp^T Vp = Y diag(s^2) Y^T (s = 0 for the directions missing when wv < p); the
+        # test s < s_max / COND_LIMIT is far above the Gram's resolution
+        g, Y = np.linalg.eigh(Vp_old_part.T @ Vp_old_part) if p else (np.zeros(0), np.eye(0))
+        g = np.maximum(g, 0.0)
+        g_max = float(g.max()) if p else 0.0
+        bad = (np.flatnonzero(g <= g_max / COND_LIMIT**2) if g_max > 0 else np.arange(p))
+        scale2 = g_max if g_max > 0 else 1.0
+        Vp = np.vstack([Vp_old_part, math.sqrt(scale2) * Y[:, bad].T]) if bad.size else Vp_old_part
+        # Vp^T Vp = Y diag(g + scale^2 [bad]) Y^T, so Vp^+ = Y diag(1 / .) Y^T Vp^T
+        g[bad] += scale2
+        rows = ((N @ Y) / g) @ (Y.T @ Vp.T) if p else np.zeros((b, Vp.shape[0]))
         self._ensure(self._m + b, Vp.shape[0])
         # the whole row span is written: a staged row never keeps a stale entry from an
         # update that failed before its commit

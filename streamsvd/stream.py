@@ -28,7 +28,7 @@ import numpy as np
 from ._core import Truncation, UpdateRecord, history_array, r_factor, record_from_row
 from ._scaling import safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
-from .basis import MemoryBasis
+from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
 from .compress import fix_signs
 from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
@@ -148,7 +148,7 @@ class StreamCompressor:
             reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
         )
         self._state = State(
-            basis=MemoryBasis(self.n, self.inner),
+            basis=self._new_basis(),
             rows=RowFactor() if self.right_vectors else None,
         )
         self._history: list[UpdateRecord] = []
@@ -163,6 +163,12 @@ class StreamCompressor:
                 attrs=self._attrs(None),
             )
             self._commit(None, self.source_offset)
+
+    KIND = KIND
+
+    def _new_basis(self) -> BasisBackend:
+        """Return the n-sized backend of this facade (in memory)."""
+        return MemoryBasis(self.n, self.inner)
 
     # ------------------------------------------------------------------ persistence
     @classmethod
@@ -179,15 +185,21 @@ class StreamCompressor:
         mode : {"a", "r"}
             ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
         """
+        return cls._open(path, inner=inner, mode=mode, backend={})
+
+    @classmethod
+    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any]) -> Any:
+        """Open a store and restore the compressor it holds (``backend``: for ``_reopen``)."""
         mode = check_choice(mode, "mode", ("a", "r"))
         st = open_store(path, mode)  # type: ignore[arg-type]
         try:
             state = st.read()
             attrs = state.attrs
-            if attrs.get("kind") != KIND:
+            if attrs.get("kind") != cls.KIND:
                 raise StoreMismatchError(
                     f"`path` {path!s} holds a basis store that was not written by a "
-                    "StreamCompressor; open a TallCompressor's store with "
+                    f"{cls.__name__} (its kind is {attrs.get('kind')!r}); open any "
+                    "compressor's store with "
                     "`streamsvd.parallel.open_compressor`, any other with "
                     "`streamsvd.store.open_store`."
                 )
@@ -205,13 +217,24 @@ class StreamCompressor:
                     f"(fingerprint {state.inner_fingerprint[:12]}...); got {ip!r}. Pass the "
                     "same matrix or weights."
                 )
-            sc = cls(state.n, inner=ip, **attrs["options"])
+            sc = cls._reopen(state.n, ip, attrs, path, **backend)
             sc._restore(state.arrays, attrs)
             sc._store = st
+            sc._reopened(mode)
         except BaseException:
             st.close()
             raise
         return sc
+
+    @classmethod
+    def _reopen(
+        cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
+    ) -> Any:
+        """Return a compressor with a store's options, before its state is restored."""
+        return cls(n, inner=inner, **attrs["options"])
+
+    def _reopened(self, mode: str) -> None:
+        """Run once a store was reopened (a backend may clean what it left)."""
 
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
@@ -282,7 +305,7 @@ class StreamCompressor:
         bound = s.bound if plan is None else plan.bound
         rank = s.rank if plan is None else plan.Gu.shape[1]
         return {
-            "kind": KIND, "layout": LAYOUT, "options": self._options(),
+            "kind": self.KIND, "layout": LAYOUT, "options": self._options(),
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
@@ -298,18 +321,16 @@ class StreamCompressor:
             )
         s = self._state
         if plan is None:
-            Q, MQ = s.basis.Q, s.basis.MQ
+            arrays, basis_attrs = s.basis.persisted(0, compacted=False)
             rows = None if s.rows is None else (s.rows.V0, s.rows.Vp)
             Gu, H, R, m, waste, bound = s.Gu, s.H, s.R, s.m, s.waste, s.bound
         else:
-            Q, MQ = plan.stored_basis(s)
+            arrays, basis_attrs = plan.stored_basis(s)
             rows = plan.stored_rows(s)
             Gu, H, R, m, waste, bound = plan.Gu, plan.H, plan.R, plan.m, plan.waste, plan.bound
+        arrays = dict(arrays)
         scalars = np.concatenate([bound.to_array(), [float(source_offset), float(m), waste]])
         small = [Gu, H, R, scalars, history_array(self._history)]
-        arrays: dict[str, np.ndarray] = {"Q": Q}
-        if not self.inner.is_euclidean:
-            arrays["MQ"] = MQ
         if rows is not None:
             arrays["V0"] = rows[0]
             small.insert(3, rows[1])
@@ -317,11 +338,14 @@ class StreamCompressor:
         attrs = self._attrs(plan)
         attrs.update(
             source_offset=int(source_offset), updates=len(self._history),
-            small_layout=[list(a.shape) for a in small],
-            capacity={"basis": s.basis.capacity,
-                      "rows": None if s.rows is None else list(s.rows.capacity)},
+            small_layout=[list(a.shape) for a in small], basis=basis_attrs,
+            rows_capacity=None if s.rows is None else list(s.rows.capacity),
         )
         self._store.commit(arrays, attrs=attrs)
+        self._committed()
+
+    def _committed(self) -> None:
+        """Run after every commit (a backend may release what no commit refers to)."""
 
     def _restore(self, arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
         if not arrays:
@@ -336,11 +360,10 @@ class StreamCompressor:
             start += size
         Gu, H, R = pieces[:3]
         scalars, history = pieces[-2], pieces[-1]
-        cap = attrs["capacity"]
         s = self._state
-        s.basis.restore(a["Q"], a.get("MQ"), capacity=int(cap["basis"]))
+        s.basis.restore(a, attrs["basis"])
         if s.rows is not None:
-            s.rows.restore(a["V0"], pieces[3], capacity=tuple(cap["rows"]))
+            s.rows.restore(a["V0"], pieces[3], capacity=tuple(attrs["rows_capacity"]))
         s.Gu, s.H, s.R = Gu, H, R
         s.bound = Bound.from_array(scalars)
         self.source_offset = int(scalars[3])
@@ -570,6 +593,7 @@ class StreamCompressor:
                 self._uncommitted += 1
         except BaseException:
             self._history.pop()
+            self._state.basis.discard_planned()
             raise
         apply_plan(self._state, plan)
         self._version += 1

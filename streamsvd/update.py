@@ -32,7 +32,7 @@ import scipy.linalg
 
 from ._core import CoreStep, Truncation, UpdateRecord, core_step, r_factor
 from ._scaling import safe_column_norms
-from .basis import MemoryBasis
+from .basis import BasisBackend
 from .bound import Bound
 from .gram_schmidt import BasisExtension, extend_basis
 from .inner import InnerProduct
@@ -63,7 +63,7 @@ class StepOptions:
 class State:
     """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`."""
 
-    basis: MemoryBasis
+    basis: BasisBackend
     rows: RowFactor | None
     Gu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
@@ -99,9 +99,9 @@ class Plan:
     Vp: np.ndarray | None = None
     V_replace: np.ndarray | None = None
 
-    def stored_basis(self, state: State) -> tuple[np.ndarray, np.ndarray]:
-        """Return the stored basis ``(Q, MQ)`` this plan leads to (views, for a commit)."""
-        return state.basis.planned(self.new_directions, compacted=self.compact)
+    def stored_basis(self, state: State) -> tuple[dict[str, np.ndarray], dict]:
+        """Return what a commit of the basis this plan leads to writes (arrays, attrs)."""
+        return state.basis.persisted(self.new_directions, compacted=self.compact)
 
     def stored_rows(self, state: State) -> tuple[np.ndarray, np.ndarray] | None:
         """Return ``(V0, Vp)`` this plan leads to (views, for a commit); None without rows."""
@@ -250,11 +250,11 @@ def _plan(
     compact = waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1) or p_new == 0
     Gu = np.vstack([state.Gu @ T[:p], T[p:]])
     if compact:
-        Q, MQ = state.basis.compact_planned(Gu, r)
-        H = _gram(Q, MQ)
+        H = state.basis.compact_planned(Gu, r)
         Gu, waste = np.eye(p_new), 0.0
     else:
         H = _extended_gram(state, r)
+        state.basis.stage_new(r)
     R = step.R
     L = None
     orth = _orthogonality(Gu, H)
@@ -325,16 +325,13 @@ def _extended_gram(state: State, r: int) -> np.ndarray:
     return H
 
 
-def _gram(Q: np.ndarray, MQ: np.ndarray) -> np.ndarray:
-    G = MQ.T @ Q
-    return 0.5 * (G + G.T)
-
-
 def _orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
+    """``||Gu^T H Gu - I||_2``: the largest eigenvalue modulus of a symmetric matrix."""
     p = Gu.shape[1]
     if p == 0:
         return 0.0
-    return float(np.linalg.norm(Gu.T @ H @ Gu - np.eye(p), 2))
+    E = Gu.T @ H @ Gu - np.eye(p)
+    return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:

@@ -1,0 +1,293 @@
+"""The n-sized factor out of core: the basis in zarr panels chunked by rows, used by dask.
+
+:class:`PanelBasis` implements :class:`~streamsvd.basis.BasisBackend` for snapshots too
+long for the basis ``n x w`` to stay in memory. The stored columns are a list of
+*panels*, zarr arrays chunked by rows and written once (``<root>/panels/<name>``); every
+product with them (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph
+over the row chunks, run on the threaded scheduler or on a ``distributed`` cluster whose
+workers reach the directory. The block being absorbed and its workspace are in memory
+(``n x b``), the basis never is.
+
+The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
+sweeps, truncation and bound), so both backends give the same basis to rounding.
+
+Crash safety. A plan writes its new panel (or the compacted basis) before any commit
+refers to it; a panel is deleted only when neither the state nor the last two commits
+refer to it (:meth:`PanelBasis.collect`), so a process or worker killed at any instant
+leaves the last commit readable.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from .errors import StoreError, StoreMismatchError
+from .inner import DiagonalInner, InnerProduct
+from .parallel_tree import execute
+
+__all__ = ["PanelBasis"]
+
+logger = logging.getLogger(__name__)
+
+
+class PanelBasis:
+    """Basis in zarr panels chunked by rows (see the module docstring).
+
+    Parameters
+    ----------
+    n : int
+        Rows (size of a snapshot).
+    inner : InnerProduct
+        Euclidean or :class:`~streamsvd.inner.DiagonalInner` (a matrix couples the row
+        chunks).
+    chunk_rows : int
+        Rows per chunk of the panels and of the products.
+    client : distributed.Client or None
+        Where the graphs run (the threaded scheduler when None).
+    root : path-like
+        Directory holding ``panels/``.
+    """
+
+    def __init__(
+        self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any
+    ) -> None:
+        self.n = int(n)
+        self.inner = inner
+        self.chunk_rows = int(chunk_rows)
+        self.client = client
+        self.root = Path(root)
+        self.panels: list[str] = []
+        self.widths: list[int] = []
+        self._ws: np.ndarray | None = None
+        self._mws: np.ndarray | None = None
+        self._staged_new: tuple[str, int] | None = None
+        self._staged_compact: tuple[str, int] | None = None
+        self._zarrs: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ panels
+    @property
+    def width(self) -> int:
+        """Number of stored columns ``w``."""
+        return int(sum(self.widths))
+
+    def _row_chunks(self) -> tuple[int, ...]:
+        full, rest = divmod(self.n, self.chunk_rows)
+        return (self.chunk_rows,) * full + ((rest,) if rest else ())
+
+    def _dir(self, name: str) -> Path:
+        return self.root / "panels" / name
+
+    def _panel(self, name: str) -> Any:
+        z = self._zarrs.get(name)
+        if z is None:
+            import zarr
+
+            try:
+                z = zarr.open_array(store=str(self._dir(name)), mode="r")
+            except (OSError, ValueError, KeyError) as exc:
+                raise StoreError(
+                    f"`store` {self.root}: panel {name} of the basis cannot be opened "
+                    f"({type(exc).__name__}: {exc}). Restore the store from a copy."
+                ) from exc
+            self._zarrs[name] = z
+        return z
+
+    def _write(self, data: Any) -> tuple[str, int]:
+        """Write an ``n x c`` numpy or dask array as a new panel; return its name, width."""
+        import dask.array as da
+        import zarr
+        from zarr.codecs import Crc32cCodec
+
+        cols = int(data.shape[1])
+        name = f"p{uuid.uuid4().hex}"
+        z = zarr.create_array(
+            store=str(self._dir(name)), shape=(self.n, cols),
+            chunks=(self.chunk_rows, max(cols, 1)), dtype="float64", fill_value=0.0,
+            compressors=[Crc32cCodec()],
+        )
+        if isinstance(data, np.ndarray):
+            z[:] = data
+        else:
+            execute([da.store(data, z, lock=False, compute=False)],  # type: ignore[arg-type]
+                    client=self.client)
+        return name, cols
+
+    def _q(self, panels: list[str] | None = None) -> Any:
+        """Return the stored columns as one dask array (``n x w``), or None if there are none."""
+        import dask.array as da
+
+        names = self.panels if panels is None else panels
+        if not names:
+            return None
+        parts = [da.from_zarr(self._panel(p), name=f"streamsvd-panel-{p}") for p in names]
+        Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
+        return Q.rechunk({0: self._row_chunks(), 1: -1})
+
+    def _block(self, X: np.ndarray) -> Any:
+        import dask.array as da
+
+        return da.from_array(X, chunks=(self._row_chunks(), (X.shape[1],)),
+                             name=f"streamsvd-block-{uuid.uuid4().hex}")
+
+    def _weighted(self, Y: Any) -> Any:
+        """``M Y`` of a dask block (diagonal ``M``)."""
+        if self.inner.is_euclidean:
+            return Y
+        import dask.array as da
+
+        w = cast(DiagonalInner, self.inner).weights.reshape(-1, 1)
+        return Y * da.from_array(w, chunks=(self._row_chunks(), (1,)))
+
+    # ------------------------------------------------------------------ products
+    def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
+        """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
+        Q = self._q()
+        if Q is None:
+            return np.zeros((0 if G is None else G.shape[1], X.shape[1]))
+        (C,) = execute([self._weighted(Q).T @ self._block(X)], client=self.client)
+        C = np.asarray(C)
+        return C if G is None else G.T @ C
+
+    def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
+        """``X -= Q (G C)`` in place, row chunk by row chunk."""
+        Q = self._q()
+        if Q is None:
+            return
+        K = C if G is None else G @ C
+        (D,) = execute([Q @ K], client=self.client)
+        X -= np.asarray(D)
+
+    def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return in-memory ``(Y, MY)`` for ``b`` new columns (scratch until accepted)."""
+        self._ws = np.empty((self.n, b), order="F")
+        self._mws = self._ws if self.inner.is_euclidean else np.empty((self.n, b), order="F")
+        self._staged_new = self._staged_compact = None
+        return self._ws, self._mws
+
+    def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the first ``r`` workspace columns and their ``M`` image."""
+        assert self._ws is not None and self._mws is not None
+        return self._ws[:, :r], self._mws[:, :r]
+
+    def stage_new(self, r: int) -> None:
+        """Write the first ``r`` workspace columns as a new panel (before any commit)."""
+        if r:
+            self._staged_new = self._write(self.planned_new(r)[0])
+
+    def accept(self, r: int) -> None:
+        """Append the staged panel to the stored columns."""
+        if r:
+            if self._staged_new is None:
+                self.stage_new(r)
+            assert self._staged_new is not None
+            name, cols = self._staged_new
+            self.panels.append(name)
+            self.widths.append(cols)
+        self._staged_new, self._ws, self._mws = None, None, None
+
+    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
+        """Write ``[Q, Y[:, :r]] G`` as one new panel; return its Gram ``Q'^T M Q'``."""
+        import dask.array as da
+
+        parts = [] if self._q() is None else [self._q()]
+        if r:
+            parts.append(self._block(np.ascontiguousarray(self.planned_new(r)[0])))
+        p = G.shape[1]
+        if not parts or p == 0:
+            self._staged_compact = ("", 0)
+            return np.zeros((p, p))
+        Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
+        P = Q.rechunk({1: -1}) @ G
+        name, _ = self._write(P)
+        self._staged_compact = (name, p)
+        P = self._q([name])
+        (H,) = execute([self._weighted(P).T @ P], client=self.client)
+        H = np.asarray(H)
+        return 0.5 * (H + H.T)
+
+    def swap(self, p: int) -> None:
+        """Make the panel written by :meth:`compact_planned` the stored basis."""
+        assert self._staged_compact is not None and self._staged_compact[1] == p
+        name, _ = self._staged_compact
+        self.panels, self.widths = ([name], [p]) if p else ([], [])
+        self._staged_compact, self._ws, self._mws = None, None, None
+        logger.info("compacted the basis to one panel of width %d", p)
+
+    def discard_planned(self) -> None:
+        """Remove the panels an abandoned plan wrote."""
+        for staged in (self._staged_new, self._staged_compact):
+            if staged is not None and staged[0]:
+                self._zarrs.pop(staged[0], None)
+                shutil.rmtree(self._dir(staged[0]), ignore_errors=True)
+        self._staged_new = self._staged_compact = None
+
+    def cross(self, r: int) -> np.ndarray:
+        """Return ``MQ^T Y[:, :r]`` for the first ``r`` workspace columns."""
+        Q = self._q()
+        if Q is None or r == 0:
+            return np.zeros((self.width, r))
+        Y = self._block(np.ascontiguousarray(self.planned_new(r)[0]))
+        (C,) = execute([self._weighted(Q).T @ Y], client=self.client)
+        return np.asarray(C)
+
+    def take(self, G: np.ndarray) -> np.ndarray:
+        """Return ``Q G`` in memory (``n x p``)."""
+        Q = self._q()
+        if Q is None:
+            return np.zeros((self.n, G.shape[1]))
+        (U,) = execute([Q @ G], client=self.client)
+        return np.asarray(U)
+
+    def lazy(self, G: np.ndarray) -> Any:
+        """Return ``Q G`` as a dask array (computed chunk by chunk, never whole)."""
+        import dask.array as da
+
+        Q = self._q()
+        if Q is None:
+            return da.zeros((self.n, G.shape[1]), chunks=(self._row_chunks(), (1,)))
+        return Q @ G
+
+    # ------------------------------------------------------------------ persistence
+    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+        """Return what a commit writes: no array, the planned list of panels."""
+        if compacted:
+            assert self._staged_compact is not None
+            name, p = self._staged_compact
+            panels, widths = ([name], [p]) if p else ([], [])
+        elif r:
+            assert self._staged_new is not None
+            panels = self.panels + [self._staged_new[0]]
+            widths = self.widths + [self._staged_new[1]]
+        else:
+            panels, widths = list(self.panels), list(self.widths)
+        return {}, {"panels": panels, "widths": widths, "chunk_rows": self.chunk_rows}
+
+    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
+        """Load the list of panels a commit wrote, checking each panel's shape."""
+        self.panels = [str(p) for p in attrs["panels"]]
+        self.widths = [int(w) for w in attrs["widths"]]
+        for name, width in zip(self.panels, self.widths, strict=True):
+            z = self._panel(name)
+            if z.shape != (self.n, width):
+                raise StoreMismatchError(
+                    f"`path` {self.root} is damaged: panel {name} has shape {z.shape}, "
+                    f"expected {(self.n, width)}. Restore the store from a copy."
+                )
+
+    def collect(self, keep: set[str]) -> None:
+        """Delete the panels that neither the state nor ``keep`` refers to."""
+        pdir = self.root / "panels"
+        if not pdir.is_dir():
+            return
+        live = set(self.panels) | keep
+        for entry in pdir.iterdir():
+            if entry.is_dir() and entry.name not in live:
+                logger.debug("removing unreferenced panel %s", entry)
+                self._zarrs.pop(entry.name, None)
+                shutil.rmtree(entry, ignore_errors=True)
