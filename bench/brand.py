@@ -146,8 +146,9 @@ class TunedBrandSVD(BrandSVD):
     Differs from :class:`BrandSVD` in two places only: the residual is orthonormalised by
     shifted CholeskyQR3 (three Gram matrices and triangular solves, all BLAS-3, instead of
     Householder QR; the shift of the first pass makes it succeed on a rank-deficient
-    residual, the two plain passes restore orthogonality), and ``U`` lives with the new directions in one buffer ``[U, Q]`` so that the
-    rotation ``U <- [U, Q] Uk`` is a single gemm.
+    residual, the two plain passes restore orthogonality), and ``U`` lives with the new
+    directions in one buffer ``[U, Q]`` so that the rotation ``U <- [U, Q] Uk`` is a
+    single gemm.
     """
 
     def __init__(self, n: int, *, rank: int, max_columns: int, max_block: int) -> None:

@@ -191,7 +191,8 @@ def long_stream(args: argparse.Namespace) -> dict[str, Any]:
                 times[start + j] = time.perf_counter() - t
             if (start + chunk) % args.long_every == 0 or start + chunk >= total:
                 U = sc.left_vectors
-                ortho.append((start + chunk, float(np.linalg.norm(U.T @ U - np.eye(U.shape[1]), 2))))
+                err = float(np.linalg.norm(U.T @ U - np.eye(U.shape[1]), 2))
+                ortho.append((start + chunk, err))
         first, last = float(np.mean(times[:1000])), float(np.mean(times[-1000:]))
         out[label] = {
             "first_1000_mean_s": first, "last_1000_mean_s": last, "ratio": last / first,
@@ -252,7 +253,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--out", default=None)
     p.add_argument("--seed", type=int, default=20261201)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logger.setLevel(logging.INFO)
     if args.quick:
         args.n, args.updates, args.long_updates, args.long_every = "3000", 4, 3000, 1000
         args.repeats, args.rank = 1, 80
