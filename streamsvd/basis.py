@@ -155,8 +155,15 @@ class MemoryBasis:
         return C if G is None else G.T @ C
 
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
-        """``X -= Q (G C)`` in place (``G = None``: the identity)."""
-        X -= self.Q @ (C if G is None else G @ C)
+        """``X -= Q (G C)`` in place (``G = None``: the identity), one gemm when possible."""
+        K = C if G is None else G @ C
+        if X.size == 0 or self._w == 0:
+            return
+        if X.flags.f_contiguous:
+            out = blas.dgemm(-1.0, self.Q, K, beta=1.0, c=X, overwrite_c=1)
+            if np.shares_memory(out, X):
+                return
+        X -= self.Q @ K
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Return views ``(Y, MY)`` of ``b`` columns after the stored ones.

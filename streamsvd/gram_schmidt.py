@@ -100,6 +100,8 @@ class BasisExtension:
         ``Res_rej^T M Res_rej`` of the ``k`` rejected residuals, scaled by
         ``2^-(e_i + e_j)`` with ``e = rejected_exponents`` (overflow-safe).
     rejected_exponents : ndarray of int, shape (k,)
+    block_norm : float
+        ``||X||_M`` (Frobenius in ``M``) of the block, overflow-safe.
     """
 
     coeffs: np.ndarray
@@ -108,6 +110,7 @@ class BasisExtension:
     rejected_norms: np.ndarray
     rejected_gram: np.ndarray
     rejected_exponents: np.ndarray
+    block_norm: float
 
     @property
     def rank(self) -> int:
@@ -125,14 +128,13 @@ class BasisExtension:
         if e.size == 0:
             return 0.0
         if F is None:
-            d = np.sqrt(np.maximum(np.diag(self.rejected_gram), 0.0))
-            Fs, top = np.diag(np.ldexp(1.0, e - int(e.max()))), int(e.max())
-            return math.ldexp(float(np.linalg.norm(d * np.diag(Fs))), top)
-        Fs = np.ldexp(F, e[np.newaxis, :])
+            return _scaled_norm(np.sqrt(np.maximum(np.diag(self.rejected_gram), 0.0)), e)
+        shift = int(e.max())
+        Fs = np.ldexp(F, (e - shift)[np.newaxis, :])
         top = pow2_exponent(Fs)
         Fs = np.ldexp(Fs, -top)
         energy = float(np.sum(self.rejected_gram * (Fs.T @ Fs)))
-        return math.ldexp(math.sqrt(max(energy, 0.0)), top)
+        return math.ldexp(math.sqrt(max(energy, 0.0)), top + shift)
 
 
 def extend_basis(
@@ -151,8 +153,9 @@ def extend_basis(
     2. The residual block by CholeskyQR2 in batches: the Gram of the residuals normalised
        to unit ``M``-norm is factored in order, a column joining the batch only when its
        Schur pivot is at least ``_DELTA^2`` (so the batch is well conditioned and two
-       CholeskyQR passes give orthonormality to working accuracy); the batch is projected
-       once more on the old basis when it cancelled more than half of a norm. The other
+       CholeskyQR passes give orthonormality to working accuracy; the rounding left along
+       the old basis is amplified by at most about ``1 / _DELTA``, which the orthogonality
+       monitor of the compressor measures). The other
        columns are projected explicitly (CGS2) on the old basis and the batch, their
        norms measured directly (never from a Gram of the data), and treated in the next
        batch. A residual whose norm is ``<= reject_tol * reference_k`` is rejected, never
@@ -180,37 +183,38 @@ def extend_basis(
     peak = np.max(np.abs(X), axis=0) if n else np.zeros(b)
     exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
     Y, MY = basis.workspace(b)
-    np.ldexp(X, -exps[np.newaxis, :], out=Y)
+    np.multiply(X, np.ldexp(1.0, -exps), out=Y)  # exact: powers of two
     nu = _m_norms(Y, inner)
+    current = nu.copy()
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
     C = np.zeros((q, b))
     if q:
-        _project_old(basis, G, Y, C, np.arange(b), nu, inner, first=True)
+        _project_old(basis, G, Y, C, current, inner)
     R_new = np.zeros((b, b))
     rejected = np.zeros(b, dtype=bool)
     order: list[np.ndarray] = []  # the accepted columns, batch after batch
     batches: list[np.ndarray] = []  # their orthonormal directions
     pending = np.arange(b)
     while pending.size:
-        norms = _m_norms(Y[:, pending], inner)
+        norms = current[pending] if pending.size == b else _m_norms(Y[:, pending], inner)
         drop = (ref[pending] == 0.0) | (norms <= reject_tol * ref[pending])
         rejected[pending[drop]] = True
         pending, norms = pending[~drop], norms[~drop]
         if not pending.size:
             break
-        Z = Y[:, pending] / norms
-        take = _cholesky_batch(_gram(Z, inner))
-        cols, Zb = pending[take], Z[:, take]
+        whole = pending.size == b
+        Yp = Y if whole else Y[:, pending]
+        Gz = _gram(Yp, inner) / np.outer(norms, norms)  # the Gram of the unit columns
+        take = _cholesky_batch(Gz)
+        cols = pending[take]
         r0 = sum(o.size for o in order)
-        Qb, Rb = _cholesky_qr2(Zb, inner)
+        if whole and take.all():
+            # the common case, in place: the workspace becomes the new directions
+            Y /= norms
+            Qb, Rb = _cholesky_qr2(Y, inner, in_place=True)
+        else:
+            Qb, Rb = _cholesky_qr2(Yp[:, take] / norms[take], inner, in_place=True)
         Rb = Rb * norms[take]
-        if q and float(np.min(np.abs(np.diag(Rb)) / norms[take])) < _REITERATE:
-            # the batch cancelled: its rounding left components along the old basis
-            dC = basis.project(Qb, G)
-            basis.subtract(Qb, G, dC)
-            C[:, cols] += dC @ Rb
-            Qb, R2 = _cholesky_qr2(Qb, inner)
-            Rb = R2 @ Rb
         R_new[r0 : r0 + cols.size, cols] = Rb
         order.append(cols)
         batches.append(Qb)
@@ -219,7 +223,8 @@ def extend_basis(
             _project_on_batches(basis, G, Y, C, R_new, rest, batches, order, inner)
         pending = rest
     r = sum(o.size for o in order)
-    Qnew = np.hstack(batches) if batches else np.zeros((n, 0))
+    in_place = len(batches) == 1 and np.shares_memory(batches[0], Y)
+    Qnew = batches[0] if in_place else (np.hstack(batches) if batches else np.zeros((n, 0)))
     rej = np.flatnonzero(rejected)
     if rej.size and r:
         # make the rejected residuals orthogonal to every new direction (exact energies)
@@ -233,7 +238,8 @@ def extend_basis(
     rejected_norms = np.zeros(b)
     rejected_norms[rej] = np.sqrt(np.maximum(np.diag(Grej), 0.0))
     # the new directions go to the front of the workspace, in the accepted order
-    Y[:, :r] = Qnew
+    if not in_place:
+        Y[:, :r] = Qnew
     if not inner.is_euclidean and r:
         MY[:, :r] = inner.apply(Qnew)
     perm = np.concatenate(order) if order else np.zeros(0, dtype=np.int64)
@@ -247,7 +253,16 @@ def extend_basis(
         rejected_norms=rejected_norms * scale,
         rejected_gram=Grej,
         rejected_exponents=exps[rej],
+        block_norm=_scaled_norm(nu, exps),
     )
+
+
+def _scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
+    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow."""
+    if x.size == 0:
+        return 0.0
+    top = int(exps.max())
+    return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
 
 
 def _project_old(
@@ -255,14 +270,16 @@ def _project_old(
     G: np.ndarray | None,
     Y: np.ndarray,
     C: np.ndarray,
-    active: np.ndarray,
-    before: np.ndarray,
+    norms: np.ndarray,
     inner: InnerProduct,
-    *,
-    first: bool,
 ) -> None:
-    """Project columns ``active`` of ``Y`` on the basis, again while a pass cancels."""
-    for npass in range(_MAX_PASSES):
+    """Project ``Y`` on the basis, columns again while a pass cancels; update ``norms``.
+
+    ``norms`` holds the ``M``-norms of the columns on entry and on return.
+    """
+    active = np.arange(Y.shape[1])
+    before = norms[active]
+    for _ in range(_MAX_PASSES):
         whole = active.size == Y.shape[1]
         Ya = Y if whole else Y[:, active]
         dC = basis.project(Ya, G)
@@ -271,11 +288,9 @@ def _project_old(
             Y[:, active] = Ya
         C[:, active] += dC
         after = _m_norms(Ya, inner)
-        # one pass is enough unless it cancelled more than half of the norm (DGKS); a
-        # column that arrives here after a cancellation elsewhere gets two passes
+        norms[active] = after
+        # one pass is enough unless it cancelled more than half of the norm (DGKS)
         again = after < _REITERATE * before
-        if npass == 0 and not first:
-            again[:] = True
         active, before = active[again], after[again]
         if not active.size:
             return
@@ -309,13 +324,20 @@ def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
     return take
 
 
-def _cholesky_qr2(Z: np.ndarray, inner: InnerProduct) -> tuple[np.ndarray, np.ndarray]:
-    """``Z = Q R`` by two CholeskyQR passes (``Z`` well conditioned); ``Q`` is new."""
-    Q = np.array(Z, order="F")
+def _cholesky_qr2(
+    Z: np.ndarray, inner: InnerProduct, *, in_place: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """``Z = Q R`` by two CholeskyQR passes (``Z`` well conditioned).
+
+    With ``in_place`` (and ``Z`` column-major) ``Q`` overwrites ``Z``; else it is new.
+    """
+    Q = Z if in_place and Z.flags.f_contiguous else np.array(Z, order="F")
     R = np.eye(Z.shape[1])
     for _ in range(2):
         L = np.linalg.cholesky(_gram(Q, inner))
-        Q = blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
+        out = blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
+        if not np.shares_memory(out, Q):
+            Q[...] = out
         R = L.T @ R
     return Q, R
 

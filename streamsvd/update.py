@@ -144,7 +144,7 @@ def plan_absorb(
     K[k:, :p] = ext.coeffs.T
     K[k:, p:] = ext.R_new.T
     d_rej = ext.rejected_norm()
-    block_norm = _m_norm_fro(X, opts.inner)
+    block_norm = ext.block_norm
     return _plan(
         state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0,
         new_rows=np.hstack([ext.coeffs.T, ext.R_new.T]), d_rej=d_rej,
@@ -338,11 +338,6 @@ def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
     if inner.is_euclidean:
         return safe_column_norms(X)
     return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, inner.apply(X)), 0.0))
-
-
-def _m_norm_fro(X: np.ndarray, inner: InnerProduct) -> float:
-    """``||X||_M`` (Frobenius in ``M``) of a block, overflow-safe."""
-    return math.hypot(*_m_norms(X, inner).tolist())
 
 
 def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
