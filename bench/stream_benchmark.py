@@ -76,8 +76,8 @@ Profiles
 --------
 One ``cProfile`` run per block width of ``streamsvd`` (jacobi and paper rules, one sweep
 and converged) on a few updates after the first ones, reporting the time spent in
-Gram-Schmidt (``cgs2_extend``), the rotation sweeps (``sweep_core``), the QR of the core,
-the compaction of the lazy factors and the rest.
+Gram-Schmidt (``extend_basis``), the rotation sweeps (``sweep_core``), the QR of the core,
+the compaction of the basis, the new rows of ``V`` and the rest.
 
 Targets
 -------
@@ -125,13 +125,13 @@ EPS = float(np.finfo(np.float64).eps)
 RULES = ("paper", "jacobi")
 SWEEPS: tuple[int | None, ...] = (1, 2, None)
 PROFILE_PARTS = (
-    ("Gram-Schmidt (cgs2_extend)", ("cgs2_extend",)),
+    ("Gram-Schmidt (extend_basis)", ("extend_basis",)),
     ("rotation sweeps (sweep_core)", ("sweep_core",)),
     ("QR of the core", ("r_factor", "_r_factor", "qr")),
     ("coupling norm (svdvals)", ("svdvals",)),
-    ("grow lazy factors (_grow)", ("_grow",)),
-    ("compaction (_maybe_compact)", ("_maybe_compact",)),
-    ("orthogonality check / re-orth.", ("_orthogonality", "_reorthonormalize")),
+    ("compaction (compact_planned)", ("compact_planned",)),
+    ("new rows of V (stage)", ("stage",)),
+    ("orthogonality check", ("_orthogonality", "_extended_gram")),
     ("input validation", ("as_float_array",)),
 )
 SWEEP_LABEL = {1: "1", 2: "2", None: "conv"}
@@ -632,7 +632,7 @@ def profile_streamsvd(A: np.ndarray, *, block: int, target: int, rule: str,
     wall, absorb, cum = min(runs, key=lambda r: r[1])
     parts = {k: v / len(done) for k, v in cum.items()}
     per = absorb / len(done)
-    parts["other (absorb's own code: K, Vraw assembly)"] = max(per - sum(parts.values()), 0.0)
+    parts["other (the update's own code: K, small matrices)"] = max(per - sum(parts.values()), 0.0)
     return {
         "block": block, "rule": rule, "sweeps": sweeps, "updates": len(done),
         "skip": skip, "repeats": repeats, "wall_per_update_s": wall / len(done),
