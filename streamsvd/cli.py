@@ -1,80 +1,306 @@
 """Command line: ``streamsvd ingest | info | export | plot``.
 
-A user mistake (missing file, locked or foreign store, bad option) prints one line
-``streamsvd: error: ...`` and exits with status 2; nothing else prints a traceback
-unless ``--debug`` is given.
+Output. A command's result (the JSON summary of ``ingest``, the report of ``info``, the
+``wrote ...`` line of ``export`` and ``plot``) is the only thing written to stdout;
+progress bars and log messages go to stderr, and ``ingest --quiet`` silences the bar and
+the summary. ``streamsvd ingest ... > summary.json`` and ``streamsvd info STORE --json``
+therefore give pure JSON.
+
+Errors. A user mistake (missing file, locked or foreign store, bad option, an option of
+another mode, bad data) prints one line ``streamsvd: error: ...`` in the words of the
+command line (its arguments, options and commands, never a Python call) and exits with
+status 2; nothing prints a traceback unless ``--debug`` is given.
+
+Start-up. At module level this imports only the standard library and
+:mod:`streamsvd.errors`; numpy, zarr, dask, numba and matplotlib are imported by the
+command that needs them, so ``streamsvd --help`` answers at once.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import math
 import os
+import re
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
-import numpy as np
+from . import __version__
+from .errors import (
+    InputError,
+    NonFiniteError,
+    ShapeMismatchError,
+    StoreError,
+    StoreMismatchError,
+    StreamSVDError,
+)
 
-from .errors import StoreError, StreamSVDError
-from .sources import open_source
-from .stream import StreamCompressor
-
-__all__ = ["main"]
+__all__ = ["CONVERGE", "main"]
 
 logger = logging.getLogger(__name__)
 
+#: The ``--sweeps`` value that sweeps every update until no pair rotates.
+CONVERGE = "converge"
+
+_DEFAULT_BLOCK = 100
+_DEFAULT_RULE = "paper"
+_DEFAULT_SWEEPS = 1
+_DEFAULT_COMMIT_EVERY = 1
+
+# options of the compressor that a store records at creation (``--resume`` reuses them)
+_STORE_OPTIONS = (
+    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"), ("rule", "--rule"),
+    ("sweeps", "--sweeps"), ("commit_every", "--commit-every"),
+)
+
+_INGEST_EPILOG = """\
+modes:
+  in memory   (default)             the basis in memory, committed to STORE every
+                                    --commit-every updates
+  tree        --scheduler S         leaves of --leaf-columns columns compressed
+                                    independently on dask, merged pairwise; STORE is
+                                    written once, at the end
+  tall        --tall [--scheduler S]
+                                    U kept out of core in zarr panels of --chunk-rows
+                                    rows, every product run by dask over row chunks;
+                                    committed every --commit-every updates
+  --leaf-columns is for the tree mode only, --chunk-rows for the tall mode only and
+  --workers for --scheduler local only; an option of another mode is refused.
+
+output:
+  the progress bar goes to stderr; the JSON summary (as `streamsvd info --json`) goes
+  to stdout; --quiet prints neither.
+"""
+
+
+# -------------------------------------------------------------------------- parsing
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line ``streamsvd: error: ...``."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print the usage error on one line and exit with status 2."""
+        self.exit(2, f"streamsvd: error: {message} (see `{self.prog} --help`).\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer; got {text!r}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0; got {text!r}")
+    return value
+
+
+def _sweeps(text: str) -> int | str:
+    if text == CONVERGE:
+        return CONVERGE
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(
+            f"must be a positive number of sweeps per update, or '{CONVERGE}' to sweep "
+            f"until no pair rotates; got {text!r}"
+        )
+    return value
+
+
+def _scheduler(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError(
+            "must be 'threads', 'local' or a scheduler address such as tcp://HOST:8786; "
+            "got ''"
+        )
+    return text
+
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="streamsvd", description="Streaming low-rank bases by rotation sweeps."
+    ap = _Parser(
+        prog="streamsvd",
+        description="Streaming low-rank bases by rotation sweeps: absorb the columns of a "
+        "snapshot matrix into a basis store, then inspect, export or plot it.",
+        epilog="Run `streamsvd COMMAND --help` for the arguments and options of a command.",
     )
-    ap.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = ap.add_subparsers(dest="command", required=True)
+    ap.add_argument("--version", action="version", version=f"streamsvd {__version__}")
+    ap.add_argument("--debug", action="store_true",
+                    help="show Python tracebacks instead of one-line errors (default: off)")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    ing = sub.add_parser("ingest", help="absorb the columns of SOURCE into STORE")
-    ing.add_argument("source", help=".npy, .h5/.hdf5 or zarr path (columns are snapshots)")
-    ing.add_argument("store", help="basis store directory (zarr v3)")
-    ing.add_argument("--dataset", help="dataset name inside an HDF5 file or zarr group")
-    ing.add_argument("--block", type=int, default=100, help="snapshots per update")
+    ing = sub.add_parser(
+        "ingest", help="absorb the columns of SOURCE into STORE",
+        description="Absorb the columns (snapshots) of SOURCE into the basis store STORE,\n"
+        "a block of columns per update: Gram-Schmidt against the basis, rotation sweeps,\n"
+        "truncation (--eps, --rtol, --max-rank).",
+        epilog=_INGEST_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ing.add_argument("source", metavar="SOURCE",
+                     help=".npy, .h5/.hdf5/.he5 file or zarr array/group; columns are "
+                     "snapshots")
+    ing.add_argument("store", metavar="STORE",
+                     help="basis store directory (zarr v3): created, or continued with "
+                     "--resume")
+    ing.add_argument("--dataset", metavar="NAME",
+                     help="dataset of an HDF5 file or array of a zarr group (default: the "
+                     "only one there)")
+    ing.add_argument("--block", metavar="B", type=_positive_int,
+                     help=f"snapshots (columns) absorbed per update (default: {_DEFAULT_BLOCK})")
     tol = ing.add_mutually_exclusive_group()
-    tol.add_argument("--eps", type=float, default=0.0, help="absolute cut on ||v_i||")
-    tol.add_argument("--rtol", type=float, help="relative cut ||v_i|| < rtol ||v_1||")
-    ing.add_argument("--max-rank", type=int, help="keep at most K terms")
-    ing.add_argument("--rule", choices=("paper", "jacobi"), default="paper")
-    ing.add_argument("--sweeps", type=int, default=1, help="sweeps per update (0: converge)")
-    ing.add_argument("--commit-every", type=int, default=1, help="updates per commit")
-    ing.add_argument("--resume", action="store_true", help="continue an existing store")
-    ing.add_argument("--quiet", action="store_true", help="no progress bar")
-    ing.add_argument(
-        "--scheduler",
-        help="run on dask: 'threads', 'local' (a LocalCluster) or a scheduler address; "
-        "columns are compressed in leaves merged in a tree",
-    )
-    ing.add_argument("--workers", type=int, help="worker processes of --scheduler local")
+    tol.add_argument("--eps", metavar="E", type=_nonnegative_float,
+                     help="absolute cut: drop the terms with ||v_i|| < E, in the units of "
+                     "the data (default: 0, no cut)")
+    tol.add_argument("--rtol", metavar="R", type=_nonnegative_float,
+                     help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
+                     "none; not with --eps)")
+    ing.add_argument("--max-rank", metavar="K", type=_positive_int,
+                     help="keep at most K terms (default: no limit)")
+    ing.add_argument("--rule", choices=("paper", "jacobi"),
+                     help="rotation of a pair of terms: 'paper' turns by tan(theta) = "
+                     "(v_j|v_i)/(v_j|v_j) (eq. 5, linear convergence), 'jacobi' by the angle "
+                     "that zeroes the pair's coupling (one-sided Jacobi, quadratic "
+                     f"convergence) (default: {_DEFAULT_RULE})")
+    ing.add_argument("--sweeps", metavar=f"N|{CONVERGE}", type=_sweeps,
+                     help="rotation sweeps per update: a positive integer, or "
+                     f"'{CONVERGE}' to sweep until no pair rotates (an incremental SVD) "
+                     f"(default: {_DEFAULT_SWEEPS})")
+    ing.add_argument("--commit-every", metavar="C", type=_positive_int,
+                     help="updates per commit to STORE, in memory and with --tall; the "
+                     f"tree mode commits once (default: {_DEFAULT_COMMIT_EVERY})")
+    ing.add_argument("--resume", action="store_true",
+                     help="continue STORE from its recorded source offset, with the "
+                     "options it was created with (an option given again must have the "
+                     "same value) (default: off, STORE must not exist)")
+    ing.add_argument("--quiet", action="store_true",
+                     help="no progress bar on stderr and no summary on stdout (default: off)")
+    ing.add_argument("--scheduler", metavar="S", type=_scheduler,
+                     help="run on dask: 'threads' (this process), 'local' (a LocalCluster "
+                     "of --workers processes) or the address of a scheduler "
+                     "(tcp://HOST:PORT); without --tall, the tree mode (default: no dask, "
+                     "in memory; 'threads' with --tall)")
+    ing.add_argument("--workers", metavar="W", type=_positive_int,
+                     help="worker processes of --scheduler local (default: the number of "
+                     "CPUs)")
     ing.add_argument("--tall", action="store_true",
-                     help="keep U out of core in zarr panels (snapshots too long for memory)")
-    ing.add_argument("--leaf-columns", type=int, help="columns per leaf of the tree")
-    ing.add_argument("--chunk-rows", type=int, help="rows per chunk of the tall panels")
+                     help="tall mode: keep U out of core in zarr panels, for snapshots too "
+                     "long for memory; on --scheduler, threads by default (default: off)")
+    ing.add_argument("--leaf-columns", metavar="L", type=_positive_int,
+                     help="columns per leaf, tree mode only (default: 10 blocks)")
+    ing.add_argument("--chunk-rows", metavar="R", type=_positive_int,
+                     help="rows per chunk of the panels, tall mode only (default: the "
+                     "source's row chunks, else 16384)")
 
-    info = sub.add_parser("info", help="summarise a store")
-    info.add_argument("store")
-    info.add_argument("--json", action="store_true", help="print JSON")
+    info = sub.add_parser("info", help="summarise a store",
+                          description="Summarise a basis store: sizes, rank, options, "
+                          "error bound, orthogonality and the leading amplitudes.")
+    info.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
+    info.add_argument("--json", action="store_true",
+                      help="print the summary as JSON (default: off, a text report)")
 
-    exp = sub.add_parser("export", help="write U, V and the amplitudes to .npz or .h5")
-    exp.add_argument("store")
-    exp.add_argument("out", help="output file, .npz or .h5")
+    exp = sub.add_parser("export", help="write U, V and the amplitudes to .npz or .h5",
+                         description="Write U, V, the amplitudes ||v_i|| and the error "
+                         "bound of a basis store to a .npz or HDF5 file.")
+    exp.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
+    exp.add_argument("out", metavar="OUT",
+                     help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
 
-    plot = sub.add_parser("plot", help="amplitudes, energy and orthogonality as PNG")
-    plot.add_argument("store")
-    plot.add_argument("out", help="output .png")
+    plot = sub.add_parser("plot", help="amplitudes, energy and orthogonality as PNG",
+                          description="Plot the amplitudes, the cumulative energy and the "
+                          "orthogonality history of a basis store.")
+    plot.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
+    plot.add_argument("out", metavar="OUT",
+                      help="output image, .png (or .pdf, .svg); overwritten if it exists")
     return ap
 
 
+# --------------------------------------------------------------------------- errors
+
+# Advice the library gives Python callers, and what a command-line user does instead.
+_REWRITES = (
+    (r"Create one with `BasisStore\.create\([^`]*\)`\.",
+     "Create it with `streamsvd ingest SOURCE STORE`."),
+    (r"Pass the directory given to `BasisStore\.create`\.",
+     "Pass a directory written by `streamsvd ingest`."),
+    (r"Create it again with `BasisStore\.create`, which replaces the leftovers\.",
+     "Delete it and run `streamsvd ingest` again."),
+    (r"Close that writer first, open the store with mode='r' to read it without the "
+     r"lock, or delete the lock file if that process is gone\.",
+     "Wait for that writer (another `streamsvd ingest`) to finish, or delete the lock "
+     "file if that process is gone; `streamsvd info`, `export` and `plot` can read the "
+     "store meanwhile."),
+    (r"Open it with `open_store\(path, mode='a'\)`, or delete it first to start afresh\.",
+     "Pass --resume to continue it, or delete it first to start afresh."),
+    (r"The previous generation is kept: read it with `store\.read\(generation=\d+\)` and "
+     r"commit it again, or restore the store from a copy\.",
+     "Restore the store from a copy."),
+    (r"Pass dataset=<one of them>\.", "Pass --dataset with one of them."),
+    (r"Drop the `dataset` argument\.", "Drop --dataset."),
+    (r"got dataset=('[^']*')", r"got --dataset \1"),
+)
+
+# Python argument names (as the library quotes them) -> command-line words
+_NAMES = {
+    "path": "STORE", "store": "STORE", "source": "SOURCE", "out": "OUT",
+    "dataset": "--dataset", "block": "--block", "eps": "--eps", "rtol": "--rtol",
+    "max_rank": "--max-rank", "rule": "--rule", "sweeps": "--sweeps",
+    "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
+    "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
+}
+
+# a sentence holding Python code: a quoted call, a keyword argument, a module path
+_PYTHON = re.compile(r"`[\w.]+\(|\b\w+=(?:True|False|None|'|\.\.\.)|`streamsvd\.\w|\bmode='")
+
+
+def _in_cli_words(message: str) -> str:
+    """Say a library message in the words of the command line, on one line.
+
+    Known Python advice is replaced by what a command-line user does; argument names
+    become the command's arguments and options; any remaining sentence that still shows
+    Python code is dropped (the first sentence, the fact, is always kept).
+    """
+    text = " ".join(message.split())
+    for pattern, replacement in _REWRITES:
+        text = re.sub(pattern, replacement, text)
+    text = re.sub(r"`(\w+)`", lambda m: _NAMES.get(m[1], m[0]), text)
+    sentences = re.split(r"(?<=[.;])\s+(?=[A-Z`])", text)
+    kept = sentences[:1] + [s for s in sentences[1:] if not _PYTHON.search(s)]
+    return " ".join(kept)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``streamsvd`` command; returns the exit status."""
-    args = _parser().parse_args(argv)
+    """Run the ``streamsvd`` command.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments after the command name; ``sys.argv[1:]`` when omitted.
+
+    Returns
+    -------
+    int
+        The exit status: 0 on success (and after ``--help``), 2 after a user mistake
+        (reported on one line of stderr as ``streamsvd: error: ...``).
+    """
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) or a usage error (2), already printed
+        return int(exc.code or 0)
     logging.basicConfig(level=logging.WARNING, format="streamsvd: %(message)s")
     if not args.debug:
         # dask.distributed sets its loggers to INFO from its config when first imported
@@ -85,72 +311,232 @@ def main(argv: list[str] | None = None) -> int:
     except (StreamSVDError, OSError, ValueError) as err:
         if args.debug:
             raise
-        print(f"streamsvd: error: {err}", file=sys.stderr)
+        print(f"streamsvd: error: {_in_cli_words(str(err))}", file=sys.stderr)
         return 2
 
 
+# --------------------------------------------------------------------------- ingest
+
+
+def _mode(args: Any) -> str:
+    if args.tall:
+        return "tall"
+    return "tree" if args.scheduler is not None else "memory"
+
+
+def _check_mode_options(args: Any, mode: str) -> None:
+    """Refuse the options that the chosen mode would ignore."""
+    if args.leaf_columns is not None and mode != "tree":
+        raise InputError(
+            "--leaf-columns applies to the tree mode only (--scheduler without --tall); "
+            + ("drop it with --tall." if mode == "tall" else
+               "add --scheduler threads|local|ADDRESS, or drop it.")
+        )
+    if args.chunk_rows is not None and mode != "tall":
+        raise InputError("--chunk-rows applies to the tall mode only; add --tall, or drop it.")
+    if args.workers is not None and args.scheduler != "local":
+        where = ("without --scheduler" if args.scheduler is None else
+                 f"with --scheduler {args.scheduler}")
+        raise InputError(
+            f"--workers sizes a LocalCluster and applies to --scheduler local only; got it "
+            f"{where}. Add --scheduler local, or drop --workers (a remote cluster is sized "
+            "where it runs)."
+        )
+    if args.commit_every is not None and mode == "tree":
+        raise InputError(
+            "--commit-every does not apply to the tree mode (--scheduler without --tall), "
+            "which commits STORE once, when the tree is merged; drop it, or add --tall."
+        )
+
+
+def _compressor_options(args: Any, mode: str) -> dict[str, Any]:
+    """Return the options of a new store, with the command's defaults (none to resume)."""
+    if args.resume:
+        return {}
+    sweeps = _DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
+    options: dict[str, Any] = {
+        "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
+        "max_rank": args.max_rank, "rule": args.rule or _DEFAULT_RULE,
+        "sweeps": None if sweeps == CONVERGE else sweeps,
+    }
+    if mode != "tree":
+        options["commit_every"] = args.commit_every or _DEFAULT_COMMIT_EVERY
+    return options
+
+
+def _show(name: str, value: Any) -> str:
+    if value is None:
+        return CONVERGE if name == "sweeps" else "none"
+    return str(value)
+
+
+def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
+    """Refuse an option given with --resume that differs from the one STORE records.
+
+    A store keeps the options it was created with; giving the same value again (the
+    first command line with --resume added) is accepted, another value is refused rather
+    than silently ignored.
+    """
+    differ = []
+    for name, flag in _STORE_OPTIONS:
+        value = getattr(args, name)
+        if value is None:
+            continue
+        wanted = None if value == CONVERGE else value
+        if wanted != recorded[name]:
+            differ.append(f"{flag} {_show(name, wanted)} (STORE has {_show(name, recorded[name])})")
+    if differ:
+        raise InputError(
+            f"{', '.join(differ)}: --resume continues STORE with the options it was created "
+            "with (`streamsvd info STORE` shows them). Drop the option, or give the store's "
+            "value."
+        )
+
+
+def _resume_options_given(args: Any) -> bool:
+    return args.resume and any(getattr(args, name) is not None for name, _ in _STORE_OPTIONS)
+
+
+def _check_store_path(args: Any) -> Path:
+    store = Path(args.store)
+    if args.resume and not store.exists():
+        raise StoreError(
+            f"STORE {store} does not exist, so --resume has nothing to continue; drop "
+            "--resume to create it."
+        )
+    if not args.resume and store.exists():
+        raise StoreError(
+            f"STORE {store} already exists; pass --resume to continue it, or choose "
+            "another path."
+        )
+    return store
+
+
 def _ingest(args: Any) -> int:
-    if args.scheduler is not None or args.tall:
-        return _ingest_dask(args)
+    mode = _mode(args)
+    _check_mode_options(args, mode)
+    options = _compressor_options(args, mode)
+    store = _check_store_path(args)
+    block = args.block or _DEFAULT_BLOCK
+    try:
+        if mode == "memory":
+            summary = _ingest_memory(args, store, block, options)
+        else:
+            summary = _ingest_dask(args, mode, store, block, options)
+    except StoreMismatchError:
+        if args.resume:
+            _check_store_kind(store, tall=mode == "tall")
+        raise
+    if not args.quiet:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
+                   ) -> dict[str, Any]:
     from tqdm import tqdm
 
-    store = Path(args.store)
+    from .sources import open_source
+    from .stream import StreamCompressor
+
     with open_source(args.source, dataset=args.dataset) as src:
         if args.resume:
             sc = StreamCompressor.open(store)
-        elif store.exists():
-            raise StoreError(
-                f"`store` {store} already exists; pass --resume to continue it or choose "
-                "another path."
-            )
         else:
-            sc = StreamCompressor(
-                src.n, eps=args.eps, rtol=args.rtol, max_rank=args.max_rank, rule=args.rule,
-                sweeps=None if args.sweeps == 0 else args.sweeps, store=store,
-                commit_every=args.commit_every,
-            )
+            sc = StreamCompressor(src.n, store=store, **options)
         with sc:
+            if args.resume:
+                _check_resume_options(args, sc._options())
             if src.n != sc.n:
-                raise StoreError(
-                    f"`source` has snapshots of size {src.n}; the store holds a basis of "
-                    f"size {sc.n}."
+                raise ShapeMismatchError(
+                    f"SOURCE has snapshots of size {src.n}; STORE {store} holds a basis of "
+                    f"size {sc.n}. Pass the source the store was built from."
                 )
             start = sc.source_offset
-            bar = tqdm(
-                total=src.m, initial=start, unit="col", disable=args.quiet,
-                dynamic_ncols=True, desc="ingest",
-            )
+            bar = tqdm(total=src.m, initial=start, unit="col", disable=args.quiet,
+                       dynamic_ncols=True, desc="ingest", file=sys.stderr)
             with bar:
-                for offset, block in src.blocks(block=args.block, start=start):
-                    rec = sc.absorb(block, source_offset=offset + block.shape[1])
-                    bar.update(block.shape[1])
-                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}", refresh=False)
-            summary = _summary(sc)
-    if not args.quiet:
-        print(json.dumps(summary, indent=2))
-    return 0
+                for offset, X in src.blocks(block=block, start=start):
+                    rec = sc.absorb(X, source_offset=offset + X.shape[1])
+                    # the postfix first, so that the redraw of update() shows this update
+                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
+                                    refresh=False)
+                    bar.update(X.shape[1])
+            return _summary(sc)
 
 
-def _ingest_dask(args: Any) -> int:
+def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any]
+                 ) -> dict[str, Any]:
     from .parallel import ingest
 
-    summary = ingest(
-        args.source, args.store, dataset=args.dataset, block=args.block,
-        scheduler=args.scheduler, workers=args.workers, tall=args.tall,
-        leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows, resume=args.resume,
-        progress=not args.quiet, eps=args.eps, rtol=args.rtol, max_rank=args.max_rank,
-        rule=args.rule, sweeps=None if args.sweeps == 0 else args.sweeps,
-        # a tree commits its root once; the tall mode commits every `commit_every` updates
-        **({"commit_every": args.commit_every} if args.tall else {}),
-    )
-    if not args.quiet:
-        print(json.dumps(summary, indent=2))
-    return 0
+    if _resume_options_given(args):  # the engine takes no option with resume: check here
+        with _open(store) as sc:
+            _check_resume_options(args, sc._options())
+    # dask's progress bars (ProgressBar, distributed.progress) write to stdout, which
+    # belongs to the command's output: send whatever the engine prints to stderr
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            return ingest(
+                args.source, store, dataset=args.dataset, block=block,
+                scheduler=args.scheduler, workers=args.workers, tall=mode == "tall",
+                leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows,
+                resume=args.resume, progress=not args.quiet, **options,
+            )
+    except NonFiniteError:
+        if mode == "tall":  # the tall engine counts the bad entries but cannot place them
+            _locate_non_finite(args, store, block)
+        raise
+
+
+def _locate_non_finite(args: Any, store: Path, block: int) -> None:
+    """Re-read the source after the last commit; raise its error naming the bad entry.
+
+    Every block before the store's recorded source offset was absorbed, so the first
+    NaN or infinite entry after it is the one the tall update refused. Returns without
+    raising when it finds none (the caller re-raises the update's error).
+    """
+    from .parallel import open_compressor
+    from .sources import open_source
+
+    try:
+        with open_compressor(store, mode="r") as sc:
+            start = sc.source_offset
+    except (StoreError, ValueError):
+        start = 0
+    with open_source(args.source, dataset=args.dataset) as src:
+        for _ in src.blocks(block=block, start=min(start, src.m)):
+            pass  # Source checks every block it reads and raises NonFiniteError
+
+
+def _check_store_kind(store: Path, *, tall: bool) -> None:
+    """Raise a command-line error when STORE was written in the other mode."""
+    from .store import open_store
+
+    try:
+        with open_store(store, "r") as st:
+            kind = st.read().attrs.get("kind")
+    except (StoreError, ValueError):
+        return
+    if tall and kind == "streamsvd.StreamCompressor":
+        raise StoreMismatchError(
+            f"STORE {store} was written without --tall (in memory or by a tree); resume "
+            "it without --tall."
+        )
+    if not tall and kind == "streamsvd.TallCompressor":
+        raise StoreMismatchError(f"STORE {store} was written with --tall; resume it with --tall.")
+
+
+# ------------------------------------------------------------------- info, export, plot
 
 
 def _open(path: Any) -> Any:
     """Open the compressor of a store read-only, whichever kind wrote it."""
-    from .errors import StoreMismatchError
+    if Path(path).is_file():
+        raise StoreError(
+            f"STORE {path} is a file; a basis store is a directory written by "
+            "`streamsvd ingest`."
+        )
+    from .stream import StreamCompressor
 
     try:
         return StreamCompressor.open(path, mode="r")
@@ -178,10 +564,12 @@ def _info(args: Any) -> int:
         print(json.dumps(summary, indent=2))
         return 0
     opts = summary["options"]
+    sweeps = CONVERGE if opts["sweeps"] is None else opts["sweeps"]
     print(f"store         {summary['store']}")
     print(f"snapshots     n = {summary['n']}, absorbed {summary['n_seen']} "
-          f"(source offset {summary['source_offset']}) in {summary['updates']} updates")
-    print(f"rank          {summary['rank']}  (rule {opts['rule']}, sweeps {opts['sweeps']}, "
+          f"(source offset {summary['source_offset']}) in {summary['updates']} "
+          f"update{'' if summary['updates'] == 1 else 's'}")
+    print(f"rank          {summary['rank']}  (rule {opts['rule']}, sweeps {sweeps}, "
           f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']})")
     print(f"error bound   ||A - U V^T||_F <= {summary['error_bound']:.3e}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
@@ -193,13 +581,15 @@ def _info(args: Any) -> int:
 def _export(args: Any) -> int:
     out = Path(args.out)
     if out.suffix not in (".npz", ".h5", ".hdf5"):
-        raise ValueError(f"`out` must end with .npz, .h5 or .hdf5; got {out.name!r}.")
+        raise InputError(f"OUT must end with .npz, .h5 or .hdf5; got {out.name!r}.")
+    import numpy as np
+
     with _open(args.store) as sc:
         e = sc.expansion
         bound = sc.error_bound
     data = {"U": e.U, "V": e.V, "amplitudes": e.amplitudes, "error_bound": np.array(bound)}
     if out.suffix == ".npz":
-        np.savez(out, U=e.U, V=e.V, amplitudes=e.amplitudes, error_bound=np.array(bound))
+        np.savez(out, **data)
     else:
         import h5py
 
@@ -210,31 +600,70 @@ def _export(args: Any) -> int:
     return 0
 
 
-def _plot(args: Any) -> int:
-    import matplotlib
+def _figure(sc: Any, *, name: str) -> Any:
+    """Draw the amplitudes, cumulative energy and orthogonality history of a compressor.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Parameters
+    ----------
+    sc : StreamCompressor or TallCompressor
+        An open compressor.
+    name : str
+        How the store is named in the title.
 
-    with _open(args.store) as sc:
-        amps = sc.amplitudes
-        hist = sc.history
-        bound = sc.error_bound
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
-    ax[0].semilogy(np.arange(1, amps.size + 1), amps, "k.-", ms=3)
-    ax[0].set(xlabel="term i", ylabel="||v_i||", title="amplitudes")
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Three panels; every x axis counts terms or updates and has integer ticks.
+    """
+    import numpy as np
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    amps = np.asarray(sc.amplitudes)
+    hist = sc.history
+    terms = np.arange(1, amps.size + 1)
+    fig = Figure(figsize=(14, 4.4))
+    ax = fig.subplots(1, 3)
+    fig.suptitle(
+        f"{name}: n = {sc.n}, rank {sc.rank}, {sc.n_seen} snapshots in {len(hist)} "
+        f"update{'' if len(hist) == 1 else 's'}, ||A - U V^T||_F <= {sc.error_bound:.2e}"
+    )
+    ax[0].semilogy(terms, amps, "k.-", ms=4)
+    ax[0].set(xlabel="term i", ylabel="amplitude ||v_i|| (units of the data)",
+              title="amplitudes")
     energy = np.cumsum(amps**2)
     total = energy[-1] + sc.discarded_energy if energy.size else 1.0
-    ax[1].plot(np.arange(1, amps.size + 1), energy / total, "b.-", ms=3)
-    ax[1].set(xlabel="terms kept", ylabel="fraction of energy", title=f"error bound {bound:.2e}")
+    ax[1].plot(terms, energy / total if total > 0 else energy, "b.-", ms=4)
+    ax[1].set(xlabel="terms kept", ylabel="kept energy / total energy",
+              title="cumulative energy (the total includes the cut energy)")
     ax[1].set_ylim(0, 1.02)
+    updates = np.arange(1, len(hist) + 1)
     orth = [max(h.orthogonality, 1e-18) for h in hist]
-    ax[2].semilogy(np.arange(1, len(orth) + 1), orth, "r-")
-    ax[2].set(xlabel="update", ylabel="||U^T M U - I||_2", title="orthogonality")
+    ax[2].semilogy(updates, orth, "r.-", ms=8, label="after each update")
+    reorth = sc._options().get("reorth_tol")
+    if reorth:
+        ax[2].axhline(reorth, color="0.5", ls="--", lw=1, label="re-orthonormalisation threshold")
+    ax[2].set(xlabel="update", ylabel="||U^T M U - I||_2 (dimensionless)",
+              title="orthogonality of U")
+    if hist:
+        ax[2].legend(loc="best", fontsize="small")
+    for a, count, what in ((ax[0], amps.size, "no terms"), (ax[1], amps.size, "no terms"),
+                           (ax[2], len(hist), "no updates")):
+        # counts: integer ticks, and limits wide enough for them even with one point
+        a.set_xlim(0.5, max(count, 1) + 0.5)
+        a.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
+        if not count:
+            a.text(0.5, 0.5, what, transform=a.transAxes, ha="center", va="center")
     fig.tight_layout()
-    fig.savefig(args.out, dpi=120)
-    plt.close(fig)
-    print(f"wrote {args.out}")
+    return fig
+
+
+def _plot(args: Any) -> int:
+    out = Path(args.out)
+    with _open(args.store) as sc:
+        fig = _figure(sc, name=Path(args.store).name)
+    fig.savefig(out, dpi=120)
+    print(f"wrote {out}")
     return 0
 
 

@@ -14,7 +14,9 @@
 
 ``Source.blocks`` can read the next block in a background thread while the caller works
 on the current one (one block ahead, so at most two blocks are in memory), which hides
-the read time of compressed on-disk data behind the update of the basis.
+the read time of compressed on-disk data behind the update of the basis. Every block read
+is checked for NaN and infinite entries, which are reported by their row and column in
+the source (not by their index inside the block).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Any, cast
 import numpy as np
 
 from ._validation import check_positive_int
-from .errors import InputError, ShapeMismatchError, SourceError
+from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
 
 __all__ = ["Source", "open_source"]
 
@@ -109,6 +111,9 @@ class Source:
         ------
         InputError
             When the range is outside ``[0, m]`` or reversed.
+        NonFiniteError
+            When the columns hold NaN or infinite entries; the message names the first
+            one (in column order) by its row and column in the source.
         SourceError
             When the underlying read fails (chained to the original exception).
         """
@@ -128,13 +133,34 @@ class Source:
             out = np.asarray(block, dtype=np.float64)
             if isinstance(self._data, np.ndarray) and np.may_share_memory(out, self._data):
                 out = out.copy()
-            return out
         except Exception as exc:  # any reader failure is reported with its offset
             raise SourceError(
                 f"reading columns {start}:{stop} (offset {start}) of {self.description} "
                 f"failed: {type(exc).__name__}: {exc}. Check that the data is readable and "
                 f"resume from offset {start}."
             ) from exc
+        self._check_finite(out, start)
+        return out
+
+    def _check_finite(self, block: np.ndarray, start: int) -> None:
+        """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates.
+
+        ``block`` holds columns ``start:start + b``; the first bad entry is the first in
+        column order (the earliest snapshot), reported by its row and its column in the
+        whole source, not by its index inside the block.
+        """
+        finite = np.isfinite(block)
+        if finite.all():
+            return
+        col = int(np.flatnonzero(~finite.all(axis=0))[0])
+        row = int(np.flatnonzero(~finite[:, col])[0])
+        count = int(block.size - np.count_nonzero(finite))
+        raise NonFiniteError(
+            f"`source` must be finite; {self.description} holds {float(block[row, col])} "
+            f"at column {start + col}, row {row} (counted from 0; {count} NaN or infinite "
+            f"entries in columns {start}:{start + block.shape[1]}). Repair or remove that "
+            "snapshot."
+        )
 
     def blocks(
         self, block: int = 100, *, start: int = 0, prefetch: bool = True
@@ -166,6 +192,9 @@ class Source:
         ------
         InputError
             When ``block < 1`` or ``start`` is outside ``[0, m]``.
+        NonFiniteError
+            When a block holds NaN or infinite entries; raised when the caller asks for
+            that block, naming the first one by its row and column in the source.
         SourceError
             When reading a block fails; raised when the caller asks for that block, with
             its offset in the message and the original exception chained.
@@ -377,8 +406,8 @@ def _open_path(path: Path, dataset: str | None) -> Source:
         )
     raise InputError(
         f"`source` {path} has an unknown extension {path.suffix!r}; expected .npy, "
-        f"{', '.join(_HDF5_SUFFIXES)}, .zarr or a zarr directory. Rename the file or pass "
-        "the array itself."
+        f"{', '.join(_HDF5_SUFFIXES)}, .zarr or a zarr directory. Convert the data to one "
+        "of these formats (if it already is one, give the file its extension)."
     )
 
 

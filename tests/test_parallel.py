@@ -8,7 +8,6 @@ SVD, compared with LAPACK's test ratios (``streamsvd.testing``). A real LocalClu
 import inspect
 import math
 import os
-from pathlib import Path
 
 import dask
 import dask.array as da
@@ -499,4 +498,4 @@ def test_results_do_not_depend_on_the_path_taken(rng):
         c = tc.expansion
     assert rel_diff(b.U, a.U) == 0.0
     assert rel_diff(c.U, a.U) < 1e-10 and rel_diff(c.V, a.V) < 1e-10
-    assert Path(ss.__file__).exists()
+    assert rel_diff(b.V, a.V) == 0.0  # the tree's right factor is the stream's, bit for bit
