@@ -69,9 +69,9 @@ _LAZY = {
 
 # submodules reachable as attributes (``streamsvd.store``) without importing them first
 _SUBMODULES = frozenset({
-    "cli", "compress", "errors", "estimator", "expansion", "gram_schmidt", "inner",
-    "parallel", "parallel_tall", "parallel_tree", "rotations", "sources", "store",
-    "stream", "testing",
+    "basis", "bound", "cli", "compress", "errors", "estimator", "expansion",
+    "gram_schmidt", "inner", "panels", "parallel", "parallel_tall", "parallel_tree",
+    "rotations", "rows", "sources", "store", "stream", "testing", "update",
 })
 
 
