@@ -83,3 +83,37 @@ def test_stream_benchmark_tiny(bench, tmp_path):
                for t in targets["speed_10x_ipca"].values() for x in t["rows"])
     assert report["wall_s"] > 0
 
+
+
+def test_tuned_brand_matches_batch_svd(bench, rng):
+    brand = bench("brand")
+    A = rng.standard_normal((80, 12)) @ rng.standard_normal((12, 45))
+    br = brand.TunedBrandSVD(80, rank=12, max_columns=45, max_block=7)
+    for j in range(0, 45, 7):
+        br.absorb(A[:, j : j + 7])
+    s = np.linalg.svd(A, compute_uv=False)
+    np.testing.assert_allclose(br.s, s[:12], rtol=1e-10)
+    np.testing.assert_allclose(br.U @ (br.s[:, None] * br.V.T), A, atol=1e-10 * s[0])
+    assert np.linalg.norm(br.U.T @ br.U - np.eye(12), 2) < 50 * 80 * np.finfo(float).eps
+
+
+def test_engine_benchmark_tiny(bench, tmp_path):
+    mod = bench("engine_benchmark")
+    report = mod.main([
+        "--out", str(tmp_path), "--n", "2000", "--b", "10", "--cap", "12", "--rank", "40",
+        "--updates", "3", "--threads", "1", "--repeats", "1", "--long-updates", "2000",
+        "--long-every", "1000",
+    ])
+    rows = {r["method"]: r for r in report["block"]}
+    eps = np.finfo(float).eps
+    # the converged stream is the exact SVD of the truncated stream, as Brand's
+    assert rows["streamsvd jacobi conv"]["sv_rel_error"] == pytest.approx(
+        rows["brand"]["sv_rel_error"], rel=1e-6)
+    assert all(r["orthogonality"] < 50 * 2000 * eps for r in rows.values())
+    assert all(r["median_update_s"] > 0 and r["peak_bytes"] > 0 for r in rows.values())
+    for res in report["long"].values():
+        assert res["max_orthogonality"] < res["limit_50_n_eps"]
+        assert len(res["mean_per_1000"]) == 2
+    saved = json.loads((tmp_path / "engine_benchmark.json").read_text())
+    assert {r["method"] for r in saved["block"]} == set(rows)
+    assert (tmp_path / "engine_benchmark.png").stat().st_size > 20_000
