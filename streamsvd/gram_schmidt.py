@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 import scipy.linalg.blas as blas
+import scipy.linalg.lapack
 
 from ._scaling import pow2_exponent
 from ._validation import as_float_array, check_nonnegative
@@ -52,6 +53,7 @@ _EPS = np.finfo(np.float64).eps
 _MAX_PASSES = 4  # projections on the old basis: one, plus up to three while norms collapse
 _REITERATE = 0.5  # project again when a pass leaves less than this fraction of the norm
 _DELTA = 1.0 / 32.0  # a residual joins a CholeskyQR batch when its Schur pivot is >= _DELTA^2
+_COND_MAX = 1e4  # and the batch's factor stays this well conditioned (CholeskyQR2 is exact)
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -152,10 +154,11 @@ def extend_basis(
        more than half of their norm (DGKS; Giraud et al. 2005: twice is enough).
     2. The residual block by CholeskyQR2 in batches: the Gram of the residuals normalised
        to unit ``M``-norm is factored in order, a column joining the batch only when its
-       Schur pivot is at least ``_DELTA^2`` (so the batch is well conditioned and two
-       CholeskyQR passes give orthonormality to working accuracy; the rounding left along
-       the old basis is amplified by at most about ``1 / _DELTA``, which the orthogonality
-       monitor of the compressor measures). The other
+       Schur pivot is at least ``_DELTA^2`` and the batch's factor keeps
+       ``cond_1 <= _COND_MAX`` (LAPACK ``dtrcon``), so that two CholeskyQR passes give
+       orthonormality to working accuracy; the rounding left along the old basis is
+       amplified by at most that condition, which the orthogonality monitor of the
+       compressor measures. The other
        columns are projected explicitly (CGS2) on the old basis and the batch, their
        norms measured directly (never from a Gram of the data), and treated in the next
        batch. A residual whose norm is ``<= reject_tol * reference_k`` is rejected, never
@@ -296,14 +299,26 @@ def _project_old(
             return
 
 
+def _well_conditioned(L: np.ndarray) -> bool:
+    """Whether a lower-triangular factor has ``cond_1(L) <= _COND_MAX`` (LAPACK estimate)."""
+    rcond, _ = scipy.linalg.lapack.dtrcon(L, norm="1", uplo="L", diag="N")
+    return bool(rcond * _COND_MAX >= 1.0)
+
+
 def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
-    """Columns (in order) of a unit-diagonal Gram whose Schur pivots stay >= ``_DELTA^2``."""
+    """Columns (in order) of a unit-diagonal Gram that form a well-conditioned batch.
+
+    A column joins when its Schur pivot is at least ``_DELTA^2`` and the factor of the
+    batch keeps ``cond_1(L) <= _COND_MAX`` (pivots alone do not bound the condition: the
+    growth can be exponential in the batch size), so that two CholeskyQR passes are
+    accurate to working precision (their error grows as ``eps cond^2``).
+    """
     c = Gz.shape[0]
     if c == 1:
         return np.ones(1, dtype=bool)
     try:
         L = np.linalg.cholesky(Gz)
-        if float(np.min(np.diag(L))) >= _DELTA:
+        if float(np.min(np.diag(L))) >= _DELTA and _well_conditioned(L):
             return np.ones(c, dtype=bool)
     except np.linalg.LinAlgError:
         pass
@@ -316,11 +331,16 @@ def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
             piv = float(Gz[k, k] - lk @ lk)
         else:
             lk, piv = np.zeros(0), float(Gz[k, k])
-        if piv >= _DELTA * _DELTA:
-            L[k, idx] = lk
-            L[k, k] = math.sqrt(piv)
-            idx.append(k)
-            take[k] = True
+        if piv < _DELTA * _DELTA:
+            continue
+        L[k, idx] = lk
+        L[k, k] = math.sqrt(piv)
+        trial = idx + [k]
+        if len(trial) > 1 and not _well_conditioned(L[np.ix_(trial, trial)]):
+            L[k, :] = 0.0
+            continue
+        idx = trial
+        take[k] = True
     return take
 
 

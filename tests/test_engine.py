@@ -254,3 +254,28 @@ def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
     assert (left.n_seen, right.n_seen) == before[2:]
     again = _merge_pair(left, right, 1)  # a retried task gives the same result
     assert np.array_equal(again.expansion.U, out.expansion.U)
+
+
+def test_batches_are_well_conditioned_not_only_well_pivoted(rng):
+    """Rows of a matrix with the bell-shaped spectrum exp(-(i/10)^2), absorbed as the R^T
+    factors of centred batches: the residual blocks have Schur pivots above 1/32 but an
+    exponentially growing Cholesky factor; a batch must be chosen on its condition."""
+    n = 100
+    U = np.linalg.qr(rng.standard_normal((1000, n)))[0]
+    V = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    X = (U * np.exp(-((np.arange(n) / 10.0) ** 2))) @ V.T
+    for seed in range(4):
+        Xs = X[np.random.default_rng(seed).permutation(1000)]
+        sc = ss.StreamCompressor(n, max_rank=10, sweeps=None, rule="jacobi", right_vectors=False)
+        mean, seen = np.zeros(n), 0
+        for a in range(0, 1000, 150):
+            B = Xs[a : a + 150]
+            mb, nb = B.mean(0), B.shape[0]
+            block = B - mb
+            if seen:
+                block = np.vstack([block, np.sqrt(seen * nb / (seen + nb)) * (mean - mb)])
+            mean, seen = (seen * mean + nb * mb) / (seen + nb), seen + nb
+            sc.absorb(np.linalg.qr(block, mode="r").T)
+        Uk = sc.left_vectors
+        assert sc.rank == 10
+        assert np.linalg.norm(Uk.T @ Uk - np.eye(10), 2) <= 50 * n * EPS
