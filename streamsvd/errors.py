@@ -22,6 +22,10 @@ class InputTypeError(InputError, TypeError):
     """An array argument holds entries that are not numbers."""
 
 
+class SparseInputError(InputError, TypeError):
+    """A sparse matrix is passed where only a dense array is accepted."""
+
+
 class NonFiniteError(InputError):
     """An array argument holds NaN or infinite entries."""
 
