@@ -153,34 +153,18 @@ def _gen_batches(n: int, batch_size: int, min_batch_size: int) -> Iterator[slice
         yield slice(start, n)
 
 
-def _condition(B: np.ndarray, sc: StreamCompressor, inner: InnerProduct) -> np.ndarray:
-    """Return a block with the Gram matrix ``B B^T`` of ``B``, shaped for Gram-Schmidt.
+def _condition(B: np.ndarray) -> np.ndarray:
+    """Return a block with the Gram matrix ``B B^T`` of ``B`` and at most ``n`` columns.
 
     Without right vectors the compressor's directions and amplitudes depend on the
-    absorbed columns only through ``B B^T`` (the SVD of ``[U S, B]`` does), so ``B`` may
-    be replaced by ``B W`` for any ``W`` with ``W W^T = I``:
-
-    1. more samples than features: ``B^T = Q R`` (Householder), ``B <- R^T``, ``n``
-       columns instead of ``b`` (``O(b n^2)``, the cost of ``IncrementalPCA``'s SVD);
-    2. ``B <- B W`` with ``W`` the right singular vectors of the residual ``B_perp = B -
-       U U^T M B`` against the current basis (by its SVD; in a non-Euclidean ``M`` by
-       the eigenvectors of ``B_perp^T M B_perp``), so that the residuals Gram-Schmidt
-       orthonormalises are mutually orthogonal, largest first. Samples whose residuals
-       are nearly parallel otherwise make its CholeskyQR batches singular.
+    absorbed columns only through ``B B^T`` (the SVD of ``[U S, B]`` does), so a block of
+    more samples than features is replaced by ``R^T`` with ``B^T = Q R`` (Householder):
+    ``n`` columns instead of ``b``, at ``O(b n^2)``, the cost of ``IncrementalPCA``'s SVD.
     """
     n, b = B.shape
     if b > n:
         B = scipy.linalg.qr(B.T, mode="r", check_finite=False)[0][:n].T  # R is b x n
-    U = sc.left_vectors if sc.rank else np.zeros((n, 0))
-    P = B
-    if U.shape[1]:
-        for _ in range(2):  # CGS2: "twice is enough"
-            P = P - U @ inner.gram(U, P)
-    if inner.is_euclidean:
-        W = np.linalg.svd(P, full_matrices=False)[2].T
-    else:
-        W = np.linalg.eigh(inner.gram(P, P))[1][:, ::-1]
-    return B @ W  # b <= n, so W is square
+    return B
 
 
 def _complement(U: np.ndarray, count: int, inner: InnerProduct) -> np.ndarray:
@@ -442,7 +426,7 @@ class StreamingSVD(_Mixin, _Base):
         else:
             block = X
             energy = float(np.sum(safe_column_norms(X.T) ** 2))
-        sc.absorb(_condition(block.T, sc, inner))
+        sc.absorb(_condition(block.T))
         if first:
             self.compressor_, self._options = sc, opts
             self._inner_arg, self._inner = self.inner, inner
