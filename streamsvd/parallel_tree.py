@@ -89,7 +89,7 @@ def execute(collections: list[Any], *, client: Any = None, progress: bool = Fals
         share run once.
     client : distributed.Client, optional
         Run on this cluster; the threaded scheduler of this process when omitted (even if
-        a default client is registered).
+        a default client is registered), with one BLAS thread per task.
     progress : bool
         Show dask's progress bar (:class:`dask.diagnostics.ProgressBar`, or
         :func:`distributed.progress` on a cluster).
@@ -102,12 +102,17 @@ def execute(collections: list[Any], *, client: Any = None, progress: bool = Fals
     import dask
 
     if client is None:
-        if progress:
-            from dask.diagnostics import ProgressBar
+        # the threaded scheduler runs a task per core: one BLAS thread each, or the
+        # cores are oversubscribed (tasks that limit themselves keep their own limit)
+        with threadpool_limits(limits=1, user_api="blas"):
+            if progress:
+                import sys
 
-            with ProgressBar():
-                return list(dask.compute(*collections, scheduler="threads"))
-        return list(dask.compute(*collections, scheduler="threads"))
+                from dask.diagnostics import ProgressBar
+
+                with ProgressBar(out=sys.stderr):
+                    return list(dask.compute(*collections, scheduler="threads"))
+            return list(dask.compute(*collections, scheduler="threads"))
     futures = client.compute(list(collections))
     try:
         if progress:

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 import streamsvd as ss
 from streamsvd.bound import Bound
+from streamsvd.parallel import TallCompressor
 from streamsvd.rows import COND_LIMIT, RowFactor
 from streamsvd.testing import with_spectrum
 
@@ -113,14 +114,16 @@ def test_nearly_parallel_columns_keep_their_rank_and_digits(rng, delta):
     assert g.expansion.rank == 2 and g.rejected == ()
     assert g.expansion.orthogonality_error() <= 50 * n * EPS
     assert np.linalg.norm(g.expansion.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X)
-    sc = ss.StreamCompressor(n, rule="jacobi", sweeps=None)
-    sc.absorb(X)
-    e = sc.expansion
-    assert e.rank == 2 and sc.history[-1].rejected == 0
     s = np.linalg.svd(X, compute_uv=False)
-    assert abs(e.amplitudes[1] - s[1]) <= 50 * n * EPS * s[0]
-    assert np.linalg.norm(e.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X)
-    assert e.orthogonality_error() <= 50 * n * EPS
+    for sc in (ss.StreamCompressor(n, rule="jacobi", sweeps=None),
+               TallCompressor(n, chunk_rows=1000, rule="jacobi", sweeps=None)):
+        sc.absorb(X)
+        e = sc.expansion
+        assert e.rank == 2 and sc.history[-1].rejected == 0
+        assert abs(e.amplitudes[1] - s[1]) <= 50 * n * EPS * s[0]
+        assert np.linalg.norm(e.to_dense() - X) <= 50 * n * EPS * np.linalg.norm(X)
+        assert e.orthogonality_error() <= 50 * n * EPS
+        sc.close()
 
 
 def test_block_with_dependent_and_tiny_columns_in_one_absorb(rng):
@@ -279,3 +282,48 @@ def test_batches_are_well_conditioned_not_only_well_pivoted(rng):
         Uk = sc.left_vectors
         assert sc.rank == 10
         assert np.linalg.norm(Uk.T @ Uk - np.eye(10), 2) <= 50 * n * EPS
+
+
+@pytest.mark.parametrize("backend", ["memory", "panels"])
+def test_error_bound_holds_through_every_kind_of_update_on_every_backend(rng, backend):
+    """One fixed sequence of absorb (with rejections), add, add with coefficients and
+    merge, truncated and with weights, on both backends: the bound holds after each."""
+    n = 60
+    w = rng.uniform(0.5, 2.0, n)
+    make = (lambda **kw: ss.StreamCompressor(n, inner=w, **kw)) if backend == "memory" else (
+        lambda **kw: TallCompressor(n, inner=w, chunk_rows=16, **kw))
+    sc = make(max_rank=6, rule="paper", sweeps=1, reject_tol=1e-6)
+    ip = sc.inner
+    A = np.zeros((n, 0))
+
+    def check():
+        err = _m_fro(A - sc.expansion.to_dense(), ip)
+        assert err <= sc.error_bound + 1e3 * n * EPS * _m_fro(A, ip)
+        assert sc.orthogonality_error() <= 50 * n * EPS
+
+    for k in (5, 4, 7):
+        B = rng.standard_normal((n, 4)) @ rng.standard_normal((4, k))
+        sc.absorb(B)
+        A = np.hstack([A, B])
+        check()
+    near = sc.left_vectors[:, :1] @ rng.standard_normal((1, 3)) + 1e-8 * rng.standard_normal((n, 3))
+    sc.absorb(near)  # rejected residuals
+    A = np.hstack([A, near])
+    check()
+    Uk, Vk = rng.standard_normal((n, 2)), rng.standard_normal((sc.n_seen, 2))
+    sc.add(Uk, Vk)
+    A = A + Uk @ Vk.T
+    check()
+    e = sc.expansion
+    dV = 0.1 * rng.standard_normal((sc.n_seen, e.rank))
+    sc.add(np.zeros((n, 0)), np.zeros((sc.n_seen, 0)), coefficients=dV)
+    A = A + e.U @ dV.T
+    check()
+    other = make(max_rank=6, rule="paper", sweeps=1)
+    B = rng.standard_normal((n, 3)) @ rng.standard_normal((3, 9))
+    other.absorb(B)
+    sc.merge(other)
+    A = np.hstack([A, B])
+    check()
+    other.close()
+    sc.close()
