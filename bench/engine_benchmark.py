@@ -113,11 +113,11 @@ def left_and_sv(obj: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_stream(make: Callable[[], Any], A: np.ndarray, cap: int, b: int) -> dict[str, Any]:
-    obj = make()
     times = []
     tracemalloc.start()
     tracemalloc.reset_peak()
     base = tracemalloc.get_traced_memory()[0]
+    obj = make()  # inside the traced region: preallocated buffers count too
     starts = [0, *range(cap, A.shape[1], b)]
     for i, a in enumerate(starts):
         stop = cap if i == 0 else min(a + b, A.shape[1])

@@ -208,16 +208,17 @@ def extend_basis(
         whole = pending.size == b
         Yp = Y if whole else Y[:, pending]
         Gz = _gram(Yp, inner) / np.outer(norms, norms)  # the Gram of the unit columns
-        take = _cholesky_batch(Gz)
+        take, Lz = _cholesky_batch(Gz)
         cols = pending[take]
         r0 = sum(o.size for o in order)
+        # the factor of the batch's own Gram is diag(norms) Lz: CholeskyQR's first pass
+        # reuses it (Cholesky commutes with a diagonal scaling)
+        first = norms[take][:, np.newaxis] * Lz
         if whole and take.all():
             # the common case, in place: the workspace becomes the new directions
-            Y /= norms
-            Qb, Rb = _cholesky_qr2(Y, inner, in_place=True)
+            Qb, Rb = _cholesky_qr2(Y, inner, in_place=True, first=first)
         else:
-            Qb, Rb = _cholesky_qr2(Yp[:, take] / norms[take], inner, in_place=True)
-        Rb = Rb * norms[take]
+            Qb, Rb = _cholesky_qr2(Yp[:, take], inner, in_place=True, first=first)
         R_new[r0 : r0 + cols.size, cols] = Rb
         order.append(cols)
         batches.append(Qb)
@@ -305,8 +306,10 @@ def _well_conditioned(L: np.ndarray) -> bool:
     return bool(rcond * _COND_MAX >= 1.0)
 
 
-def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
+def _cholesky_batch(Gz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Columns (in order) of a unit-diagonal Gram that form a well-conditioned batch.
+
+    Returns the mask of the batch's columns and the Cholesky factor of their Gram.
 
     A column joins when its Schur pivot is at least ``_DELTA^2`` and the factor of the
     batch keeps ``cond_1(L) <= _COND_MAX`` (pivots alone do not bound the condition: the
@@ -315,11 +318,11 @@ def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
     """
     c = Gz.shape[0]
     if c == 1:
-        return np.ones(1, dtype=bool)
+        return np.ones(1, dtype=bool), np.sqrt(np.maximum(Gz, 0.0))
     try:
         L = np.linalg.cholesky(Gz)
         if float(np.min(np.diag(L))) >= _DELTA and _well_conditioned(L):
-            return np.ones(c, dtype=bool)
+            return np.ones(c, dtype=bool), L
     except np.linalg.LinAlgError:
         pass
     take = np.zeros(c, dtype=bool)
@@ -341,20 +344,25 @@ def _cholesky_batch(Gz: np.ndarray) -> np.ndarray:
             continue
         idx = trial
         take[k] = True
-    return take
+    return take, L[np.ix_(idx, idx)]
 
 
 def _cholesky_qr2(
-    Z: np.ndarray, inner: InnerProduct, *, in_place: bool = False
+    Z: np.ndarray,
+    inner: InnerProduct,
+    *,
+    in_place: bool = False,
+    first: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``Z = Q R`` by two CholeskyQR passes (``Z`` well conditioned).
 
     With ``in_place`` (and ``Z`` column-major) ``Q`` overwrites ``Z``; else it is new.
+    ``first`` is the Cholesky factor of ``Z^T M Z`` when the caller has it already.
     """
     Q = Z if in_place and Z.flags.f_contiguous else np.array(Z, order="F")
     R = np.eye(Z.shape[1])
-    for _ in range(2):
-        L = np.linalg.cholesky(_gram(Q, inner))
+    for k in range(2):
+        L = first if k == 0 and first is not None else np.linalg.cholesky(_gram(Q, inner))
         out = blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
         if not np.shares_memory(out, Q):
             Q[...] = out

@@ -208,10 +208,10 @@ def tall_compress(
             for a in range(tc.source_offset, spec.m, block):
                 stop = min(a + block, spec.m)
                 rec = tc.absorb(x[:, a:stop], source_offset=stop)
-                if bar is not None:
-                    bar.update(stop - a)
+                if bar is not None:  # the postfix first: the redraw shows this update
                     bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
                                     refresh=False)
+                    bar.update(stop - a)
         tc.flush()
     except BaseException:
         tc.close()
