@@ -44,6 +44,10 @@ class BasisBackend(Protocol):
     def width(self) -> int:
         """Number of stored columns ``w``."""
 
+    @property
+    def room(self) -> int:
+        """Columns the basis can hold without growing its storage."""
+
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
         """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
 
@@ -134,6 +138,11 @@ class MemoryBasis:
     def width(self) -> int:
         """Number of stored columns ``w``."""
         return self._w
+
+    @property
+    def room(self) -> int:
+        """Columns the buffers hold (stored and workspace) before they must grow."""
+        return self.capacity
 
     @property
     def Q(self) -> np.ndarray:

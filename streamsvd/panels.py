@@ -76,6 +76,11 @@ class PanelBasis:
         """Number of stored columns ``w``."""
         return int(sum(self.widths))
 
+    @property
+    def room(self) -> int:
+        """Columns the basis can hold without growing: panels are added, never grown."""
+        return np.iinfo(np.int64).max
+
     def _row_chunks(self) -> tuple[int, ...]:
         full, rest = divmod(self.n, self.chunk_rows)
         return (self.chunk_rows,) * full + ((rest,) if rest else ())

@@ -245,9 +245,15 @@ def _plan(
     w = state.basis.width
     T = step.T
     p_new = T.shape[1]
-    # the basis [Q, Q_new] with Gu_ext = blockdiag(Gu, I_r); compact when it pays
+    # the basis [Q, Q_new] with Gu_ext = blockdiag(Gu, I_r); compact when it pays, or
+    # when the next block of this width would not fit in the buffer (a compaction is
+    # cheaper than growing the buffer, and keeps the memory at about two bases)
     waste = state.waste + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1)
-    compact = waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1) or p_new == 0
+    compact = (
+        waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
+        or p_new == 0
+        or w + r + ext.accepted.size > state.basis.room
+    )
     Gu = np.vstack([state.Gu @ T[:p], T[p:]])
     if compact:
         H = state.basis.compact_planned(Gu, r)
