@@ -186,18 +186,18 @@ def long_stream(args: argparse.Namespace) -> dict[str, Any]:
         cpu = np.empty(total)
         ortho = []
         chunk = 1000
-        for start in range(0, total, chunk):
-            Z = (Q1 * s) @ rng.standard_normal((100, chunk))
-            for j in range(chunk):
-                t, c = time.perf_counter(), time.thread_time()
-                with threadpool_limits(limits=1, user_api="blas"):
+        with threadpool_limits(limits=1, user_api="blas"):
+            for start in range(0, total, chunk):
+                Z = (Q1 * s) @ rng.standard_normal((100, chunk))
+                for j in range(chunk):
+                    t, c = time.perf_counter(), time.thread_time()
                     sc.absorb(Z[:, j : j + 1])
-                cpu[start + j] = time.thread_time() - c
-                times[start + j] = time.perf_counter() - t
-            if (start + chunk) % args.long_every == 0 or start + chunk >= total:
-                U = sc.left_vectors
-                err = float(np.linalg.norm(U.T @ U - np.eye(U.shape[1]), 2))
-                ortho.append((start + chunk, err))
+                    cpu[start + j] = time.thread_time() - c
+                    times[start + j] = time.perf_counter() - t
+                if (start + chunk) % args.long_every == 0 or start + chunk >= total:
+                    U = sc.left_vectors
+                    err = float(np.linalg.norm(U.T @ U - np.eye(U.shape[1]), 2))
+                    ortho.append((start + chunk, err))
         first, last = float(np.mean(times[:1000])), float(np.mean(times[-1000:]))
         first_cpu, last_cpu = float(np.mean(cpu[:1000])), float(np.mean(cpu[-1000:]))
         out[label] = {

@@ -163,15 +163,10 @@ class TallCompressor(StreamCompressor):
         if mode == "a":
             self._panels.collect(set())
 
-    def _committed(self) -> None:
+    def _committed(self, basis_attrs: dict[str, Any]) -> None:
         """Keep the panels of the current and previous commits; delete the others."""
-        current = set(self._store_panels())
-        self._commits = (current, self._commits[0])
+        self._commits = (set(basis_attrs["panels"]), self._commits[0])
         self._panels.collect(self._commits[0] | self._commits[1])
-
-    def _store_panels(self) -> list[str]:
-        assert self._store is not None
-        return list(self._store.read().attrs["basis"]["panels"])
 
     def close(self) -> None:
         """Commit what is pending, release the store's lock, remove a temporary workdir."""

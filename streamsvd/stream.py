@@ -342,9 +342,9 @@ class StreamCompressor:
             rows_capacity=None if s.rows is None else list(s.rows.capacity),
         )
         self._store.commit(arrays, attrs=attrs)
-        self._committed()
+        self._committed(basis_attrs)
 
-    def _committed(self) -> None:
+    def _committed(self, basis_attrs: dict[str, Any]) -> None:
         """Run after every commit (a backend may release what no commit refers to)."""
 
     def _restore(self, arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
