@@ -117,3 +117,13 @@ def test_engine_benchmark_tiny(bench, tmp_path):
     saved = json.loads((tmp_path / "engine_benchmark.json").read_text())
     assert {r["method"] for r in saved["block"]} == set(rows)
     assert (tmp_path / "engine_benchmark.png").stat().st_size > 20_000
+
+
+def test_estimator_benchmark_tiny(bench, tmp_path):
+    mod = bench("estimator_benchmark")
+    report = mod.main(["--quick", "--out", str(tmp_path)])
+    res = report["results"]["StreamingSVD"]
+    assert set(res) == {"200", "2000"}
+    assert all(v["wall_s"] > 0 and v["cpu_s"] >= 0 for v in res.values())
+    assert "IncrementalPCA" in report["results"]  # scikit-learn is a test extra
+    assert (tmp_path / "estimator_benchmark_quick.png").stat().st_size > 20_000
