@@ -96,10 +96,25 @@ class BrandSVD:
                 f"`B` must be {self.n} x b with b <= {self.max_block} and at most "
                 f"{self.max_columns - self.m} more columns; got {B.shape}."
             )
-        p, m = self.p, self.m
+        p = self.p
         U = self._U[self._cur][:, :p]
-        # 1. block CGS2 against U
         X = np.array(B, dtype=np.float64, order="F")
+        C = self._project(U, X)  # 1. block CGS2 against U
+        # 2. Householder QR of the residual (overwrites X)
+        Q, R = sla.qr(X, mode="economic", overwrite_a=True, check_finite=False)
+        Uk, r, Vk = self._core_svd(C, R)  # 3. SVD of the small core
+        # 4. rotate and truncate: U <- U Uk[:p, :r] + Q Uk[p:, :r] into the other buffer
+        Unew = self._U[1 - self._cur][:, :r]
+        if p:
+            np.matmul(U, Uk[:p, :r], out=Unew)
+            Unew += Q @ Uk[p:, :r]
+        else:
+            np.matmul(Q, Uk[p:, :r], out=Unew)
+        self._finish(Vk, r, b)
+
+    def _project(self, U: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """Block CGS2 of ``X`` against ``U`` in place; return the coefficients."""
+        p, b = U.shape[1], X.shape[1]
         C = self._C[:p, :b]
         if p:
             np.matmul(U.T, X, out=C)
@@ -108,9 +123,11 @@ class BrandSVD:
             np.matmul(U.T, X, out=C2)
             X -= U @ C2
             C += C2
-        # 2. Householder QR of the residual (overwrites X)
-        Q, R = sla.qr(X, mode="economic", overwrite_a=True, check_finite=False)
-        # 3. SVD of the small core
+        return C
+
+    def _core_svd(self, C: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+        """SVD of ``[[diag(s), C], [0, R]]``; the kept rank and right factor."""
+        p, b = C.shape
         w = p + b
         K = self._K[:w, :w]
         K[:] = 0.0
@@ -121,22 +138,20 @@ class BrandSVD:
                               check_finite=False)
         r = min(self.rank, w)
         self.discarded += float(np.sum(sk[r:] ** 2))
-        # 4. rotate and truncate: U <- U Uk[:p, :r] + Q Uk[p:, :r] into the other buffer
+        self._s_next = sk[:r].copy()
+        return Uk, r, Vkt[:r].T
+
+    def _finish(self, Vk: np.ndarray, r: int, b: int) -> None:
+        """``V <- blockdiag(V, I) Vk`` into the other buffer; switch the buffers."""
+        p, m = self.p, self.m
         nxt = 1 - self._cur
-        Unew = self._U[nxt][:, :r]
-        if p:
-            np.matmul(U, Uk[:p, :r], out=Unew)
-            Unew += Q @ Uk[p:, :r]
-        else:
-            np.matmul(Q, Uk[p:, :r], out=Unew)
-        Vk = Vkt[:r].T
         Vold = self._V[self._cur][:m, :p]
         Vnew = self._V[nxt]
         if p:
             np.matmul(Vold, Vk[:p], out=Vnew[:m, :r])
         Vnew[m : m + b, :r] = Vk[p:]
         self._cur = nxt
-        self.s = sk[:r].copy()
+        self.s = self._s_next
         self.p, self.m = r, m + b
 
 
@@ -164,19 +179,11 @@ class TunedBrandSVD(BrandSVD):
     def absorb(self, B: np.ndarray) -> None:
         """Absorb the columns of ``B`` (``n x b``, ``b <= max_block``)."""
         b = B.shape[1]
-        p, m = self.p, self.m
+        p = self.p
         W = self._W[self._cur]
-        U = W[:, :p]
         X = W[:, p : p + b]
         X[:] = B
-        C = self._C[:p, :b]
-        if p:
-            np.matmul(U.T, X, out=C)
-            X -= U @ C
-            C2 = self._C2[:p, :b]
-            np.matmul(U.T, X, out=C2)
-            X -= U @ C2
-            C += C2
+        C = self._project(W[:, :p], X)
         R = np.eye(b)
         for k in range(3):  # shifted CholeskyQR3 (Fukaya et al. 2020): robust, BLAS-3
             G = sla.blas.dsyrk(1.0, X, trans=1)
@@ -188,24 +195,6 @@ class TunedBrandSVD(BrandSVD):
             if not np.shares_memory(Y, X):
                 X[:] = Y
             R = L.T @ R
-        w = p + b
-        K = self._K[:w, :w]
-        K[:] = 0.0
-        K[np.arange(p), np.arange(p)] = self.s
-        K[:p, p:] = C
-        K[p:, p:] = R
-        Uk, sk, Vkt = sla.svd(K, full_matrices=False, lapack_driver="gesdd",
-                              check_finite=False)
-        r = min(self.rank, w)
-        self.discarded += float(np.sum(sk[r:] ** 2))
-        nxt = 1 - self._cur
-        np.matmul(W[:, :w], Uk[:, :r], out=self._W[nxt][:, :r])  # one gemm
-        Vk = Vkt[:r].T
-        Vold = self._V[self._cur][:m, :p]
-        Vnew = self._V[nxt]
-        if p:
-            np.matmul(Vold, Vk[:p], out=Vnew[:m, :r])
-        Vnew[m : m + b, :r] = Vk[p:]
-        self._cur = nxt
-        self.s = sk[:r].copy()
-        self.p, self.m = r, m + b
+        Uk, r, Vk = self._core_svd(C, R)
+        np.matmul(W[:, : p + b], Uk[:, :r], out=self._W[1 - self._cur][:, :r])  # one gemm
+        self._finish(Vk, r, b)
