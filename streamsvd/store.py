@@ -1259,7 +1259,6 @@ class BasisStore:
                 )
                 keep.update(range(0, max(self._generation, self._previous or 0) + 1))
                 break
-            self._docs[g] = doc
             keep.update(_sources(doc))
         for entry in (self._path / GENERATIONS).iterdir():
             m = _GEN_RE.match(entry.name)
