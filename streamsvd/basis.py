@@ -11,7 +11,9 @@ operations, all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
   written aside first so that nothing stored changes before ``swap``; its Gram is
   measured from the written columns;
-* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``: what a commit to a store needs.
+* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``: what a commit to a store needs;
+  ``compactions`` counts the swaps, so a commit tells the columns appended since the
+  previous one (the others are unchanged) from a basis replaced whole.
 * ``cross(r)``: ``MQ^T Y`` for the ``r`` workspace columns; ``take(G)``: ``Q G``.
 
 :class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
@@ -39,6 +41,7 @@ class BasisBackend(Protocol):
     """What an update needs from the n-sized factor (see the module docstring)."""
 
     n: int
+    compactions: int  # number of swaps: the stored columns were all replaced
 
     @property
     def width(self) -> int:
@@ -106,6 +109,7 @@ class MemoryBasis:
         self.inner = inner
         self._w = 0
         self.reallocations = 0
+        self.compactions = 0  # columns only appended between two (what a commit writes)
         self._bufs = self._allocate(int(capacity))
         self._spare: tuple[np.ndarray, np.ndarray] | None = None
         self._planned_width = 0
@@ -239,6 +243,7 @@ class MemoryBasis:
         assert self._spare is not None and p == self._planned_width
         self._spare, self._bufs = self._bufs, self._spare
         self._w = p
+        self.compactions += 1
 
     def cross(self, r: int) -> np.ndarray:
         """Return ``MQ^T Y[:, :r]`` for the first ``r`` workspace columns."""

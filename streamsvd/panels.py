@@ -69,6 +69,7 @@ class PanelBasis:
         self._staged_new: tuple[str, int] | None = None
         self._staged_compact: tuple[str, int] | None = None
         self._zarrs: dict[str, Any] = {}
+        self.compactions = 0
 
     # ------------------------------------------------------------------ panels
     @property
@@ -222,6 +223,7 @@ class PanelBasis:
         name, _ = self._staged_compact
         self.panels, self.widths = ([name], [p]) if p else ([], [])
         self._staged_compact, self._ws, self._mws = None, None, None
+        self.compactions += 1
         logger.info("compacted the basis to one panel of width %d", p)
 
     def discard_planned(self) -> None:

@@ -18,6 +18,10 @@ afterwards, and the new rows are written with a rounding of at most ``cond_limit
 When ``wv`` exceeds ``width_limit * p`` the factor is *rebased*, ``V0 <- V0 Vp`` and
 ``Vp <- I`` (the only operation that reads and writes every row, ``O(m wv p)``), counted
 in :attr:`RowFactor.rebases`.
+
+Between two rebases (or replacements, both counted in :attr:`RowFactor.rewrites`) the
+stored rows only grow: a commit to a store writes the rows appended since the previous
+one, the old rows being unchanged and zero in every column added since.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ class RowFactor:
         self.Vp = np.zeros((0, 0))
         self.old_rows_touched = 0
         self.rebases = 0
+        self.rewrites = 0  # rebases and replacements: every stored row changed
         self.reallocations = 0
 
     # ------------------------------------------------------------------ buffer
@@ -154,6 +159,7 @@ class RowFactor:
         self.Vp = np.eye(p)
         self.old_rows_touched += m
         self.rebases += 1
+        self.rewrites += 1
 
     def replace(self, V: np.ndarray) -> None:
         """Set ``V`` outright (``V0 <- V``, ``Vp <- I``): an increment that spans every row."""
@@ -163,6 +169,7 @@ class RowFactor:
         self._m, self._wv = m, p
         self.Vp = np.eye(p)
         self.old_rows_touched += m
+        self.rewrites += 1
 
     def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int]) -> None:
         """Load the factor from a store, with the capacity it was written with."""

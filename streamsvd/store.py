@@ -16,13 +16,26 @@ Layout of a store directory::
       current.json               the pointer: number of the current generation
       writer.lock                present while a writer has the store open
       generations/
+        g00000005/               an older generation whose segments are still used
         g00000007/               previous generation (kept)
-        g00000008/               current generation
+        g00000008/               current generation: one zarr array, the *pack*
           zarr.json              attributes: {"streamsvd": {...}, "attrs": {...}}
-          U/, V/, amplitudes/    one zarr array per name
+          c.0, c.1, ...          chunks of the pack
 
 Design
 ------
+*Segments.* Every array of a generation is a list of immutable *segments* along one axis
+(:mod:`streamsvd.segments`): blocks of rows or columns, each written once into the pack
+of the generation that created it, a flat zarr array holding the new segments of that
+commit one after the other. The generation's attributes record, for each array, its
+shape, dtype, axis and segments (generation, offset in that generation's pack, shape,
+SHA-256). An array committed whole is one new segment; an
+:class:`~streamsvd.segments.Appended` array keeps the segments of the current generation
+that it leaves unchanged and writes only the rest, so a commit costs what changed since
+the previous one. Small segments are merged into the new one (never beyond
+``chunk_bytes``), so an array has few segments. One pack per commit keeps the number of
+files (each ``fsync``-ed) to two plus the chunks.
+
 *Pointer.* The current generation is named by ``current.json``, a small JSON file
 written to a temporary file, ``fsync``-ed, moved into place with :func:`os.replace`
 (atomic on POSIX) and made durable by an ``fsync`` of the directory. The root
@@ -34,19 +47,22 @@ atomic replacement is moreover not part of zarr's store contract (other stores d
 offer it). Keeping the pointer apart from zarr metadata also leaves the root metadata
 immutable after creation.
 
-*Commit.* A generation is written completely first (group attributes holding the
-caller's attributes and, for each array, its shape, dtype and SHA-256; then the
-arrays), every file and directory of it is ``fsync``-ed, and only then is the pointer
-switched. The pointer also records the SHA-256 of the generation's attributes, so the
-chain pointer -> attributes -> array bytes is verified on every read. After the switch,
-generations older than the previous one are deleted: the current and the previous
-generation are kept. A generation left half-written by a killed process is never
-pointed to and is deleted by the next writer.
+*Commit.* A generation's pack is written completely first (with the attributes holding
+the caller's attributes and the segment lists), its files and directory are
+``fsync``-ed, and only then is the pointer switched. The pointer also records the
+SHA-256 of the generation's attributes, so the chain pointer -> attributes -> segment
+bytes is verified on every read. After the switch, every generation directory that is
+neither the current nor the previous generation nor holds a segment either of them
+uses is deleted. A generation left half-written by a killed process is never pointed to
+and is deleted by the next writer. Nothing written is ever modified.
 
-*Chunks.* Arrays are chunked by rows only, a chunk holding whole rows and about
-``chunk_bytes`` bytes (16 MiB by default: large enough for efficient compressed reads,
-small enough to be written and verified with bounded memory), and compressed with zstd
-(level 3, with the zstd frame checksum).
+*Checksums.* One per segment: its SHA-256, recorded in the attributes, verified on
+every read (this also catches a missing chunk, which zarr would read as zeros). The
+chunks are compressed with zstd (level 3) without zstd's own frame checksum.
+
+*Chunks.* A pack is chunked in pieces of about ``chunk_bytes`` bytes (16 MiB by
+default: large enough for efficient compressed reads, small enough to be written and
+verified with bounded memory).
 
 *Lock.* A writer (mode ``"a"``) creates ``writer.lock`` with ``O_CREAT | O_EXCL``; it
 holds the writer's pid, host name and start time, and the writer keeps an advisory
@@ -92,11 +108,13 @@ from .errors import (
     StoreLockedError,
     StoreMismatchError,
 )
+from .segments import Appended, Piece, assemble, digest, pack, plan_appended, plan_whole
 
 __all__ = [
     "DEFAULT_CHUNK_BYTES",
     "FORMAT",
     "FORMAT_VERSION",
+    "Appended",
     "BasisStore",
     "StoreState",
     "open_store",
@@ -107,8 +125,9 @@ logger = logging.getLogger(__name__)
 FORMAT = "streamsvd-basis"
 """Value of the root attribute ``format`` of every basis store."""
 
-FORMAT_VERSION = 1
-"""Version of the store layout written by this module."""
+FORMAT_VERSION = 2
+"""Version of the store layout written by this module (1: one zarr array per
+array and generation, each rewritten whole by every commit; 2: segments in packs)."""
 
 DEFAULT_CHUNK_BYTES = 16 * 2**20
 """Target size in bytes of one (uncompressed) chunk of a stored array."""
@@ -211,19 +230,6 @@ def _attrs_digest(doc: Any) -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
-def _array_digest(arr: np.ndarray) -> str:
-    data = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
-    return hashlib.sha256(data.reshape(-1).view(np.uint8).data).hexdigest()
-
-
-def _chunks_for(shape: tuple[int, ...], itemsize: int, chunk_bytes: int) -> tuple[int, ...]:
-    """Row chunks of whole rows holding about ``chunk_bytes`` bytes each."""
-    row_items = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
-    rows = max(1, chunk_bytes // max(1, row_items * itemsize))
-    rows = min(rows, max(1, shape[0]))
-    return (rows,) + tuple(max(1, s) for s in shape[1:])
-
-
 def _prepare_arrays(arrays: Any, dtype: np.dtype) -> dict[str, np.ndarray]:
     if not isinstance(arrays, Mapping):
         raise InputError(
@@ -273,18 +279,47 @@ def _fsync_tree(top: Path) -> None:
     _fsync_path(top.parent, directory=True)
 
 
-def _write_array(group: zarr.Group, name: str, data: np.ndarray, chunk_bytes: int) -> None:
-    """Create the array ``name`` in ``group`` and write ``data`` into it."""
-    arr = group.create_array(
-        name,
-        shape=data.shape,
-        chunks=_chunks_for(data.shape, data.dtype.itemsize, chunk_bytes),
-        dtype=data.dtype,
-        compressors=zarr.codecs.ZstdCodec(level=3, checksum=True),
+def _write_pack(
+    zstore: LocalStore, path: str, pack: np.ndarray, doc: dict[str, Any], chunk_bytes: int
+) -> None:
+    """Create the pack ``path`` (a flat zarr array with attributes ``doc``) and fill it."""
+    chunk = max(1, min(chunk_bytes // pack.dtype.itemsize, pack.size))
+    arr = zarr.create_array(
+        store=zstore,
+        name=path,
+        shape=pack.shape,
+        chunks=(chunk,),
+        dtype=pack.dtype,
+        compressors=zarr.codecs.ZstdCodec(level=3, checksum=False),
         fill_value=0.0,
+        attributes=doc,
+        chunk_key_encoding={"name": "default", "separator": "."},
+        config={"write_empty_chunks": True},
     )
-    if data.size:
-        arr[...] = data
+    if pack.size:
+        arr[...] = pack
+
+
+def _read_generation_doc(path: Path, k: int) -> dict[str, Any] | None:
+    """Return the attributes of generation ``k`` from its ``zarr.json`` (None if unreadable)."""
+    try:
+        doc = json.loads((path / GENERATIONS / _gen_name(k) / "zarr.json").read_bytes())
+    except (OSError, ValueError):
+        return None
+    attrs = doc.get("attributes") if isinstance(doc, dict) else None
+    meta = attrs.get("streamsvd") if isinstance(attrs, dict) else None
+    if not isinstance(meta, dict) or not isinstance(meta.get("arrays"), dict):
+        return None
+    return cast(dict[str, Any], attrs)
+
+
+def _sources(doc: dict[str, Any]) -> set[int]:
+    """Return the generations whose packs hold a segment the generation ``doc`` uses."""
+    out = set()
+    for info in doc["streamsvd"]["arrays"].values():
+        for seg in info.get("segments", ()):
+            out.add(int(seg["generation"]))
+    return out
 
 
 def _write_json_atomically(path: Path, doc: Any) -> None:
@@ -729,6 +764,8 @@ class BasisStore:
         self._closed = False
         self._generation = generation
         self._previous = previous
+        self._docs: dict[int, dict[str, Any]] = {}  # attributes of retained generations
+        self._written: dict[str, int] = {}
         self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
 
     # ------------------------------------------------------------------ creation
@@ -818,7 +855,7 @@ class BasisStore:
                 zstore.close()
             self = cls.__new__(cls)
             self._setup(root, "a", root_attrs, lock, -1, None)
-            self._write_generation(0, {}, user_attrs)
+            self._write_generation(0, {}, [], user_attrs)
         except BaseException:
             lock.release()
             raise
@@ -940,7 +977,6 @@ class BasisStore:
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _load(self, k: int, attrs_digest: str | None) -> StoreState:
-        gpath = f"{GENERATIONS}/{_gen_name(k)}"
         where = self._path / GENERATIONS / _gen_name(k)
         hint = (
             f" The previous generation is kept: read it with `store.read(generation="
@@ -949,10 +985,19 @@ class BasisStore:
             else " Restore the store from a copy."
         )
         zstore = LocalStore(self._path, read_only=True)
+        packs: dict[int, zarr.Array] = {}
+
+        def open_pack(g: int) -> zarr.Array:
+            if g not in packs:
+                node = zarr.open_array(
+                    store=zstore, mode="r", path=f"{GENERATIONS}/{_gen_name(g)}", zarr_format=3
+                )
+                packs[g] = node
+            return packs[g]
+
         try:
             try:
-                group = zarr.open_group(store=zstore, mode="r", path=gpath, zarr_format=3)
-                doc = group.attrs.asdict()
+                doc = open_pack(k).attrs.asdict()
             except _READ_ERRORS as exc:
                 raise StoreFormatError(
                     f"`path` {self._path} is damaged: generation {k} ({where}) cannot be "
@@ -972,30 +1017,45 @@ class BasisStore:
                 )
             arrays: dict[str, np.ndarray] = {}
             for name, info in meta["arrays"].items():
+
+                def read(seg: dict[str, Any], name: str = name) -> np.ndarray:
+                    g = int(seg["generation"])
+                    shape = tuple(int(x) for x in seg["shape"])
+                    size = int(np.prod(shape, dtype=np.int64))
+                    start = int(seg["offset"])
+                    try:
+                        flat = np.asarray(open_pack(g)[start : start + size]) if size else (
+                            np.zeros(0, dtype=np.dtype(self.dtype))
+                        )
+                    except _READ_ERRORS as exc:
+                        raise StoreFormatError(
+                            f"`path` {self._path} is damaged: array {name!r} of generation "
+                            f"{k} cannot be read from the pack of generation {g} "
+                            f"({type(exc).__name__}: {exc}).{hint}"
+                        ) from exc
+                    if flat.size != size or digest(flat) != seg.get("sha256"):
+                        raise StoreFormatError(
+                            f"`path` {self._path} is damaged: array {name!r} of generation "
+                            f"{k} does not match its recorded shape, dtype or SHA-256 "
+                            f"checksum (its segment in the pack of generation {g}).{hint}"
+                        )
+                    return flat.reshape(shape)
+
                 try:
-                    node = group[name]
-                    if not isinstance(node, zarr.Array):
-                        raise TypeError(f"{name!r} is a group, not an array")
-                    data = np.asarray(node[...])
+                    data = assemble(info, read)
+                except StoreFormatError:
+                    raise
                 except _READ_ERRORS as exc:
                     raise StoreFormatError(
                         f"`path` {self._path} is damaged: array {name!r} of generation {k} "
-                        f"cannot be read ({type(exc).__name__}: {exc}).{hint}"
-                    ) from exc
-                if (
-                    list(data.shape) != info.get("shape")
-                    or data.dtype.name != info.get("dtype")
-                    or _array_digest(data) != info.get("sha256")
-                ):
-                    raise StoreFormatError(
-                        f"`path` {self._path} is damaged: array {name!r} of generation {k} "
                         f"does not match its recorded shape, dtype or SHA-256 checksum "
-                        f"(found shape {data.shape}, dtype {data.dtype}).{hint}"
-                    )
+                        f"({type(exc).__name__}: {exc}).{hint}"
+                    ) from exc
                 data.setflags(write=False)
                 arrays[name] = data
         finally:
             zstore.close()
+        self._docs[k] = doc
         return StoreState(
             generation=k,
             arrays=arrays,
@@ -1007,7 +1067,21 @@ class BasisStore:
 
     # --------------------------------------------------------------------- writing
 
-    def commit(self, arrays: Mapping[str, Any], attrs: Mapping[str, Any] | None = None) -> int:
+    @property
+    def last_written(self) -> dict[str, int]:
+        """Elements written per array name by the last :meth:`commit` of this handle.
+
+        An array whose segments were all kept is absent; merged segments count.
+        """
+        return dict(self._written)
+
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        attrs: Mapping[str, Any] | None = None,
+        *,
+        appended: Mapping[str, Appended] | None = None,
+    ) -> int:
         """Write ``arrays`` and ``attrs`` as a new generation and make it current.
 
         The switch is atomic: a reader, or a process reopening the store after this one
@@ -1018,11 +1092,15 @@ class BasisStore:
         ----------
         arrays : dict of str to array_like
             Named real 1-D or 2-D arrays (for example ``{"U": U, "V": V,
-            "amplitudes": s}``); names are identifiers. Each is cast to the store's
-            ``dtype`` and must be finite.
+            "amplitudes": s}``), each written whole; names are identifiers. Each is cast
+            to the store's ``dtype`` and must be finite.
         attrs : dict, optional
             JSON-able attributes of the generation (columns absorbed, source offset,
             tolerances, discarded energy, error bound, history, ...).
+        appended : dict of str to Appended, optional
+            Arrays that keep the unchanged part of the same array of the current
+            generation and write only the rest (see :class:`~streamsvd.segments.Appended`);
+            only the part written is cast and checked.
 
         Returns
         -------
@@ -1043,32 +1121,76 @@ class BasisStore:
                 f"`store` {self._path} was opened read-only (mode='r'); commit needs "
                 "mode='a'. Reopen it with `open_store(path, mode='a')`."
             )
-        prepared = _prepare_arrays(arrays, np.dtype(self.dtype))
+        dtype = np.dtype(self.dtype)
+        prepared = _prepare_arrays(arrays, dtype)
         user_attrs = _normalise_attrs(attrs)
         k = self._generation + 1
-        self._write_generation(k, prepared, user_attrs)
+        records: dict[str, Any] = {}
+        pieces: list[Piece] = []
+        for name, arr in prepared.items():
+            records[name], new = plan_whole(arr, generation=k)
+            pieces += new
+        if appended:
+            if not isinstance(appended, Mapping):
+                raise InputError(
+                    f"`appended` must be a dict mapping names to Appended; got "
+                    f"{type(appended).__name__}."
+                )
+            current = self._current_doc()["streamsvd"]["arrays"] if any(
+                getattr(v, "unchanged", 0) for v in appended.values()
+            ) else {}
+            seal = int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES))
+            for name, value in appended.items():
+                if not isinstance(name, str) or not _NAME_RE.match(name) or name in records:
+                    raise InputError(
+                        f"`appended` keys must be identifiers not used in `arrays`; got "
+                        f"{name!r}. Rename the array."
+                    )
+                records[name], new = plan_appended(
+                    name, value, current.get(name), generation=k, dtype=dtype,
+                    seal_bytes=seal,
+                )
+                pieces += new
+        self._write_generation(k, records, pieces, user_attrs)
         return k
 
+    def _current_doc(self) -> dict[str, Any]:
+        """Attributes of the current generation (its digest checked against the pointer)."""
+        k = self._generation
+        doc = self._docs.get(k)
+        if doc is None:
+            doc = _read_generation_doc(self._path, k)
+            digest_ok = doc is not None and (
+                _attrs_digest(doc) == _read_pointer(self._path)["attrs_sha256"]
+            )
+            if doc is None or not digest_ok:
+                raise StoreFormatError(
+                    f"`path` {self._path} is damaged: the attributes of the current "
+                    f"generation {k} cannot be read or do not match {POINTER_NAME}, so "
+                    "nothing can be appended to it. Restore the store from a copy."
+                )
+            self._docs[k] = doc
+        return doc
+
     def _write_generation(
-        self, k: int, arrays: dict[str, np.ndarray], user_attrs: dict[str, Any]
+        self,
+        k: int,
+        records: dict[str, Any],
+        pieces: list[Piece],
+        user_attrs: dict[str, Any],
     ) -> None:
         gdir = self._path / GENERATIONS / _gen_name(k)
         if gdir.exists():
             logger.warning("removing %s, left by an interrupted commit", gdir)
             _remove_tree(gdir)
+        data = pack(pieces, np.dtype(self.dtype))
+        written: dict[str, int] = {}
+        for name, info in records.items():
+            for seg in info["segments"]:
+                if seg["generation"] == k:
+                    written[name] = written.get(name, 0) + int(np.prod(seg["shape"]))
         doc = {
-            "streamsvd": {
-                "generation": k,
-                "committed": _now(),
-                "arrays": {
-                    name: {
-                        "shape": list(a.shape),
-                        "dtype": a.dtype.name,
-                        "sha256": _array_digest(a),
-                    }
-                    for name, a in arrays.items()
-                },
-            },
+            "streamsvd": {"generation": k, "committed": _now(), "arrays": records},
             "attrs": user_attrs,
         }
         doc = json.loads(json.dumps(doc))
@@ -1085,15 +1207,13 @@ class BasisStore:
         try:
             zstore = LocalStore(self._path)
             try:
-                parent = zarr.open_group(store=zstore, mode="r+", path=GENERATIONS, zarr_format=3)
-                group = parent.create_group(_gen_name(k), attributes=doc)
-                for name, data in arrays.items():
-                    _write_array(
-                        group,
-                        name,
-                        data,
-                        int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
-                    )
+                _write_pack(
+                    zstore,
+                    f"{GENERATIONS}/{_gen_name(k)}",
+                    data,
+                    doc,
+                    int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
+                )
             finally:
                 zstore.close()
             _fsync_tree(gdir)
@@ -1115,15 +1235,31 @@ class BasisStore:
         finally:
             if not switched:
                 _remove_tree(gdir)
+        self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
+        self._docs[k] = doc
         self._previous = previous
         self._generation = k
+        self._written = written
         _fsync_path(self._path, directory=True)
         self._prune()
-        logger.debug("committed generation %d of %s", k, self._path)
+        logger.debug("committed generation %d of %s (%s)", k, self._path, written)
 
     def _prune(self) -> None:
-        """Delete every generation but the current and the previous one."""
-        keep = {self._generation, self._previous}
+        """Delete every generation that neither the current nor the previous one uses."""
+        keep: set[int | None] = {self._generation, self._previous}
+        for g in (self._generation, self._previous):
+            if g is None:
+                continue
+            doc = self._docs.get(g) or _read_generation_doc(self._path, g)
+            if doc is None:
+                # cannot tell which older packs it uses: delete only the newer leftovers
+                logger.warning(
+                    "generation %d of %s cannot be read; keeping every older generation",
+                    g, self._path,
+                )
+                keep.update(range(0, max(self._generation, self._previous or 0) + 1))
+                break
+            keep.update(_sources(doc))
         for entry in (self._path / GENERATIONS).iterdir():
             m = _GEN_RE.match(entry.name)
             if m and entry.is_dir() and int(m.group(1)) not in keep:

@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from ._core import Truncation, UpdateRecord, history_array, r_factor, record_from_row
+from ._core import Truncation, UpdateRecord, r_factor, record_from_row
 from ._scaling import safe_column_norms
 from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
+from .commits import CommitTracker
 from .compress import fix_signs
 from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
 from .expansion import Expansion
@@ -46,7 +47,7 @@ logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 KIND = "streamsvd.StreamCompressor"
-LAYOUT = 2  # version of the arrays a StreamCompressor commits
+LAYOUT = 3  # version of the arrays a StreamCompressor commits (3: Q, V0, history appended)
 
 
 class StreamCompressor:
@@ -80,7 +81,9 @@ class StreamCompressor:
         and nothing held grows with the number of snapshots.
     store : str or path-like, optional
         Create a zarr basis store there (see :mod:`streamsvd.store`) and commit the state
-        to it every ``commit_every`` updates. An existing store is continued with
+        to it every ``commit_every`` updates; a commit writes only what changed since the
+        previous one (new basis columns, new rows of ``V0`` and of the history, the small
+        state; :mod:`streamsvd.commits`). An existing store is continued with
         :meth:`StreamCompressor.open`, not overwritten.
     commit_every : int
         Updates between two commits (the last ones are committed by :meth:`flush` or
@@ -157,6 +160,7 @@ class StreamCompressor:
         self.source_offset = 0
         self._store: BasisStore | None = None
         self._uncommitted = 0
+        self._tracker = CommitTracker()
         if store is not None:
             self._store = BasisStore.create(
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
@@ -220,6 +224,8 @@ class StreamCompressor:
             sc = cls._reopen(state.n, ip, attrs, path, **backend)
             sc._restore(state.arrays, attrs)
             sc._store = st
+            if state.arrays:
+                sc._tracker.restored(state.generation, sc._state, state.arrays["history"])
             sc._reopened(mode)
         except BaseException:
             st.close()
@@ -321,27 +327,40 @@ class StreamCompressor:
             )
         s = self._state
         if plan is None:
-            arrays, basis_attrs = s.basis.persisted(0, compacted=False)
+            basis, basis_attrs = s.basis.persisted(0, compacted=False)
             rows = None if s.rows is None else (s.rows.V0, s.rows.Vp)
+            compact = replaced = False
             Gu, H, R, m, waste, bound = s.Gu, s.H, s.R, s.m, s.waste, s.bound
         else:
-            arrays, basis_attrs = plan.stored_basis(s)
+            basis, basis_attrs = plan.stored_basis(s)
             rows = plan.stored_rows(s)
+            compact, replaced = plan.compact, plan.V_replace is not None
             Gu, H, R, m, waste, bound = plan.Gu, plan.H, plan.R, plan.m, plan.waste, plan.bound
-        arrays = dict(arrays)
-        scalars = np.concatenate([bound.to_array(), [float(source_offset), float(m), waste]])
-        small = [Gu, H, R, scalars, history_array(self._history)]
+        # the bound's norms are >= 0; an infinite one (the coupling after `add`) is stored
+        # as -1, since a store holds finite numbers only
+        norms = np.where(np.isinf(bound.to_array()), -1.0, bound.to_array())
+        scalars = np.concatenate([norms, [float(source_offset), float(m), waste]])
+        small = [Gu, H, R, scalars]
         if rows is not None:
-            arrays["V0"] = rows[0]
             small.insert(3, rows[1])
-        arrays["small"] = np.concatenate([a.ravel() for a in small])
+        # only what changed since the previous commit is written (streamsvd.commits)
+        appended = self._tracker.appended(
+            self._store.generation, s, basis=dict(basis), compact=compact,
+            V0=None if rows is None else rows[0], replaced=replaced, history=self._history,
+        )
         attrs = self._attrs(plan)
         attrs.update(
             source_offset=int(source_offset), updates=len(self._history),
             small_layout=[list(a.shape) for a in small], basis=basis_attrs,
             rows_capacity=None if s.rows is None else list(s.rows.capacity),
         )
-        self._store.commit(arrays, attrs=attrs)
+        k = self._store.commit(
+            {"small": np.concatenate([a.ravel() for a in small])}, attrs=attrs,
+            appended=appended,
+        )
+        self._tracker.committed(k)
+        if plan is None:
+            self._tracker.settle(s, len(self._history))
         self._committed(basis_attrs)
 
     def _committed(self, basis_attrs: dict[str, Any]) -> None:
@@ -359,13 +378,13 @@ class StreamCompressor:
             pieces.append(a["small"][start : start + size].reshape(shape))
             start += size
         Gu, H, R = pieces[:3]
-        scalars, history = pieces[-2], pieces[-1]
+        scalars, history = pieces[-1], a["history"]
         s = self._state
         s.basis.restore(a, attrs["basis"])
         if s.rows is not None:
             s.rows.restore(a["V0"], pieces[3], capacity=tuple(attrs["rows_capacity"]))
         s.Gu, s.H, s.R = Gu, H, R
-        s.bound = Bound.from_array(scalars)
+        s.bound = Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3]))
         self.source_offset = int(scalars[3])
         s.m = int(scalars[4])
         s.waste = float(scalars[5])
@@ -596,6 +615,7 @@ class StreamCompressor:
             self._state.basis.discard_planned()
             raise
         apply_plan(self._state, plan)
+        self._tracker.settle(self._state, len(self._history))
         self._version += 1
         self.source_offset = source_offset
         return plan.record

@@ -136,7 +136,9 @@ def _ingest_cmd(src, store, *extra):
 
 
 def _kill_and_resume(tmp_path, rng, kills):
-    A = with_spectrum(np.logspace(0, -9, 40), 300, 400, rng)
+    # 100 commits: long enough that the kills land while the ingestion runs, now that a
+    # commit writes only what changed
+    A = with_spectrum(np.logspace(0, -9, 40), 300, 1600, rng)
     src = tmp_path / "a.npy"
     np.save(src, A)
     ref_store = tmp_path / "ref.zarr"
@@ -187,3 +189,113 @@ def test_sigkill_during_ingest_then_resume_gives_the_uninterrupted_result(tmp_pa
 @pytest.mark.slow
 def test_sigkill_many_times(tmp_path, rng):
     _kill_and_resume(tmp_path, rng, kills=40)
+
+
+# ------------------------------------------------------------ append-only commits
+
+
+def _written_by_commits(path, m, monkeypatch, *, n=60, b=5, commits=8):
+    """Elements written by each commit of ``b`` columns after a stream of ``m`` columns."""
+    import streamsvd.store as store_mod
+
+    rng = np.random.default_rng(5)  # the same basis and the same last blocks for every m
+    Q1 = np.linalg.qr(rng.standard_normal((n, 8)))[0] * np.logspace(0, -3, 8)
+    tail = Q1 @ rng.standard_normal((8, b * commits))
+    head = Q1 @ np.random.default_rng(m).standard_normal((8, m))
+    sc = StreamCompressor(n, max_rank=12)
+    sc.absorb(head)
+    sc.save(path)
+    packs = []
+    real = store_mod._write_pack
+
+    def counting(zstore, name, data, doc, chunk_bytes):
+        packs.append(int(data.size))
+        real(zstore, name, data, doc, chunk_bytes)
+
+    monkeypatch.setattr(store_mod, "_write_pack", counting)
+    per_array = []
+    for j in range(commits):
+        sc.absorb(tail[:, j * b : (j + 1) * b])
+        per_array.append(sc._store.last_written)
+    monkeypatch.undo()
+    assert packs == [sum(w.values()) for w in per_array]  # the counter counts what is written
+    with StreamCompressor.open(path, mode="r") as back:
+        assert back.n_seen == m + b * commits
+        assert np.array_equal(back.expansion.V, sc.expansion.V)
+    sc.close()
+    return packs, per_array
+
+
+def test_commit_writes_what_changed_whatever_the_number_of_snapshots(tmp_path, monkeypatch):
+    small, small_arrays = _written_by_commits(tmp_path / "a.zarr", 200, monkeypatch)
+    large, large_arrays = _written_by_commits(tmp_path / "b.zarr", 2000, monkeypatch)
+    # every commit writes b new rows of V0 (and the small state, the new history rows);
+    # nothing of it depends on m: the written sizes are equal, commit by commit
+    assert all(w["V0"] > 0 and w["V0"] % 5 == 0 for w in small_arrays)
+    assert small_arrays == large_arrays
+    assert small == large
+    assert max(large) < 2000  # far below V0 itself (2040 x 8)
+
+
+def _expansions_equal(a, b):
+    ea, eb = a.expansion, b.expansion
+    return (
+        np.array_equal(ea.U, eb.U) and np.array_equal(ea.V, eb.V)
+        and a.error_bound == b.error_bound and a.history == b.history
+        and a.source_offset == b.source_offset
+    )
+
+
+@pytest.mark.parametrize("commit_every", [1, 2])
+def test_store_holds_the_state_after_every_kind_of_update(tmp_path, rng, commit_every, monkeypatch):
+    import streamsvd.rows as rows_mod
+
+    monkeypatch.setattr(rows_mod, "WIDTH_LIMIT", 1.0)  # rebase V0 whenever it widens
+    n = 50
+    w = rng.uniform(0.5, 2.0, n)
+    A = with_spectrum(np.logspace(0, -6, 30), n, 120, rng) + 1e-7 * rng.standard_normal((n, 120))
+    path = tmp_path / "s.zarr"
+    sc = StreamCompressor(n, inner=w, max_rank=10, store=path, commit_every=commit_every)
+    other = StreamCompressor(n, inner=w, max_rank=6)
+    other.absorb(rng.standard_normal((n, 7)))
+    steps = [("absorb", j) for j in range(0, 60, 6)] + [("add", 0), ("coeffs", 0), ("merge", 0)]
+    steps += [("absorb", j) for j in range(60, 120, 3)]
+    for kind, j in steps:
+        if kind == "absorb":
+            sc.absorb(A[:, j : j + 6 if j < 60 else j + 3])
+        elif kind == "add":
+            sc.add(rng.standard_normal((n, 2)), rng.standard_normal((sc.n_seen, 2)))
+        elif kind == "coeffs":
+            sc.add(np.zeros((n, 0)), np.zeros((sc.n_seen, 0)),
+                   coefficients=1e-3 * rng.standard_normal((sc.n_seen, sc.rank)))
+        else:
+            sc.merge(other)
+        if sc._uncommitted == 0:  # committed: the store holds exactly this state
+            with StreamCompressor.open(path, inner=w, mode="r") as back:
+                assert _expansions_equal(back, sc), (kind, j)
+    assert sc._state.rows.rebases > 0 and sc._state.basis.compactions > 0
+    sc.close()
+    with StreamCompressor.open(path, inner=w) as back:
+        assert _expansions_equal(back, sc)
+        assert back._state.basis.capacity == sc._state.basis.capacity
+        assert back._state.rows.capacity == sc._state.rows.capacity
+
+
+def test_store_of_the_previous_layout_is_refused_naming_both(tmp_path, rng):
+    import json
+
+    from streamsvd.store import BasisStore
+
+    path = tmp_path / "old.zarr"
+    StreamCompressor(8, store=path).close()
+    meta = path / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["attributes"]["format_version"] = 1
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(ss.StoreFormatError, match=r"format version 1; .*reads format version 2"):
+        StreamCompressor.open(path)
+    other = tmp_path / "layout2.zarr"
+    BasisStore.create(other, n=8, inner_fingerprint=ss.as_inner(None, 8).fingerprint,
+                      attrs={"kind": StreamCompressor.KIND, "layout": 2}).close()
+    with pytest.raises(ss.StoreFormatError, match=r"of layout 2, .* reads layout 3"):
+        StreamCompressor.open(other)

@@ -26,6 +26,7 @@ from streamsvd.store import (
     FORMAT_VERSION,
     LOCK_NAME,
     POINTER_NAME,
+    Appended,
     BasisStore,
     StoreState,
     open_store,
@@ -52,6 +53,13 @@ def tree_bytes(root):
             if name != LOCK_NAME:
                 out[str(path.relative_to(root))] = path.read_bytes()
     return out
+
+
+def segment_sources(root, k):
+    """Generations whose packs hold the segments generation ``k`` uses."""
+    doc = json.loads((Path(root) / "generations" / f"g{k:08d}" / "zarr.json").read_text())
+    arrays = doc["attributes"]["streamsvd"]["arrays"]
+    return {seg["generation"] for info in arrays.values() for seg in info["segments"]}
 
 
 def generation_dirs(root):
@@ -105,7 +113,7 @@ def test_create_gives_generation_zero(store, store_path):
     root = json.loads((store_path / "zarr.json").read_text())
     assert root["zarr_format"] == 3
     attrs = root["attributes"]
-    assert attrs["format"] == FORMAT and attrs["format_version"] == 1
+    assert attrs["format"] == FORMAT and attrs["format_version"] == 2
     assert attrs["n"] == 200 and attrs["dtype"] == "float64"
     assert attrs["inner_fingerprint"] == FP
     assert "created" in attrs and "library_version" in attrs
@@ -150,14 +158,21 @@ def test_float32_store_casts_arrays(tmp_path, rng):
         assert np.array_equal(state.arrays[name], value.astype(np.float32))
 
 
-def test_large_arrays_are_chunked_by_rows(tmp_path, rng):
+def test_large_commits_are_chunked(tmp_path, rng):
     U = rng.standard_normal((1000, 3))
     with BasisStore.create(tmp_path / "s", n=1000, inner_fingerprint=FP, chunk_bytes=4800) as s:
         s.commit({"U": U})
-        meta = json.loads((s.path / "generations/g00000001/U/zarr.json").read_text())
+        gdir = s.path / "generations/g00000001"
+        meta = json.loads((gdir / "zarr.json").read_text())
         assert np.array_equal(s.read().arrays["U"], U)
-    assert meta["chunk_grid"]["configuration"]["chunk_shape"] == [200, 3]
-    assert any(codec["name"] == "zstd" for codec in meta["codecs"])
+    # one pack per generation, 600 float64 (4800 bytes) per chunk, flat chunk keys
+    assert meta["node_type"] == "array" and meta["shape"] == [3000]
+    assert meta["chunk_grid"]["configuration"]["chunk_shape"] == [600]
+    assert sorted(p.name for p in gdir.iterdir()) == [f"c.{i}" for i in range(5)] + ["zarr.json"]
+    (zstd,) = [codec for codec in meta["codecs"] if codec["name"] == "zstd"]
+    assert zstd["configuration"]["checksum"] is False  # one checksum: the SHA-256
+    (record,) = meta["attributes"]["streamsvd"]["arrays"].values()
+    assert [seg["shape"] for seg in record["segments"]] == [[1000, 3]]
 
 
 def test_generations_switch_and_old_ones_are_pruned(store, store_path, rng):
@@ -192,6 +207,105 @@ def test_commit_after_reopen_continues_numbering(store_path, rng):
         assert s.generation == 1
         assert s.commit(factors(rng)) == 2
     assert not (store_path / LOCK_NAME).exists()
+
+
+# ----------------------------------------------------------------- appended arrays
+
+
+def test_appended_array_writes_only_what_changed(tmp_path, rng):
+    # chunk_bytes below every merged size: no segment is merged
+    with BasisStore.create(tmp_path / "s", n=7, inner_fingerprint=FP, chunk_bytes=64) as s:
+        T = rng.standard_normal((5, 2))
+        s.commit({"a": np.ones(3)}, appended={"T": Appended(T, axis=0)})
+        assert s.last_written == {"a": 3, "T": 10}
+        # three new rows and a new column, zero in the old rows
+        T2 = np.zeros((8, 3))
+        T2[:5, :2] = T
+        T2[5:] = rng.standard_normal((3, 3))
+        s.commit({"a": np.ones(3)}, appended={"T": Appended(T2, axis=0, unchanged=5)})
+        assert s.last_written == {"a": 3, "T": 9}
+        Q = rng.standard_normal((7, 4))
+        s.commit({}, appended={"T": Appended(T2, unchanged=8), "Q": Appended(Q[:, :3], axis=1)})
+        assert s.last_written == {"Q": 21}  # T is unchanged: nothing of it is written
+        s.commit({}, appended={"T": Appended(T2, unchanged=8), "Q": Appended(Q, axis=1, unchanged=3)})
+        assert s.last_written == {"Q": 7}
+        state = s.read()
+        assert np.array_equal(state.arrays["T"], T2) and np.array_equal(state.arrays["Q"], Q)
+        assert not state.arrays["T"].flags.writeable
+        # generations 1 and 2 hold segments generation 4 uses: they are kept
+        assert generation_dirs(s.path) == [f"g{k:08d}" for k in (1, 2, 3, 4)]
+        assert segment_sources(s.path, 4) == {1, 2, 3, 4}
+        s.commit({}, appended={"T": Appended(T2), "Q": Appended(Q, axis=1)})  # anew
+        s.commit({}, appended={"T": Appended(T2, unchanged=8), "Q": Appended(Q, axis=1, unchanged=4)})
+        assert s.last_written == {}
+        assert generation_dirs(s.path) == [f"g{k:08d}" for k in (5, 6)]
+    with open_store(tmp_path / "s") as reader:
+        state = reader.read()
+        assert np.array_equal(state.arrays["T"], T2) and np.array_equal(state.arrays["Q"], Q)
+
+
+def test_small_segments_are_merged_so_that_few_remain(tmp_path, rng):
+    rows = rng.standard_normal((128, 4))
+    written = 0
+    with BasisStore.create(tmp_path / "s", n=7, inner_fingerprint=FP) as s:
+        for k in range(1, 129):
+            s.commit({}, appended={"T": Appended(rows[:k], unchanged=k - 1)})
+            written += s.last_written["T"]
+            segments = json.loads((s.path / f"generations/g{k:08d}/zarr.json").read_text())[
+                "attributes"]["streamsvd"]["arrays"]["T"]["segments"]
+            assert len(segments) <= int(np.log2(k)) + 1
+            sizes = [seg["shape"][0] for seg in segments]
+            assert all(a >= 2 * b for a, b in zip(sizes, sizes[1:], strict=False))
+        assert np.array_equal(s.read().arrays["T"], rows)
+    # every row is rewritten about log2(128) = 7 times over the stream, never more
+    assert written <= 4 * 128 * 8
+    # segments are not merged beyond chunk_bytes = 1 KiB (32 rows): a commit writes
+    # at most that much, however long the array
+    expected = np.repeat(np.arange(1.0, 161.0), 4).reshape(160, 4)
+    with BasisStore.create(tmp_path / "t", n=7, inner_fingerprint=FP, chunk_bytes=1024) as s:
+        for k in range(1, 161):
+            s.commit({}, appended={"T": Appended(expected[:k], unchanged=k - 1)})
+            assert s.last_written["T"] * 8 <= 1024
+        assert np.array_equal(s.read().arrays["T"], expected)
+
+
+def test_appended_argument_errors(store, rng):
+    T = rng.standard_normal((4, 3))
+    with pytest.raises(InputError, match=r"holds no array 'T'"):
+        store.commit({}, appended={"T": Appended(T, unchanged=2)})
+    store.commit({}, appended={"T": Appended(T)})
+    with pytest.raises(InputError, match=r"`appended\['T'\].unchanged` must be an integer in \[0, 4\]"):
+        store.commit({}, appended={"T": Appended(T, unchanged=5)})
+    with pytest.raises(InputError, match=r"has only 4 along axis 0"):
+        store.commit({}, appended={"T": Appended(np.zeros((6, 3)), unchanged=5)})
+    with pytest.raises(InputError, match=r"fewer than the kept segments"):
+        store.commit({}, appended={"T": Appended(np.zeros((6, 2)), unchanged=4)})
+    with pytest.raises(InputError, match=r"grown along axis 1"):
+        store.commit({}, appended={"T": Appended(np.zeros((4, 5)), axis=1, unchanged=3)})
+    with pytest.raises(InputError, match=r"must be an Appended"):
+        store.commit({}, appended={"T": T})
+    with pytest.raises(InputError, match=r"not used in `arrays`"):
+        store.commit({"T": T}, appended={"T": Appended(T)})
+    with pytest.raises(NonFiniteError):
+        store.commit({}, appended={"T": Appended(np.vstack([T, [[np.nan, 0, 0]]]), unchanged=4)})
+    assert store.generation == 1
+
+
+def test_damaged_segment_of_an_older_generation_is_detected(store_path, rng):
+    T = rng.standard_normal((300, 2))
+    with BasisStore.create(store_path, n=7, inner_fingerprint=FP, chunk_bytes=512) as s:
+        s.commit({}, appended={"T": Appended(T[:100])})
+        s.commit({}, appended={"T": Appended(T[:200], unchanged=100)})
+        s.commit({}, appended={"T": Appended(T, unchanged=200)})
+    chunk = store_path / "generations/g00000001/c.1"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    with open_store(store_path) as s:
+        with pytest.raises(
+            StoreFormatError, match=r"array 'T' of generation 3 .*pack of generation 1"
+        ):
+            s.read()
 
 
 # ------------------------------------------------------------------------ lock
@@ -280,9 +394,9 @@ def test_other_format_version_names_both(store_path):
     BasisStore.create(store_path, n=200, inner_fingerprint=FP).close()
     meta = store_path / "zarr.json"
     doc = json.loads(meta.read_text())
-    doc["attributes"]["format_version"] = 2
+    doc["attributes"]["format_version"] = 1  # the layout that rewrote every array
     meta.write_text(json.dumps(doc))
-    with pytest.raises(StoreFormatError, match=r"format version 2; .* reads format version 1"):
+    with pytest.raises(StoreFormatError, match=r"format version 1; .* reads format version 2"):
         open_store(store_path)
 
 
@@ -374,7 +488,7 @@ def committed_store(path, rng):
 
 def test_flipped_bytes_in_a_chunk_are_detected(store_path, rng):
     committed_store(store_path, rng)
-    chunk = store_path / "generations/g00000002/U/c/3/0"
+    chunk = store_path / "generations/g00000002/c.3"  # U is elements 0-1999 of the pack
     data = bytearray(chunk.read_bytes())
     data[len(data) // 2] ^= 0xFF
     chunk.write_bytes(bytes(data))
@@ -388,7 +502,7 @@ def test_flipped_bytes_in_a_chunk_are_detected(store_path, rng):
 
 def test_missing_chunk_is_detected_by_the_checksum(store_path, rng):
     committed_store(store_path, rng)
-    (store_path / "generations/g00000002/V/c/0/0").unlink()
+    (store_path / "generations/g00000002/c.4").unlink()  # V and the amplitudes
     with pytest.raises(StoreFormatError, match=r"array 'V' of generation 2 .*SHA-256"):
         open_store(store_path).read()
 
@@ -427,24 +541,23 @@ def test_failing_array_write_leaves_the_previous_state_intact(store, rng, monkey
     store.commit(arrays, {"k": 1})
     before = tree_bytes(store.path)
     calls = []
-    real_write = store_mod._write_array
+    real_write = store_mod._write_pack
 
-    def flaky_write(group, name, data, chunk_bytes):
-        calls.append(name)
-        real_write(group, name, data, chunk_bytes)
-        if len(calls) == 2:
-            raise RuntimeError("simulated failure while writing")
+    def flaky_write(zstore, path, data, doc, chunk_bytes):
+        calls.append(path)
+        real_write(zstore, path, data, doc, chunk_bytes)
+        raise RuntimeError("simulated failure while writing")
 
-    monkeypatch.setattr(store_mod, "_write_array", flaky_write)
+    monkeypatch.setattr(store_mod, "_write_pack", flaky_write)
     with pytest.raises(RuntimeError, match="simulated failure"):
         store.commit(factors(rng), {"k": 2})
-    assert len(calls) == 2
+    assert calls == ["generations/g00000002"]
     assert tree_bytes(store.path) == before
     assert store.generation == 1
     assert_state_equal(store.read(), arrays, {"k": 1})
     with open_store(store.path, "r") as reader:
         assert_state_equal(reader.read(), arrays, {"k": 1})
-    monkeypatch.setattr(store_mod, "_write_array", real_write)
+    monkeypatch.setattr(store_mod, "_write_pack", real_write)
     assert store.commit(factors(rng), {"k": 2}) == 2
 
 
@@ -453,10 +566,10 @@ def test_disk_error_during_commit_is_a_store_error(store, rng, monkeypatch):
     store.commit(arrays, {"k": 1})
     before = tree_bytes(store.path)
 
-    def no_space(group, name, data, chunk_bytes):
+    def no_space(zstore, path, data, doc, chunk_bytes):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(store_mod, "_write_array", no_space)
+    monkeypatch.setattr(store_mod, "_write_pack", no_space)
     with pytest.raises(
         StoreError, match=r"writing generation 2 failed .*No space.*generation 1 is unchanged"
     ):
@@ -545,7 +658,8 @@ def run_kill_test(path, kills, seed, log_path):
             seen.add(k)
     with open_store(path, "a") as s:  # takes the stale lock over, removes leftovers
         k = s.generation
-        assert set(generation_dirs(path)) <= {f"g{k - 1:08d}", f"g{k:08d}"}
+        used = {k - 1, k} | segment_sources(path, k) | segment_sources(path, k - 1)
+        assert set(generation_dirs(path)) <= {f"g{g:08d}" for g in used}
         assert not [p for p in path.iterdir() if ".tmp" in p.name or ".stale-" in p.name]
         assert_state_equal(s.read(), *expected_generation(k))
     # how far the writer got between kills depends on the machine's load: it is logged,

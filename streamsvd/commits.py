@@ -1,0 +1,127 @@
+"""What a compressor's commit writes: only what changed since its previous commit.
+
+A :class:`~streamsvd.StreamCompressor` commits its state to a
+:class:`~streamsvd.store.BasisStore` as appended arrays
+(:class:`~streamsvd.segments.Appended`), each keeping the segments of the previous
+commit that are unchanged:
+
+* ``Q`` (and ``MQ`` for a non-Euclidean inner product), by columns: the columns of the
+  previous commit are unchanged unless the basis was compacted since
+  (``basis.compactions`` moved, or the plan compacts), when it is written anew;
+* ``V0``, by rows: the rows of the previous commit are unchanged unless the factor was
+  rebased or replaced since (``rows.rewrites`` moved, or the plan replaces it); the
+  columns added since are zero in those rows;
+* ``history``, one row per update, only appended.
+
+The small state (``Gu``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the
+compressor. :class:`CommitTracker` remembers those extents for the generation a commit
+wrote, once the compressor switched to the committed state; a commit to any other
+generation (after a failed commit, say) writes every array anew.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._core import HISTORY_FIELDS, UpdateRecord, history_array
+from .segments import Appended
+from .update import State
+
+__all__ = ["CommitTracker"]
+
+
+@dataclass(frozen=True)
+class _Mark:
+    """Extents of the arrays a generation holds, and the epochs they belong to."""
+
+    generation: int
+    compactions: int
+    columns: int
+    rewrites: int
+    rows: int
+    records: int
+
+
+class CommitTracker:
+    """Remember what the last commit wrote (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self._mark: _Mark | None = None
+        self._pending: int | None = None
+        # rows [0, _valid) of _rows encode the committed records (they never change)
+        self._rows = np.zeros((0, len(HISTORY_FIELDS)))
+        self._valid = 0
+
+    def appended(
+        self,
+        generation: int,
+        state: State,
+        *,
+        basis: dict[str, np.ndarray],
+        compact: bool,
+        V0: np.ndarray | None,
+        replaced: bool,
+        history: list[UpdateRecord],
+    ) -> dict[str, Appended]:
+        """Return the appended arrays of a commit on top of generation ``generation``.
+
+        ``basis`` holds the planned basis arrays (``Q``, ``MQ``), ``compact`` whether
+        the plan compacts it; ``V0`` the planned rows, ``replaced`` whether the plan
+        replaces them; ``history`` the records including the planned one.
+        """
+        mark = self._mark
+        if mark is not None and mark.generation != generation:
+            mark = None
+        columns = rows = records = 0
+        if mark is not None:
+            if not compact and state.basis.compactions == mark.compactions:
+                columns = mark.columns
+            if not replaced and state.rows is not None and state.rows.rewrites == mark.rewrites:
+                rows = mark.rows
+            records = min(mark.records, self._valid)
+        out = {
+            name: Appended(a, axis=1, unchanged=min(columns, a.shape[1]))
+            for name, a in basis.items()
+        }
+        if V0 is not None:
+            out["V0"] = Appended(V0, axis=0, unchanged=min(rows, V0.shape[0]))
+        out["history"] = Appended(self._history(history, records), axis=0, unchanged=records)
+        return out
+
+    def _history(self, history: list[UpdateRecord], keep: int) -> np.ndarray:
+        """Return the encoded history (a view), re-encoding the records from ``keep`` on."""
+        count = len(history)
+        if self._rows.shape[0] < count:
+            grown = np.zeros((max(count, 2 * self._rows.shape[0], 64), len(HISTORY_FIELDS)))
+            grown[:keep] = self._rows[:keep]
+            self._rows = grown
+        self._rows[keep:count] = history_array(history[keep:count])
+        return self._rows[:count]
+
+    def committed(self, generation: int) -> None:
+        """Record that ``generation`` was committed; :meth:`settle` follows the switch."""
+        self._pending = generation
+
+    def settle(self, state: State, records: int) -> None:
+        """Remember the extents of the committed state (the compressor switched to it)."""
+        if self._pending is None:
+            return
+        self._mark = _Mark(
+            generation=self._pending,
+            compactions=state.basis.compactions,
+            columns=state.basis.width,
+            rewrites=0 if state.rows is None else state.rows.rewrites,
+            rows=0 if state.rows is None else state.rows.m,
+            records=records,
+        )
+        self._valid = records
+        self._pending = None
+
+    def restored(self, generation: int, state: State, history: np.ndarray) -> None:
+        """Remember the extents of a state restored from ``generation``."""
+        self._rows = np.array(history, dtype=np.float64).reshape(-1, len(HISTORY_FIELDS))
+        self._valid = self._rows.shape[0]
+        self._pending = generation
+        self.settle(state, self._valid)
