@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     from .gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
     from .inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
     from .rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
+    from .store import BasisStore, open_store
     from .stream import StreamCompressor, UpdateRecord
 
 __version__ = "0.1.0"
@@ -65,6 +66,8 @@ _LAZY = {
     "pair_dynamics": "rotations",
     "rotate_pair": "rotations",
     "StreamCompressor": "stream",
+    "BasisStore": "store",
+    "open_store": "store",
     "UpdateRecord": "stream",
 }
 
@@ -111,6 +114,7 @@ sys.modules[__name__].__class__ = _Package
 
 
 __all__ = [
+    "BasisStore",
     "CompressResult",
     "ConvergenceError",
     "DiagonalInner",
@@ -139,6 +143,7 @@ __all__ = [
     "as_inner",
     "compress",
     "orthonormalize",
+    "open_store",
     "orthonormalize_literal",
     "pair_dynamics",
     "rotate_pair",

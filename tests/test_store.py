@@ -678,3 +678,13 @@ def test_killed_writer_never_corrupts_the_store(tmp_path):
 @pytest.mark.slow
 def test_killed_writer_never_corrupts_the_store_many_times(tmp_path):
     run_kill_test(tmp_path / "kill.zarr", 200, 7, tmp_path / "writer.log")
+
+
+def test_the_store_is_public_api_at_the_top_level(tmp_path):
+    import streamsvd as ss
+
+    with ss.StreamCompressor(6, store=tmp_path / "s.zarr") as sc:
+        sc.absorb(np.eye(6)[:, :3])
+    with ss.open_store(tmp_path / "s.zarr", "r") as st:
+        assert isinstance(st, ss.BasisStore) and st.n == 6
+        assert st.read().attrs["n_seen"] == 3
