@@ -295,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     -------
     int
         The exit status: 0 on success (and after ``--help``), 2 after a user mistake
-        (reported on one line of stderr as ``streamsvd: error: ...``).
+        (reported on one line of stderr as ``streamsvd: error: ...``), 130 after Ctrl-C
+        (one line saying what the store holds and the command that continues).
     """
     try:
         args = _parser().parse_args(argv)
@@ -308,11 +309,33 @@ def main(argv: list[str] | None = None) -> int:
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     try:
         return int(_COMMANDS[args.command](args))
+    except KeyboardInterrupt:
+        print(_interrupted(args), file=sys.stderr)
+        return 130
     except (StreamSVDError, OSError, ValueError) as err:
         if args.debug:
             raise
         print(f"streamsvd: error: {_in_cli_words(str(err))}", file=sys.stderr)
         return 2
+
+
+def _interrupted(args: Any) -> str:
+    """Return the line printed after Ctrl-C: what the store holds, how to continue."""
+    if args.command != "ingest":
+        return "streamsvd: interrupted."
+    try:
+        from .store import open_store
+
+        with open_store(args.store, "r") as st:
+            offset = int(st.read().attrs.get("source_offset", 0))
+    except (StreamSVDError, OSError, ValueError):
+        return f"streamsvd: interrupted; nothing was committed to STORE {args.store}."
+    again = " ".join(a for a in sys.argv[1:] if a != "--resume") if sys.argv[1:] else (
+        f"ingest {args.source} {args.store}")
+    return (
+        f"streamsvd: interrupted; STORE {args.store} holds the snapshots up to column "
+        f"{offset} of SOURCE (its last commit); continue with: streamsvd {again} --resume"
+    )
 
 
 # --------------------------------------------------------------------------- ingest

@@ -491,3 +491,40 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     row = rgba.shape[0] - int(round(y))
     patch = rgba[row - 3:row + 4, int(round(x)) - 3:int(round(x)) + 4, :3].astype(int)
     assert ((patch[..., 0] > 200) & (patch[..., 1] < 80) & (patch[..., 2] < 80)).any()
+
+
+def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
+    """SIGINT during a long ingestion: exit 130, one line naming the last committed column
+    and the command to resume; the store holds exactly that commit, readable."""
+    import signal
+    import time
+
+    import streamsvd as ss
+
+    A = rng.standard_normal((300, 20000))
+    src = tmp_path / "a.npy"
+    np.save(src, A)
+    store = tmp_path / "s.zarr"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "1",
+         "--max-rank", "5", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # wait for a few commits (not timing the process)
+        try:
+            with ss.open_store(store, "r") as st:
+                if st.generation >= 3:
+                    break
+        except (ss.StoreError, OSError):
+            pass
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in err
+    with ss.StreamCompressor.open(store, mode="r") as sc:
+        offset = sc.source_offset
+        assert sc.n_seen == offset and 1 <= offset < 20000
+    assert f"holds the snapshots up to column {offset} of SOURCE" in lines[0]
+    assert lines[0].endswith("--resume") and str(store) in lines[0]
