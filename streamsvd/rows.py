@@ -141,10 +141,6 @@ class RowFactor:
         if self._wv > WIDTH_LIMIT * max(self.Vp.shape[1], 1):
             self.rebase()
 
-    def transform(self, G: np.ndarray) -> None:
-        """``V <- V G`` (``Vp <- Vp G``; no row is touched)."""
-        self.Vp = self.Vp @ G
-
     def rebase(self) -> None:
         """``V0 <- V0 Vp``, ``Vp <- I``, in place by blocks of rows."""
         m, wv = self._m, self._wv
