@@ -43,7 +43,7 @@ class UpdateRecord:
 
     Attributes
     ----------
-    kind : {"absorb", "add", "merge"}
+    kind : {"absorb", "add", "merge", "finalize"}
     columns : int
         Snapshots added (``absorb``, ``merge``) or terms of the increment (``add``).
     rank : int
@@ -87,7 +87,7 @@ HISTORY_FIELDS = (
     "kind", "columns", "rank", "new_directions", "rejected", "cut", "discarded", "sweeps",
     "max_cosine", "orthogonality", "error_bound", "seconds",
 )
-_KINDS = ("absorb", "add", "merge")
+_KINDS = ("absorb", "add", "merge", "finalize")
 
 
 def history_array(history: list[UpdateRecord]) -> np.ndarray:

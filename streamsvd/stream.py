@@ -19,6 +19,7 @@ class is the facade: options, properties, persistence.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import time
 from typing import Any
@@ -39,7 +40,16 @@ from .inner import InnerProduct, as_inner, check_same_inner
 from .rotations import RULES
 from .rows import RowFactor
 from .store import BasisStore, open_store
-from .update import Plan, State, StepOptions, apply_plan, plan_absorb, plan_add, plan_merge
+from .update import (
+    Plan,
+    State,
+    StepOptions,
+    apply_plan,
+    plan_absorb,
+    plan_add,
+    plan_finalize,
+    plan_merge,
+)
 
 __all__ = ["StreamCompressor", "UpdateRecord"]
 
@@ -597,6 +607,25 @@ class StreamCompressor:
             t0=t0,
         )
         return self._run(plan, self.source_offset + m_o)
+
+    def finalize(self, *, rule: str = "jacobi", max_rank: int | None = None) -> UpdateRecord:
+        """Converge the small core to the SVD of the current expansion, then truncate.
+
+        Rotation sweeps of ``rule`` (``"jacobi"`` by default: quadratic convergence) run
+        on the core until a sweep rotates nothing (at most 200), and the truncation rules
+        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted) are
+        applied to the converged amplitudes: the optimal (Eckart-Young) truncation of
+        the expansion. Costs one compaction of the basis at most, nothing in the number
+        of snapshots; recorded in :attr:`history` (kind ``"finalize"``) and committed like
+        any update. The stream may continue afterwards (with the compressor's options).
+        """
+        t0 = time.perf_counter()
+        cap = check_positive_int(max_rank, "max_rank", allow_none=True)
+        opts = dataclasses.replace(
+            self._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
+            truncation=Truncation(self.eps, self.rtol, self.max_rank if cap is None else cap),
+        )
+        return self._run(plan_finalize(self._state, opts, t0=t0), self.source_offset)
 
     # ------------------------------------------------------------------ internals
     def _run(self, plan: Plan, source_offset: int) -> UpdateRecord:

@@ -38,7 +38,10 @@ from .gram_schmidt import BasisExtension, extend_basis
 from .inner import InnerProduct
 from .rows import RowFactor
 
-__all__ = ["Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_merge"]
+__all__ = [
+    "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_finalize",
+    "plan_merge",
+]
 
 # Compaction pays when the projections wasted on the extra width since the last one
 # (about 4 flops per extra column, per snapshot, per row) reach its own cost
@@ -218,6 +221,25 @@ def plan_merge(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
         new_rows=new_rows, d_rej=ext.rejected_norm(R_o[:, rej]), extra_root=0.0,
         prior=prior,
+    )
+
+
+def plan_finalize(state: State, opts: StepOptions, *, t0: float) -> Plan:
+    """Plan sweeps of the core to convergence and the truncation (no new snapshot).
+
+    ``opts`` carries the rule and ``sweeps=None``; the result is the SVD of the current
+    expansion, truncated by the compressor's rules (Eckart-Young: what is cut is
+    orthogonal to what is kept, so the bound grows by the Pythagorean rule).
+    """
+    p = state.rank
+    ext = BasisExtension(
+        coeffs=np.zeros((p, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
+        rejected_norms=np.zeros(0), rejected_gram=np.zeros((0, 0)),
+        rejected_exponents=np.zeros(0, dtype=np.int64), block_norm=0.0,
+    )
+    return _plan(
+        state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
+        new_rows=np.zeros((0, p)), d_rej=0.0, extra_root=0.0, prior=state.bound,
     )
 
 

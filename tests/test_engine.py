@@ -327,3 +327,31 @@ def test_error_bound_holds_through_every_kind_of_update_on_every_backend(rng, ba
     check()
     other.close()
     sc.close()
+
+
+@pytest.mark.parametrize("backend", ["memory", "panels"])
+def test_finalize_converges_the_core_to_the_svd_and_truncates_optimally(rng, backend):
+    n, k = 150, 8
+    A = with_spectrum(np.logspace(0, -6, 40), n, 120, rng)
+    make = ss.StreamCompressor if backend == "memory" else (
+        lambda n, **kw: TallCompressor(n, chunk_rows=64, **kw))
+    sc = make(n, rule="paper", sweeps=1, rtol=1e-9)
+    for j in range(0, 120, 10):
+        sc.absorb(A[:, j : j + 10])
+    before = sc.expansion.to_dense()
+    s = np.linalg.svd(before, compute_uv=False)
+    rec = sc.finalize()
+    assert rec.kind == "finalize" and sc.history[-1] is rec and rec.columns == 0
+    e = sc.expansion
+    assert np.max(np.abs(e.amplitudes - s[: e.rank])) <= 50 * n * EPS * s[0]
+    assert np.linalg.norm(e.to_dense() - before) <= 50 * n * EPS * np.linalg.norm(before) + \
+        math.sqrt(np.sum(s[e.rank :] ** 2))
+    # now cut to k: the Eckart-Young error of the expansion, and the bound still holds
+    sc.finalize(max_rank=k)
+    e = sc.expansion
+    assert e.rank == k
+    optimal = math.sqrt(np.sum(s[k:] ** 2))
+    assert np.linalg.norm(e.to_dense() - before) == pytest.approx(optimal, rel=1e-6)
+    assert np.linalg.norm(A - e.to_dense()) <= sc.error_bound * (1 + 1e-9)
+    assert e.orthogonality_error() <= 50 * n * EPS
+    sc.close()
