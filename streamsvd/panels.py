@@ -201,7 +201,8 @@ class PanelBasis:
         """Write ``[Q, Y[:, :r]] G`` as one new panel; return its Gram ``Q'^T M Q'``."""
         import dask.array as da
 
-        parts = [] if self._q() is None else [self._q()]
+        Q0 = self._q()
+        parts = [] if Q0 is None else [Q0]
         if r:
             parts.append(self._block(np.ascontiguousarray(self.planned_new(r)[0])))
         p = G.shape[1]

@@ -391,6 +391,12 @@ def test_ingest_defaults_are_none_so_given_options_can_be_told_apart():
         assert getattr(args, name) is None, name
 
 
+def _fresh_python(code):
+    """Run ``code`` in a new interpreter that sees only this checkout."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={"PYTHONPATH": str(WORKTREE), "PATH": ""}, check=False)
+
+
 def test_the_command_line_module_imports_no_numerical_library():
     code = (
         "import json, sys, streamsvd.cli\n"
@@ -398,8 +404,8 @@ def test_the_command_line_module_imports_no_numerical_library():
         " 'matplotlib', 'tqdm')\n"
         "print(json.dumps(sorted(m for m in heavy if m in sys.modules)))\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env={"PYTHONPATH": str(WORKTREE), "PATH": ""}, check=True)
+    proc = _fresh_python(code)
+    assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout) == []
 
 
@@ -423,8 +429,7 @@ def test_lazy_exports_resolve_to_the_same_objects():
         "    raise AssertionError('ss.nope resolved')\n"
         "print('ok')\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env={"PYTHONPATH": str(WORKTREE), "PATH": ""}, check=False)
+    proc = _fresh_python(code)
     assert proc.returncode == 0 and proc.stdout == "ok\n", proc.stderr
 
 

@@ -298,9 +298,7 @@ def test_damaged_segment_of_an_older_generation_is_detected(store_path, rng):
         s.commit({}, appended={"T": Appended(T[:200], unchanged=100)})
         s.commit({}, appended={"T": Appended(T, unchanged=200)})
     chunk = store_path / "generations/g00000001/c.1"
-    data = bytearray(chunk.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    chunk.write_bytes(bytes(data))
+    _flip_a_byte(chunk)
     with open_store(store_path) as s:
         with pytest.raises(
             StoreFormatError, match=r"array 'T' of generation 3 .*pack of generation 1"
@@ -486,12 +484,17 @@ def committed_store(path, rng):
     return arrays
 
 
-def test_flipped_bytes_in_a_chunk_are_detected(store_path, rng):
-    committed_store(store_path, rng)
-    chunk = store_path / "generations/g00000002/c.3"  # U is elements 0-1999 of the pack
+def _flip_a_byte(chunk):
+    """Corrupt a stored chunk in its middle, as a bad disk block would."""
     data = bytearray(chunk.read_bytes())
     data[len(data) // 2] ^= 0xFF
     chunk.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_in_a_chunk_are_detected(store_path, rng):
+    committed_store(store_path, rng)
+    chunk = store_path / "generations/g00000002/c.3"  # U is elements 0-1999 of the pack
+    _flip_a_byte(chunk)
     with open_store(store_path) as s:
         with pytest.raises(
             StoreFormatError, match=r"damaged: array 'U' of generation 2 .*generation=1"
