@@ -50,11 +50,15 @@ _DEFAULT_BLOCK = 100
 _DEFAULT_RULE = "paper"
 _DEFAULT_SWEEPS = 1
 _DEFAULT_COMMIT_EVERY = 1
+_DEFAULT_OVERSAMPLING = 10
+#: The ``--final-sweeps`` values: converge the core at the end, or leave it as streamed.
+_FINAL_SWEEPS = (CONVERGE, "none")
 
 # options of the compressor that a store records at creation (``--resume`` reuses them)
 _STORE_OPTIONS = (
-    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"), ("rule", "--rule"),
-    ("sweeps", "--sweeps"), ("commit_every", "--commit-every"),
+    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"),
+    ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
+    ("commit_every", "--commit-every"),
 )
 
 _INGEST_EPILOG = """\
@@ -86,6 +90,16 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         """Print the usage error on one line and exit with status 2."""
         self.exit(2, f"streamsvd: error: {message} (see `{self.prog} --help`).\n")
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0; got {text!r}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -170,7 +184,11 @@ def _parser() -> argparse.ArgumentParser:
                      help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
                      "none; not with --eps)")
     ing.add_argument("--max-rank", metavar="K", type=_positive_int,
-                     help="keep at most K terms (default: no limit)")
+                     help="keep K terms in the end: K + --oversampling while streaming, "
+                     "cut to K by the final sweeps (default: no limit)")
+    ing.add_argument("--oversampling", metavar="P", type=_nonnegative_int,
+                     help="extra terms kept while streaming with --max-rank; 0 cuts to K "
+                     f"at every update (default: {_DEFAULT_OVERSAMPLING})")
     ing.add_argument("--rule", choices=("paper", "jacobi"),
                      help="rotation of a pair of terms: 'paper' turns by tan(theta) = "
                      "(v_j|v_i)/(v_j|v_j) (eq. 5, linear convergence), 'jacobi' by the angle "
@@ -180,6 +198,11 @@ def _parser() -> argparse.ArgumentParser:
                      help="rotation sweeps per update: a positive integer, or "
                      f"'{CONVERGE}' to sweep until no pair rotates (an incremental SVD) "
                      f"(default: {_DEFAULT_SWEEPS})")
+    ing.add_argument("--final-sweeps", choices=_FINAL_SWEEPS,
+                     help=f"at the end, '{CONVERGE}': sweep the core until no pair rotates "
+                     "(Jacobi rule) and cut by --eps/--rtol/--max-rank, so that STORE holds "
+                     "the SVD of what was absorbed; 'none': keep the streamed expansion "
+                     f"(default: {CONVERGE})")
     ing.add_argument("--commit-every", metavar="C", type=_positive_int,
                      help="updates per commit to STORE, in memory and with --tall; the "
                      f"tree mode commits once (default: {_DEFAULT_COMMIT_EVERY})")
@@ -258,7 +281,8 @@ _REWRITES = (
 _NAMES = {
     "path": "STORE", "store": "STORE", "source": "SOURCE", "out": "OUT",
     "dataset": "--dataset", "block": "--block", "eps": "--eps", "rtol": "--rtol",
-    "max_rank": "--max-rank", "rule": "--rule", "sweeps": "--sweeps",
+    "max_rank": "--max-rank", "oversampling": "--oversampling", "rule": "--rule",
+    "sweeps": "--sweeps",
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
 }
@@ -381,6 +405,8 @@ def _compressor_options(args: Any, mode: str) -> dict[str, Any]:
         "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
         "max_rank": args.max_rank, "rule": args.rule or _DEFAULT_RULE,
         "sweeps": None if sweeps == CONVERGE else sweeps,
+        "oversampling": (_DEFAULT_OVERSAMPLING if args.oversampling is None
+                         else args.oversampling),
     }
     if mode != "tree":
         options["commit_every"] = args.commit_every or _DEFAULT_COMMIT_EVERY
@@ -438,6 +464,11 @@ def _check_store_path(args: Any) -> Path:
 def _ingest(args: Any) -> int:
     mode = _mode(args)
     _check_mode_options(args, mode)
+    if args.oversampling is not None and args.max_rank is None and not args.resume:
+        raise InputError(
+            "--oversampling adds terms to --max-rank while streaming; add --max-rank K, or "
+            "drop --oversampling."
+        )
     options = _compressor_options(args, mode)
     store = _check_store_path(args)
     block = args.block or _DEFAULT_BLOCK
@@ -455,19 +486,24 @@ def _ingest(args: Any) -> int:
     return 0
 
 
+def _final(args: Any) -> bool:
+    """Whether the command ends with the final sweeps (``--final-sweeps``)."""
+    return args.final_sweeps in (None, CONVERGE)
+
+
 def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
                    ) -> dict[str, Any]:
     from tqdm import tqdm
 
     from .sources import open_source
-    from .stream import StreamCompressor
+    from .stream import StreamCompressor, summary_of
 
     with open_source(args.source, dataset=args.dataset) as src:
         if args.resume:
             sc = StreamCompressor.open(store)
         else:
             sc = StreamCompressor(src.n, store=store, **options)
-        with sc:
+        try:
             if args.resume:
                 _check_resume_options(args, sc._options())
             if src.n != sc.n:
@@ -485,7 +521,11 @@ def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
                     bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
                                     refresh=False)
                     bar.update(X.shape[1])
-            return _summary(sc)
+            if _final(args) and not sc.finalized:
+                sc.finalize()
+            return summary_of(sc)
+        finally:
+            sc.close(finalize=False)
 
 
 def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any]
@@ -503,7 +543,8 @@ def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[st
                 args.source, store, dataset=args.dataset, block=block,
                 scheduler=args.scheduler, workers=args.workers, tall=mode == "tall",
                 leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows,
-                resume=args.resume, progress=not args.quiet, **options,
+                resume=args.resume, progress=not args.quiet, finalize=_final(args),
+                **options,
             )
     except NonFiniteError:
         if mode == "tall":  # the tall engine counts the bad entries but cannot place them
@@ -569,20 +610,11 @@ def _open(path: Any) -> Any:
         return open_compressor(path, mode="r")
 
 
-def _summary(sc: Any) -> dict[str, Any]:
-    amps = sc.amplitudes
-    return {
-        "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
-        "source_offset": sc.source_offset, "updates": len(sc.history),
-        "error_bound": sc.error_bound, "discarded_energy": sc.discarded_energy,
-        "orthogonality": sc.orthogonality_error(), "options": sc._options(),
-        "amplitudes_head": amps[:10].tolist(),
-    }
-
-
 def _info(args: Any) -> int:
+    from .stream import summary_of
+
     with _open(args.store) as sc:
-        summary = _summary(sc)
+        summary = summary_of(sc)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -593,7 +625,12 @@ def _info(args: Any) -> int:
           f"(source offset {summary['source_offset']}) in {summary['updates']} "
           f"update{'' if summary['updates'] == 1 else 's'}")
     print(f"rank          {summary['rank']}  (rule {opts['rule']}, sweeps {sweeps}, "
-          f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']})")
+          f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']}, "
+          f"oversampling {opts['oversampling']})")
+    print("final sweeps  " + (
+        "converged: the expansion is the SVD of what was absorbed" if summary["finalized"]
+        else "not run: the expansion is as streamed (`streamsvd ingest --resume` without "
+        "--final-sweeps none converges it)"))
     print(f"error bound   ||A - U V^T||_F <= {summary['error_bound']:.3e}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
     head = ", ".join(f"{a:.4g}" for a in summary["amplitudes_head"])

@@ -40,7 +40,7 @@ from .errors import InputError, ShapeMismatchError, StoreMismatchError
 from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
 from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
 from .store import open_store
-from .stream import StreamCompressor
+from .stream import StreamCompressor, summary_of
 
 __all__ = [
     "COMPRESSOR_OPTIONS",
@@ -190,7 +190,7 @@ def tall_compress(
             )
         tc = TallCompressor.open(store, inner=inner, client=client)
         if tc.n != spec.n:
-            tc.close()
+            tc.close(finalize=False)
             raise ShapeMismatchError(
                 f"`source` must have snapshots of size {tc.n} (the store's n); got {spec.n} "
                 f"from {spec.description}. Pass the source the store was built from."
@@ -214,7 +214,7 @@ def tall_compress(
                     bar.update(stop - a)
         tc.flush()
     except BaseException:
-        tc.close()
+        tc.close(finalize=False)
         raise
     return tc
 
@@ -296,6 +296,7 @@ def ingest(
     chunk_rows: int | None = None,
     resume: bool = False,
     progress: bool = True,
+    finalize: bool = True,
     **options: Any,
 ) -> dict[str, Any]:
     """Compress a source into a store on dask: what ``streamsvd ingest`` runs.
@@ -321,8 +322,13 @@ def ingest(
         Continue the store from its recorded source offset.
     progress : bool
         Show a progress bar (dask's for the tree, per column for the tall mode).
+    finalize : bool
+        Converge the core at the end and cut to ``max_rank``
+        (:meth:`~streamsvd.StreamCompressor.finalize`, committed), unless the store
+        already is (default).
     **options
-        Compressor options (``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ...).
+        Compressor options (``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``,
+        ``sweeps``, ...).
 
     Returns
     -------
@@ -352,16 +358,11 @@ def ingest(
                                dataset=dataset, client=client, store=store, resume=resume,
                                progress=progress, **options)
         try:
-            amps = sc.amplitudes
-            summary = {
-                "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
-                "source_offset": sc.source_offset, "updates": len(sc.history),
-                "error_bound": sc.error_bound, "discarded_energy": sc.discarded_energy,
-                "orthogonality": sc.orthogonality_error(), "options": sc._options(),
-                "amplitudes_head": amps[:10].tolist(), "mode": "tall" if tall else "tree",
-                "scheduler": scheduler or "threads",
-            }
+            if finalize and not sc.finalized:
+                sc.finalize()
+            summary = summary_of(sc)
+            summary.update(mode="tall" if tall else "tree", scheduler=scheduler or "threads")
         finally:
-            sc.close()
+            sc.close(finalize=False)
     summary["seconds"] = time.perf_counter() - t0
     return summary

@@ -48,7 +48,7 @@ __all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
 logger = logging.getLogger(__name__)
 
 COMPRESSOR_OPTIONS = (
-    "inner", "eps", "rtol", "max_rank", "rule", "sweeps", "reject_tol",
+    "inner", "eps", "rtol", "max_rank", "oversampling", "rule", "sweeps", "reject_tol",
     "reorth_tol",
 )
 """Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
@@ -308,7 +308,8 @@ def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
     probe = StreamCompressor(n, **opts)
     return {
         "inner": probe.inner, "eps": probe.eps, "rtol": probe.rtol,
-        "max_rank": probe.max_rank, "rule": probe.rule, "sweeps": probe.sweeps,
+        "max_rank": probe.max_rank, "oversampling": probe.oversampling, "rule": probe.rule,
+        "sweeps": probe.sweeps,
         "reject_tol": probe.reject_tol,
         "reorth_tol": probe.reorth_tol,
     }
@@ -318,7 +319,8 @@ def options_of(sc: StreamCompressor) -> dict[str, Any]:
     """Return the options of an existing compressor, as :func:`check_options` does."""
     return {
         "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
-        "rule": sc.rule, "sweeps": sc.sweeps, "reject_tol": sc.reject_tol,
+        "oversampling": sc.oversampling, "rule": sc.rule, "sweeps": sc.sweeps,
+        "reject_tol": sc.reject_tol,
         "reorth_tol": sc.reorth_tol,
     }
 
@@ -382,8 +384,10 @@ def tree_compress(
         Show dask's progress bar.
     **options
         Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
-        ``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ``reject_tol``,
-        ``reorth_tol``.
+        ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
+        ``reject_tol``, ``reorth_tol``. The root is streamed at ``max_rank +
+        oversampling`` terms; closing it (or :meth:`~streamsvd.StreamCompressor.finalize`)
+        cuts to ``max_rank``.
 
     Returns
     -------
@@ -439,7 +443,7 @@ def tree_compress(
             opts = options_of(target)
             start = target.source_offset
         except BaseException:
-            target.close()
+            target.close(finalize=False)
             raise
     else:
         opts = check_options(options, spec.n)
@@ -461,7 +465,7 @@ def tree_compress(
             target.merge(root)
     except BaseException:
         if target is not None:
-            target.close()
+            target.close(finalize=False)
         raise
     return target
 

@@ -28,7 +28,13 @@ import numpy as np
 
 from ._core import Truncation, UpdateRecord, r_factor, record_from_row
 from ._scaling import safe_column_norms
-from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
+from ._validation import (
+    as_float_array,
+    check_choice,
+    check_nonnegative,
+    check_nonnegative_int,
+    check_positive_int,
+)
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
 from .commits import CommitTracker
@@ -51,13 +57,22 @@ from .update import (
     plan_merge,
 )
 
-__all__ = ["StreamCompressor", "UpdateRecord"]
+__all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
 logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 KIND = "streamsvd.StreamCompressor"
 LAYOUT = 3  # version of the arrays a StreamCompressor commits (3: Q, V0, history appended)
+
+
+def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
+    """Return the compressor options recorded in a store's attributes.
+
+    Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
+    update: they continue so.
+    """
+    return {"oversampling": 0, **attrs["options"]}
 
 
 class StreamCompressor:
@@ -74,7 +89,15 @@ class StreamCompressor:
     rtol : float, optional
         Relative threshold: terms with ``||v_i|| < rtol * ||v_1||`` are cut.
     max_rank : int, optional
-        Keep at most this many terms (the ones of largest amplitude after the sweeps).
+        Keep this many terms in the end (the ones of largest amplitude). While streaming,
+        ``max_rank + oversampling`` terms are kept, and :meth:`finalize` (called by
+        :meth:`close`) cuts to ``max_rank`` once the core is converged: a cap applied at
+        every update compounds its errors, the oversampled stream does not (measured in
+        ``bench/README.md``, "The SVD by default").
+    oversampling : int
+        Extra terms kept while streaming with ``max_rank`` (default 10; 0 truncates to
+        ``max_rank`` at every update, as IncrementalPCA does). Ignored without
+        ``max_rank``.
     rule : {"paper", "jacobi"}
         Rotation rule of the sweeps (see :func:`streamsvd.compress`).
     sweeps : int or None
@@ -98,6 +121,11 @@ class StreamCompressor:
     commit_every : int
         Updates between two commits (the last ones are committed by :meth:`flush` or
         :meth:`close`).
+
+    The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
+    nothing) runs :meth:`finalize`, which converges the small core and truncates it
+    optimally, then commits. Call ``close(finalize=False)`` to keep the streamed state
+    as it is.
 
     Notes
     -----
@@ -126,6 +154,7 @@ class StreamCompressor:
         eps: float = 0.0,
         rtol: float | None = None,
         max_rank: int | None = None,
+        oversampling: int = 10,
         rule: str = "paper",
         sweeps: int | None = 1,
         reject_tol: float | None = None,
@@ -139,6 +168,7 @@ class StreamCompressor:
         self.eps = check_nonnegative(eps, "eps")
         self.rtol = None if rtol is None else check_nonnegative(rtol, "rtol")
         self.max_rank = check_positive_int(max_rank, "max_rank", allow_none=True)
+        self.oversampling = check_nonnegative_int(oversampling, "oversampling")
         self.rule = check_choice(rule, "rule", RULES)
         self.sweeps = check_positive_int(sweeps, "sweeps", allow_none=True)
         self.reject_tol = (
@@ -157,7 +187,7 @@ class StreamCompressor:
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._opts = StepOptions(
             inner=self.inner, rule=self.rule, sweeps=self.sweeps,
-            truncation=Truncation(self.eps, self.rtol, self.max_rank),
+            truncation=Truncation(self.eps, self.rtol, self.streaming_rank),
             reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
         )
         self._state = State(
@@ -179,6 +209,11 @@ class StreamCompressor:
             self._commit(None, self.source_offset)
 
     KIND = KIND
+
+    @property
+    def streaming_rank(self) -> int | None:
+        """Most terms kept between updates: ``max_rank + oversampling`` (None: no cap)."""
+        return None if self.max_rank is None else self.max_rank + self.oversampling
 
     def _new_basis(self) -> BasisBackend:
         """Return the n-sized backend of this facade (in memory)."""
@@ -247,7 +282,7 @@ class StreamCompressor:
         cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
     ) -> Any:
         """Return a compressor with a store's options, before its state is restored."""
-        return cls(n, inner=inner, **attrs["options"])
+        return cls(n, inner=inner, **stored_options(attrs))
 
     def _reopened(self, mode: str) -> None:
         """Run once a store was reopened (a backend may clean what it left)."""
@@ -289,19 +324,39 @@ class StreamCompressor:
             self._commit(None, self.source_offset)
             self._uncommitted = 0
 
-    def close(self) -> None:
-        """Commit what is pending and release the store's writer lock."""
+    def close(self, *, finalize: bool = True) -> None:
+        """Finalise the expansion, commit what is pending and release the store's lock.
+
+        Parameters
+        ----------
+        finalize : bool
+            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
+            closed expansion is the SVD, truncated to ``max_rank``. A store opened
+            read-only is never finalised.
+        """
+        writable = self._store is None or self._store.mode == "a"
+        if finalize and writable and not self.finalized:
+            self.finalize()
         if self._store is not None:
-            if self._store.mode == "a":
+            if writable:
                 self.flush()
             self._store.close()
             self._store = None
 
+    @property
+    def finalized(self) -> bool:
+        """Whether the expansion is its own SVD, truncated by the rules without oversampling.
+
+        True when the last update was :meth:`finalize`, or nothing was absorbed yet.
+        """
+        return not self._history or self._history[-1].kind == "finalize"
+
     def __enter__(self) -> StreamCompressor:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        # a block that raised keeps its streamed state: what was committed stays as it was
+        self.close(finalize=exc_type is None)
 
     @property
     def store_path(self) -> str | None:
@@ -310,8 +365,9 @@ class StreamCompressor:
 
     def _options(self) -> dict[str, Any]:
         return {
-            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank, "rule": self.rule,
-            "sweeps": self.sweeps, "reject_tol": self.reject_tol,
+            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank,
+            "oversampling": self.oversampling, "rule": self.rule, "sweeps": self.sweeps,
+            "reject_tol": self.reject_tol,
             "reorth_tol": self.reorth_tol, "right_vectors": self.right_vectors,
             "commit_every": self.commit_every,
         }
@@ -613,11 +669,12 @@ class StreamCompressor:
 
         Rotation sweeps of ``rule`` (``"jacobi"`` by default: quadratic convergence) run
         on the core until a sweep rotates nothing (at most 200), and the truncation rules
-        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted) are
-        applied to the converged amplitudes: the optimal (Eckart-Young) truncation of
-        the expansion. Costs one compaction of the basis at most, nothing in the number
-        of snapshots; recorded in :attr:`history` (kind ``"finalize"``) and committed like
-        any update. The stream may continue afterwards (with the compressor's options).
+        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted, without
+        the oversampling) are applied to the converged amplitudes: the optimal
+        (Eckart-Young) truncation of the expansion. Costs one compaction of the basis at
+        most, nothing in the number of snapshots; recorded in :attr:`history` (kind
+        ``"finalize"``) and committed like any update. :meth:`close` calls it. The stream
+        may continue afterwards (with the compressor's options).
         """
         t0 = time.perf_counter()
         cap = check_positive_int(max_rank, "max_rank", allow_none=True)
@@ -648,3 +705,14 @@ class StreamCompressor:
         self._version += 1
         self.source_offset = source_offset
         return plan.record
+
+
+def summary_of(sc: StreamCompressor) -> dict[str, Any]:
+    """Return what ``streamsvd info --json`` prints of a compressor (JSON-able)."""
+    return {
+        "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
+        "source_offset": sc.source_offset, "updates": len(sc.history),
+        "finalized": sc.finalized, "error_bound": sc.error_bound,
+        "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
+        "options": sc._options(), "amplitudes_head": sc.amplitudes[:10].tolist(),
+    }

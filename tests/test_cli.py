@@ -455,11 +455,13 @@ def test_info_export(tmp_path, matrix, capsys):
 
 
 def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
-    """A tree store has one update: its point is drawn, ticks are integers, titles say what."""
+    """A tree store without final sweeps has one update: its point is drawn, ticks are
+    integers, titles say what."""
     import matplotlib.image
 
     store = tmp_path / "tree.zarr"
-    assert main(["ingest", str(npy), str(store), "--scheduler", "threads", "--quiet"]) == 0
+    assert main(["ingest", str(npy), str(store), "--scheduler", "threads", "--quiet",
+                 "--final-sweeps", "none"]) == 0
     png = tmp_path / "p.png"
     status, out, _ = run_cli(["plot", store, png], capsys)
     assert status == 0 and out == f"wrote {png}\n"
