@@ -406,6 +406,11 @@ def _check_mode_options(args: Any, mode: str) -> None:
             f"{where}. Add --scheduler local, or drop --workers (a remote cluster is sized "
             "where it runs)."
         )
+    if args.source_changed_ok and not args.resume:
+        raise InputError(
+            "--source-changed-ok applies to --resume only (a new STORE records its SOURCE); "
+            "add --resume, or drop it."
+        )
     if args.commit_every is not None and mode == "tree":
         raise InputError(
             "--commit-every does not apply to the tree mode (--scheduler without --tall), "
