@@ -448,9 +448,9 @@ def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
     than silently ignored.
     """
     differ = []
-    for name, flag in _STORE_OPTIONS:
+    for name, flag in (*_STORE_OPTIONS, ("chunk_rows", "--chunk-rows")):
         value = getattr(args, name)
-        if value is None:
+        if value is None or name not in recorded:
             continue
         wanted = None if value == CONVERGE else value
         if wanted != recorded[name]:
@@ -475,15 +475,18 @@ def _check_resume(args: Any, sc: Any, record: Any) -> None:
     records (a store written before stores recorded it is not checked), unless
     --source-changed-ok is given. On success the store will record ``record``.
     """
-    _check_resume_options(args, sc._options())
+    recorded = sc._options()
+    if hasattr(sc, "chunk_rows"):  # a tall store keeps the row chunks of its panels
+        recorded["chunk_rows"] = sc.chunk_rows
+    _check_resume_options(args, recorded)
     n = record.shape[0]
     if n != sc.n:
         raise ShapeMismatchError(
             f"SOURCE has snapshots of size {n}; STORE {args.store} holds a basis of size "
             f"{sc.n}. Pass the source the store was built from."
         )
-    recorded = sc.source_record
-    differ = [] if recorded is None else recorded.differences(record)
+    source = sc.source_record
+    differ = [] if source is None else source.differences(record)
     if differ and not args.source_changed_ok:
         said = ", ".join(f"{_SOURCE_PARTS[what]} {given} (STORE has {had})"
                          for what, given, had in differ)
