@@ -543,7 +543,8 @@ def _remove_new_store(store: Path, *, since: float) -> None:
     try:
         with open_store(store, "a") as st:  # the writer lock: no other writer is at work
             created = datetime.fromisoformat(st.root_attrs["created"]).timestamp()
-            empty = int(st.read().attrs.get("source_offset", 0)) == 0
+            state = st.read()  # generation 0 (no arrays) or a commit of no snapshot
+            empty = not state.arrays or int(state.attrs.get("source_offset", 0)) == 0
     except (StreamSVDError, OSError, ValueError, KeyError):
         return  # not a store this command made, or one another writer holds
     if empty and created >= since:

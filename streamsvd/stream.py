@@ -208,7 +208,12 @@ class StreamCompressor:
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
                 attrs=self._attrs(None),
             )
-            self._commit(None, self.source_offset)
+            try:
+                self._commit(None, self.source_offset)
+            except BaseException:
+                self._store.close()  # release the lock of the store left at generation 0
+                self._store = None
+                raise
 
     KIND = KIND
 

@@ -327,7 +327,7 @@ def _unreadable_first_block(tmp_path, matrix):
 
 
 @pytest.mark.parametrize("mode", ["memory", "tree", "tall"])
-@pytest.mark.parametrize("cause", ["nan", "unreadable", "weights", "interrupt"])
+@pytest.mark.parametrize("cause", ["nan", "unreadable", "weights", "commit", "interrupt"])
 def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, monkeypatch):
     """A command that fails before its first commit of snapshots removes the STORE it made,
     with --resume too; one that existed before is never removed."""
@@ -340,6 +340,11 @@ def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, m
     elif cause == "weights":  # a bad --inner, refused after SOURCE was opened
         np.save(tmp_path / "w.npy", -np.ones(80))
         argv += ["--inner", tmp_path / "w.npy"]
+    elif cause == "commit":  # the first commit fails (a full disk)
+        def full(*args, **kwargs):
+            raise OSError("No space left on device")
+
+        monkeypatch.setattr("streamsvd.store.BasisStore.commit", full)
     else:  # Ctrl-C during the first update
         def interrupt(*args, **kwargs):
             raise KeyboardInterrupt
@@ -358,7 +363,7 @@ def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, m
         else:
             assert_one_line_error(status, err)
         assert not store.exists(), (resume, err)
-    if cause == "interrupt":
+    if cause in ("interrupt", "commit"):
         return
     # a store that existed before the command is kept, even when it holds no snapshot
     store = tmp_path / "kept.zarr"
@@ -556,7 +561,7 @@ def test_ingest_defaults_are_none_so_given_options_can_be_told_apart():
     _, commands = _subparsers()
     args = commands["ingest"].parse_args(["a.npy", "b.zarr"])
     for name in ("block", "eps", "rtol", "max_rank", "rule", "sweeps", "commit_every",
-                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset"):
+                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset", "inner"):
         assert getattr(args, name) is None, name
 
 
