@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import time
 from typing import Any
@@ -118,13 +119,13 @@ class StreamCompressor:
         store from another source). It may be replaced before a commit, when a resumed
         stream reads a source that gained columns.
 
-    Store contents. Besides the state, the first commit writes the data of the inner
+    Notes
+    -----
+    Store contents: besides the state, the first commit writes the data of the inner
     product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
     keep unchanged, so :meth:`open` needs no ``inner`` (an inner product of another
     class than the three of :mod:`streamsvd.inner` is recorded by fingerprint only).
 
-    Notes
-    -----
     Error bound: :attr:`error_bound` is guaranteed, ``||A - U V^T||_F <= error_bound``
     in the norm of ``M`` after every update (theorem in :mod:`streamsvd.bound`); at
     convergence (``sweeps=None``) it is the Pythagorean ``sqrt(sum of discarded
@@ -161,7 +162,6 @@ class StreamCompressor:
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.inner: InnerProduct = as_inner(inner, self.n)
-        self._inner_data = inner_arrays(self.inner) or {}
         if source_record is not None and not isinstance(source_record, SourceRecord):
             raise InputError(
                 f"`source_record` must be a SourceRecord or None; got "
@@ -216,6 +216,11 @@ class StreamCompressor:
                 raise
 
     KIND = KIND
+
+    @functools.cached_property
+    def _inner_data(self) -> dict[str, np.ndarray]:
+        """The inner product's arrays that the store keeps (none for an unknown class)."""
+        return inner_arrays(self.inner) or {}
 
     def _new_basis(self) -> BasisBackend:
         """Return the n-sized backend of this facade (in memory)."""

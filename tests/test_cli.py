@@ -700,9 +700,10 @@ def test_inner_file_for_ingest_kept_by_the_store(tmp_path, matrix, capsys, kind,
         assert "--inner must be the inner product the store" in err
 
 
-def test_tall_mode_keeps_weights_and_refuses_a_matrix(tmp_path, matrix, capsys, rng):
-    w_path, M = _inner_file(tmp_path, "weights", 80, rng)
-    m_path, _ = _inner_file(tmp_path, "sparse", 80, rng)
+def test_dask_modes_keep_the_inner_product_and_tall_refuses_a_matrix(tmp_path, matrix,
+                                                                     capsys, rng):
+    w_path, _ = _inner_file(tmp_path, "weights", 80, rng)
+    m_path, M = _inner_file(tmp_path, "sparse", 80, rng)
     src = tmp_path / "a.npy"
     np.save(src, matrix)
     store = tmp_path / "t.zarr"
@@ -714,6 +715,13 @@ def test_tall_mode_keeps_weights_and_refuses_a_matrix(tmp_path, matrix, capsys, 
     assert main(["ingest", str(src), str(store), "--tall", "--inner", str(w_path), "--quiet"]) == 0
     status, out, _ = run_cli(["info", store, "--json"], capsys)
     assert status == 0 and json.loads(out)["inner"].startswith("DiagonalInner(n=80")
+    tree = tmp_path / "tree.zarr"
+    assert main(["ingest", str(src), str(tree), "--scheduler", "threads", "--inner",
+                 str(m_path), "--quiet"]) == 0
+    assert run_cli(["export", tree, tmp_path / "u.npz"], capsys)[0] == 0
+    with np.load(tmp_path / "u.npz") as z:
+        U = z["U"]
+    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= 50 * 80 * EPS
 
 
 def test_store_that_does_not_keep_its_inner_product_needs_inner(tmp_path, matrix, capsys,
