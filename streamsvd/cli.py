@@ -502,8 +502,15 @@ def _check_resume(args: Any, sc: Any, record: Any) -> None:
 
 
 def _resuming(args: Any, store: Path) -> bool:
-    """Whether the command continues STORE (--resume and STORE exists)."""
-    exists = store.exists() and not (store.is_dir() and not any(store.iterdir()))
+    """Whether the command continues STORE (--resume and STORE holds a store).
+
+    With --resume, a path that holds no store pointer (nothing, an empty directory, or
+    the leftovers of a creation killed before its first generation) gets a new store;
+    creating refuses a directory holding anything else.
+    """
+    from .store import POINTER_NAME
+
+    exists = (store / POINTER_NAME).exists()
     if not args.resume and store.exists():
         raise StoreError(
             f"STORE {store} already exists; pass --resume to continue it, or choose "

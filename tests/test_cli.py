@@ -245,6 +245,21 @@ def test_one_resume_command_starts_and_restarts_in_every_mode(tmp_path, matrix, 
     np.testing.assert_allclose(info["amplitudes_head"], s[:10], atol=100 * 80 * EPS * s[0])
 
 
+def test_resume_replaces_the_leftovers_of_an_interrupted_creation(tmp_path, npy, capsys):
+    store = tmp_path / "s.zarr"
+    assert main(["ingest", str(npy), str(store), "--quiet"]) == 0
+    (store / "current.json").unlink()  # as a creation killed before its first generation
+    assert main(["ingest", str(npy), str(store), "--resume", "--quiet"]) == 0
+    with StreamCompressor.open(store, mode="r") as sc:
+        assert sc.n_seen == 60
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    status, _, err = run_cli(["ingest", npy, foreign, "--resume", "--quiet"], capsys)
+    assert_one_line_error(status, err)
+    assert "holds other files" in err and (foreign / "notes.txt").exists()
+
+
 def test_help_says_that_resume_creates_a_missing_store(capsys):
     status, out, _ = run_cli(["ingest", "--help"], capsys)
     text = " ".join(out.split())
