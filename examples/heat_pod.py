@@ -8,7 +8,9 @@ of a finite-element field), persisted in a local zarr store. At the end the stre
 is compared with the batch ``M``-SVD of all snapshots, after a final ``compress`` that
 converges the quasi-optimal streamed basis to the SVD of the streamed expansion.
 
-Run: ``python examples/heat_pod.py [--n 400] [--steps 2000] [--out out/heat_pod]``.
+Run: ``python examples/heat_pod.py [--n 400] [--steps 2000] [--out out/heat_pod]``. The
+store keeps the mass matrix, so ``streamsvd info out/heat_pod/pod.zarr`` (and ``export``,
+``plot``) read it as it is.
 """
 
 from __future__ import annotations

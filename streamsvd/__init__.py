@@ -75,7 +75,7 @@ _LAZY = {
 _SUBMODULES = frozenset({
     "basis", "bound", "cli", "compress", "errors", "estimator", "expansion",
     "gram_schmidt", "inner", "panels", "parallel", "parallel_tall", "parallel_tree",
-    "rotations", "rows", "sources", "store", "stream", "testing", "update",
+    "provenance", "rotations", "rows", "sources", "store", "stream", "testing", "update",
 })
 
 

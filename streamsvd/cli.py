@@ -25,7 +25,12 @@ import logging
 import math
 import os
 import re
+import shlex
+import shutil
 import sys
+import time
+from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -75,10 +80,23 @@ modes:
   --leaf-columns is for the tree mode only, --chunk-rows for the tall mode only and
   --workers for --scheduler local only; an option of another mode is refused.
 
+resume:
+  with --resume, STORE is continued from its recorded source offset if it exists and
+  created otherwise, so one command line starts an ingestion and restarts it after an
+  interruption. STORE records its options and SOURCE (path, --dataset, shape): an option
+  or a SOURCE that differs is refused, naming both values; a SOURCE that gained columns
+  is the same SOURCE, continued; --source-changed-ok continues STORE from another SOURCE.
+  A command that fails before its first commit of snapshots leaves no new STORE behind.
+
 output:
   the progress bar goes to stderr; the JSON summary (as `streamsvd info --json`) goes
   to stdout; --quiet prints neither.
 """
+
+_INNER_HELP = (
+    ".npy (1-D positive weights or a 2-D SPD matrix), .npz (a scipy sparse matrix saved "
+    "by scipy.sparse.save_npz) or .mtx (Matrix Market)"
+)
 
 
 # -------------------------------------------------------------------------- parsing
@@ -206,10 +224,21 @@ def _parser() -> argparse.ArgumentParser:
     ing.add_argument("--commit-every", metavar="C", type=_positive_int,
                      help="updates per commit to STORE, in memory and with --tall; the "
                      f"tree mode commits once (default: {_DEFAULT_COMMIT_EVERY})")
+    ing.add_argument("--inner", metavar="FILE",
+                     help="inner product in which U is orthonormal (a mass matrix, "
+                     f"quadrature weights): {_INNER_HELP}; STORE keeps it, so --resume, "
+                     "info, export and plot need it only for a store written before "
+                     "stores kept it (checked against STORE when given) (default: "
+                     "Euclidean, or the one STORE keeps)")
     ing.add_argument("--resume", action="store_true",
                      help="continue STORE from its recorded source offset, with the "
                      "options it was created with (an option given again must have the "
-                     "same value) (default: off, STORE must not exist)")
+                     "same value) and the SOURCE it was built from; create STORE when it "
+                     "does not exist yet (default: off, STORE must not exist)")
+    ing.add_argument("--source-changed-ok", action="store_true",
+                     help="with --resume, continue STORE from a SOURCE other than the one "
+                     "it records (another path or --dataset, fewer columns) (default: off, "
+                     "refused)")
     ing.add_argument("--quiet", action="store_true",
                      help="no progress bar on stderr and no summary on stdout (default: off)")
     ing.add_argument("--scheduler", metavar="S", type=_scheduler,
@@ -249,6 +278,12 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     plot.add_argument("out", metavar="OUT",
                       help="output image, .png (or .pdf, .svg); overwritten if it exists")
+    for reader in (info, exp, plot):
+        reader.add_argument("--inner", metavar="FILE",
+                            help="the inner product STORE was written with, for a store "
+                            f"that does not keep it (written before stores kept it): "
+                            f"{_INNER_HELP}; checked against STORE (default: the one STORE "
+                            "keeps, else Euclidean)")
     return ap
 
 
@@ -273,6 +308,8 @@ _REWRITES = (
      r"commit it again, or restore the store from a copy\.",
      "Restore the store from a copy."),
     (r"Pass dataset=<one of them>\.", "Pass --dataset with one of them."),
+    (r"Use the in-memory StreamCompressor, or lump the mass matrix into weights\.",
+     "Drop --tall, or lump the mass matrix into weights."),
     (r"Drop the `dataset` argument\.", "Drop --dataset."),
     (r"got dataset=('[^']*')", r"got --dataset \1"),
 )
@@ -285,6 +322,7 @@ _NAMES = {
     "sweeps": "--sweeps",
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
+    "inner": "--inner",
 }
 
 # a sentence holding Python code: a quoted call, a keyword argument, a module path
@@ -322,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         (reported on one line of stderr as ``streamsvd: error: ...``), 130 after Ctrl-C
         (one line saying what the store holds and the command that continues).
     """
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version (0) or a usage error (2), already printed
@@ -334,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(_COMMANDS[args.command](args))
     except KeyboardInterrupt:
-        print(_interrupted(args), file=sys.stderr)
+        print(_interrupted(args, argv), file=sys.stderr)
         return 130
     except (StreamSVDError, OSError, ValueError) as err:
         if args.debug:
@@ -343,19 +382,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _interrupted(args: Any) -> str:
+def _interrupted(args: Any, argv: list[str]) -> str:
     """Return the line printed after Ctrl-C: what the store holds, how to continue."""
     if args.command != "ingest":
         return "streamsvd: interrupted."
+    again = " ".join(shlex.quote(a) for a in argv if a != "--resume")
     try:
         from .store import open_store
 
         with open_store(args.store, "r") as st:
             offset = int(st.read().attrs.get("source_offset", 0))
     except (StreamSVDError, OSError, ValueError):
-        return f"streamsvd: interrupted; nothing was committed to STORE {args.store}."
-    again = " ".join(a for a in sys.argv[1:] if a != "--resume") if sys.argv[1:] else (
-        f"ingest {args.source} {args.store}")
+        return (
+            f"streamsvd: interrupted; nothing was committed to STORE {args.store}; start "
+            f"again with: streamsvd {again} --resume"
+        )
     return (
         f"streamsvd: interrupted; STORE {args.store} holds the snapshots up to column "
         f"{offset} of SOURCE (its last commit); continue with: streamsvd {again} --resume"
@@ -389,6 +430,11 @@ def _check_mode_options(args: Any, mode: str) -> None:
             f"{where}. Add --scheduler local, or drop --workers (a remote cluster is sized "
             "where it runs)."
         )
+    if args.source_changed_ok and not args.resume:
+        raise InputError(
+            "--source-changed-ok applies to --resume only (a new STORE records its SOURCE); "
+            "add --resume, or drop it."
+        )
     if args.commit_every is not None and mode == "tree":
         raise InputError(
             "--commit-every does not apply to the tree mode (--scheduler without --tall), "
@@ -396,13 +442,14 @@ def _check_mode_options(args: Any, mode: str) -> None:
         )
 
 
-def _compressor_options(args: Any, mode: str) -> dict[str, Any]:
-    """Return the options of a new store, with the command's defaults (none to resume)."""
-    if args.resume:
-        return {}
+def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
+                        ) -> dict[str, Any]:
+    """Return the options of a new store, with the command's defaults (to resume: inner)."""
+    if resume:
+        return {} if inner is None else {"inner": inner}
     sweeps = _DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
     options: dict[str, Any] = {
-        "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
+        "inner": inner, "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
         "max_rank": args.max_rank, "rule": args.rule or _DEFAULT_RULE,
         "sweeps": None if sweeps == CONVERGE else sweeps,
         "oversampling": (_DEFAULT_OVERSAMPLING if args.oversampling is None
@@ -427,9 +474,9 @@ def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
     than silently ignored.
     """
     differ = []
-    for name, flag in _STORE_OPTIONS:
+    for name, flag in (*_STORE_OPTIONS, ("chunk_rows", "--chunk-rows")):
         value = getattr(args, name)
-        if value is None:
+        if value is None or name not in recorded:
             continue
         wanted = None if value == CONVERGE else value
         if wanted != recorded[name]:
@@ -442,45 +489,135 @@ def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
         )
 
 
-def _resume_options_given(args: Any) -> bool:
-    return args.resume and any(getattr(args, name) is not None for name, _ in _STORE_OPTIONS)
+# how a difference of SourceRecord.differences is named on the command line
+_SOURCE_PARTS = {"path": "SOURCE", "dataset": "--dataset", "shape": "SOURCE of shape"}
 
 
-def _check_store_path(args: Any) -> Path:
-    store = Path(args.store)
-    if args.resume and not store.exists():
-        raise StoreError(
-            f"STORE {store} does not exist, so --resume has nothing to continue; drop "
-            "--resume to create it."
+def _check_resume(args: Any, sc: Any, record: Any) -> None:
+    """Refuse to continue the compressor ``sc`` with other options or another SOURCE.
+
+    ``record`` describes SOURCE as given. Its snapshot size must be the store's; its
+    path, dataset and number of columns are checked against the source the store
+    records (a store written before stores recorded it is not checked), unless
+    --source-changed-ok is given. On success the store will record ``record``.
+    """
+    recorded = sc._options()
+    if hasattr(sc, "chunk_rows"):  # a tall store keeps the row chunks of its panels
+        recorded["chunk_rows"] = sc.chunk_rows
+    _check_resume_options(args, recorded)
+    n = record.shape[0]
+    if n != sc.n:
+        raise ShapeMismatchError(
+            f"SOURCE has snapshots of size {n}; STORE {args.store} holds a basis of size "
+            f"{sc.n}. Pass the source the store was built from."
         )
+    source = sc.source_record
+    differ = [] if source is None else source.differences(record)
+    if differ and not args.source_changed_ok:
+        said = ", ".join(f"{_SOURCE_PARTS[what]} {given} (STORE has {had})"
+                         for what, given, had in differ)
+        raise InputError(
+            f"{said}: STORE {args.store} was built from another source. Pass the SOURCE "
+            "(and --dataset) it was built from, or add --source-changed-ok to continue it "
+            "from this one."
+        )
+    if differ:
+        logger.warning("continuing STORE %s from another source (%s)", args.store,
+                       ", ".join(f"{what} {had} -> {given}" for what, given, had in differ))
+    sc.source_record = record
+
+
+def _resuming(args: Any, store: Path) -> bool:
+    """Whether the command continues STORE (--resume and STORE holds a store).
+
+    With --resume, a path that holds no store pointer (nothing, an empty directory, or
+    the leftovers of a creation killed before its first generation) gets a new store;
+    creating refuses a directory holding anything else.
+    """
+    from .store import POINTER_NAME
+
+    exists = (store / POINTER_NAME).exists()
     if not args.resume and store.exists():
         raise StoreError(
             f"STORE {store} already exists; pass --resume to continue it, or choose "
             "another path."
         )
-    return store
+    if args.resume and not exists:
+        logger.info("STORE %s does not exist yet: --resume creates it", store)
+    return bool(args.resume and exists)
+
+
+def _source_record(args: Any) -> Any:
+    """Open SOURCE (checking it) and return its record."""
+    from .provenance import SourceRecord
+    from .sources import open_source
+
+    with open_source(args.source, dataset=args.dataset) as src:
+        return SourceRecord.of(args.source, dataset=args.dataset, shape=src.shape,
+                               description=src.description)
+
+
+@contextlib.contextmanager
+def _removed_on_failure(store: Path, *, new: bool) -> Iterator[None]:
+    """Remove STORE if this command created it and fails before committing a snapshot."""
+    started = math.floor(time.time())
+    try:
+        yield
+    except BaseException:
+        if new:
+            _remove_new_store(store, since=started)
+        raise
+
+
+def _remove_new_store(store: Path, *, since: float) -> None:
+    """Delete STORE if it holds no snapshot, no writer has it and it was created since."""
+    from .store import open_store
+
+    try:
+        with open_store(store, "a") as st:  # the writer lock: no other writer is at work
+            created = datetime.fromisoformat(st.root_attrs["created"]).timestamp()
+            state = st.read()  # generation 0 (no arrays) or a commit of no snapshot
+            empty = not state.arrays or int(state.attrs.get("source_offset", 0)) == 0
+    except (StreamSVDError, OSError, ValueError, KeyError):
+        return  # not a store this command made, or one another writer holds
+    if empty and created >= since:
+        logger.info("removing STORE %s: the command failed before its first commit", store)
+        shutil.rmtree(store, ignore_errors=True)
+
+
+def _load_inner(args: Any) -> Any:
+    if args.inner is None:
+        return None
+    from .inner import load_inner
+
+    return load_inner(args.inner)
 
 
 def _ingest(args: Any) -> int:
     mode = _mode(args)
     _check_mode_options(args, mode)
-    if args.oversampling is not None and args.max_rank is None and not args.resume:
+    store = Path(args.store)
+    resume = _resuming(args, store)
+    if args.oversampling is not None and args.max_rank is None and not resume:
         raise InputError(
             "--oversampling adds terms to --max-rank while streaming; add --max-rank K, or "
             "drop --oversampling."
         )
-    options = _compressor_options(args, mode)
-    store = _check_store_path(args)
+    options = _compressor_options(args, mode, resume=resume, inner=_load_inner(args))
     block = args.block or _DEFAULT_BLOCK
-    try:
-        if mode == "memory":
-            summary = _ingest_memory(args, store, block, options)
-        else:
-            summary = _ingest_dask(args, mode, store, block, options)
-    except StoreMismatchError:
-        if args.resume:
-            _check_store_kind(store, tall=mode == "tall")
-        raise
+    record = _source_record(args)
+    with _removed_on_failure(store, new=not resume):
+        try:
+            if mode == "memory":
+                summary = _ingest_memory(args, store, block, options, resume=resume,
+                                         record=record)
+            else:
+                summary = _ingest_dask(args, mode, store, block, options, resume=resume,
+                                       record=record)
+        except StoreMismatchError:
+            if resume:
+                _check_store_kind(store, tall=mode == "tall")
+            raise
     if not args.quiet:
         print(json.dumps(summary, indent=2))
     return 0
@@ -491,26 +628,21 @@ def _final(args: Any) -> bool:
     return args.final_sweeps in (None, CONVERGE)
 
 
-def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
-                   ) -> dict[str, Any]:
+def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any], *,
+                   resume: bool, record: Any) -> dict[str, Any]:
     from tqdm import tqdm
 
     from .sources import open_source
     from .stream import StreamCompressor, summary_of
 
     with open_source(args.source, dataset=args.dataset) as src:
-        if args.resume:
-            sc = StreamCompressor.open(store)
+        if resume:
+            sc = StreamCompressor.open(store, **options)
         else:
-            sc = StreamCompressor(src.n, store=store, **options)
+            sc = StreamCompressor(src.n, store=store, source_record=record, **options)
         try:
-            if args.resume:
-                _check_resume_options(args, sc._options())
-            if src.n != sc.n:
-                raise ShapeMismatchError(
-                    f"SOURCE has snapshots of size {src.n}; STORE {store} holds a basis of "
-                    f"size {sc.n}. Pass the source the store was built from."
-                )
+            if resume:
+                _check_resume(args, sc, record)
             start = sc.source_offset
             bar = tqdm(total=src.m, initial=start, unit="col", disable=args.quiet,
                        dynamic_ncols=True, desc="ingest", file=sys.stderr)
@@ -528,13 +660,13 @@ def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
             sc.close(finalize=False)
 
 
-def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any]
-                 ) -> dict[str, Any]:
+def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any], *,
+                 resume: bool, record: Any) -> dict[str, Any]:
     from .parallel import ingest
 
-    if _resume_options_given(args):  # the engine takes no option with resume: check here
-        with _open(store) as sc:
-            _check_resume_options(args, sc._options())
+    if resume:  # the engine takes no option with resume: check here
+        with _open(store, inner=options.get("inner")) as sc:
+            _check_resume(args, sc, record)
     # dask's progress bars (ProgressBar, distributed.progress) write to stdout, which
     # belongs to the command's output: send whatever the engine prints to stderr
     try:
@@ -543,7 +675,7 @@ def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[st
                 args.source, store, dataset=args.dataset, block=block,
                 scheduler=args.scheduler, workers=args.workers, tall=mode == "tall",
                 leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows,
-                resume=args.resume, progress=not args.quiet, finalize=_final(args),
+                resume=resume, progress=not args.quiet, finalize=_final(args),
                 **options,
             )
     except NonFiniteError:
@@ -593,8 +725,11 @@ def _check_store_kind(store: Path, *, tall: bool) -> None:
 # ------------------------------------------------------------------- info, export, plot
 
 
-def _open(path: Any) -> Any:
-    """Open the compressor of a store read-only, whichever kind wrote it."""
+def _open(path: Any, *, inner: Any = None) -> Any:
+    """Open the compressor of a store read-only, whichever kind wrote it.
+
+    ``inner``: the inner product, needed only for a store that does not keep its own.
+    """
     if Path(path).is_file():
         raise StoreError(
             f"STORE {path} is a file; a basis store is a directory written by "
@@ -603,17 +738,17 @@ def _open(path: Any) -> Any:
     from .stream import StreamCompressor
 
     try:
-        return StreamCompressor.open(path, mode="r")
+        return StreamCompressor.open(path, mode="r", inner=inner)
     except StoreMismatchError:
         from .parallel import open_compressor  # a tall store: dask is needed to read it
 
-        return open_compressor(path, mode="r")
+        return open_compressor(path, mode="r", inner=inner)
 
 
 def _info(args: Any) -> int:
     from .stream import summary_of
 
-    with _open(args.store) as sc:
+    with _open(args.store, inner=_load_inner(args)) as sc:
         summary = summary_of(sc)
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -621,6 +756,12 @@ def _info(args: Any) -> int:
     opts = summary["options"]
     sweeps = CONVERGE if opts["sweeps"] is None else opts["sweeps"]
     print(f"store         {summary['store']}")
+    source = summary["source"]
+    if source is not None:
+        n, m = source["shape"]
+        where = "" if source["resolved"] in (None, source["path"]) else f", {source['resolved']}"
+        print(f"source        {source['description']} ({n} x {m}){where}")
+    print(f"inner product {summary['inner']}")
     print(f"snapshots     n = {summary['n']}, absorbed {summary['n_seen']} "
           f"(source offset {summary['source_offset']}) in {summary['updates']} "
           f"update{'' if summary['updates'] == 1 else 's'}")
@@ -644,7 +785,7 @@ def _export(args: Any) -> int:
         raise InputError(f"OUT must end with .npz, .h5 or .hdf5; got {out.name!r}.")
     import numpy as np
 
-    with _open(args.store) as sc:
+    with _open(args.store, inner=_load_inner(args)) as sc:
         e = sc.expansion
         bound = sc.error_bound
     data = {"U": e.U, "V": e.V, "amplitudes": e.amplitudes, "error_bound": np.array(bound)}
@@ -720,7 +861,7 @@ def _figure(sc: Any, *, name: str) -> Any:
 
 def _plot(args: Any) -> int:
     out = Path(args.out)
-    with _open(args.store) as sc:
+    with _open(args.store, inner=_load_inner(args)) as sc:
         fig = _figure(sc, name=Path(args.store).name)
     fig.savefig(out, dpi=120)
     print(f"wrote {out}")

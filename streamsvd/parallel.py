@@ -39,6 +39,7 @@ from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreMismatchError
 from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
 from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
+from .provenance import SourceRecord
 from .store import open_store
 from .stream import StreamCompressor, summary_of
 
@@ -108,20 +109,22 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
         yield client
 
 
-def open_compressor(path: Any, *, mode: str = "r", client: Any = None,
+def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
                     ) -> StreamCompressor | TallCompressor:
     """Reopen the compressor of a store, in memory or tall, whichever wrote it.
 
     Both kinds offer ``n``, ``n_seen``, ``rank``, ``amplitudes``, ``error_bound``,
     ``discarded_energy``, ``history``, ``orthogonality_error()``, ``expansion``,
-    ``source_offset``, ``store_path`` and ``close()``.
+    ``source_offset``, ``source_record``, ``store_path`` and ``close()``. ``inner`` is
+    needed only for a store that does not keep its inner product (see
+    :meth:`StreamCompressor.open`).
     """
     with open_store(path, "r") as st:
         kind = st.read().attrs.get("kind")
     if kind == KIND:
-        return TallCompressor.open(path, mode=mode, client=client)
+        return TallCompressor.open(path, mode=mode, client=client, inner=inner)
     if kind == "streamsvd.StreamCompressor":
-        return StreamCompressor.open(path, mode=mode)
+        return StreamCompressor.open(path, mode=mode, inner=inner)
     raise StoreMismatchError(
         f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
         "or TallCompressor store."
@@ -156,10 +159,11 @@ def tall_compress(
     store : str or path-like, optional
         Store of the basis: created, or continued from its recorded source offset with
         ``resume=True``. Every update is committed (``commit_every``); a failure leaves
-        the store at its last commit.
+        the store at its last commit. The source is recorded in the store
+        (:attr:`~streamsvd.StreamCompressor.source_record`).
     resume : bool
-        Continue the existing store (its options are used; pass only ``inner`` when it
-        holds weights).
+        Continue the existing store (its options and weights are used; ``inner``, if
+        passed, is checked against them).
     chunk_rows : int, optional
         Rows per chunk: by default the source's row chunks when it is a dask or zarr
         array chunked uniformly by rows, else 16384.
@@ -181,6 +185,8 @@ def tall_compress(
     spec = SourceSpec.of(source, dataset=dataset)
     x = _as_dask(spec, chunk_rows)
     rows = chunk_rows if chunk_rows is not None else _uniform_rows(x)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
     if resume:
         inner = options.pop("inner", None)
         if store is None or options:
@@ -195,8 +201,10 @@ def tall_compress(
                 f"`source` must have snapshots of size {tc.n} (the store's n); got {spec.n} "
                 f"from {spec.description}. Pass the source the store was built from."
             )
+        tc.source_record = record
     else:
-        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client, **options)
+        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client,
+                            source_record=record, **options)
     try:
         bar = None
         if progress:

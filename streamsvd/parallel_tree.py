@@ -40,6 +40,7 @@ from threadpoolctl import threadpool_limits
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
 from .inner import as_inner
+from .provenance import SourceRecord
 from .sources import Source, open_source
 from .stream import StreamCompressor
 
@@ -376,10 +377,11 @@ def tree_compress(
         the store's compressor is reopened first (taking its writer lock), the columns
         from its recorded source offset on are compressed, and the root is merged into
         it (one commit). A failure anywhere before that commit leaves an existing store
-        as it was.
+        as it was. The source is recorded in the store
+        (:attr:`~streamsvd.StreamCompressor.source_record`).
     resume : bool
-        Continue the existing store at ``store`` (its options are used; pass only
-        ``inner`` when the store was not written with the Euclidean inner product).
+        Continue the existing store at ``store`` (its options and inner product are
+        used; ``inner``, if passed, is checked against the store's).
     progress : bool
         Show dask's progress bar.
     **options
@@ -418,6 +420,8 @@ def tree_compress(
     if leaf_columns is not None:
         leaf_columns = cast(int, check_positive_int(leaf_columns, "leaf_columns"))
     spec = SourceSpec.of(source, dataset=dataset)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
     target: StreamCompressor | None = None
     path = None if store is None else Path(store)
     if resume:
@@ -460,8 +464,10 @@ def tree_compress(
         if target is None:
             # a new store: the root is written as it is (one commit, no further update)
             target = root if root is not None else StreamCompressor(spec.n, **opts)
+            target.source_record = record
             target.save(path)
         elif root is not None:
+            target.source_record = record
             target.merge(root)
     except BaseException:
         if target is not None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import time
 from typing import Any
@@ -42,7 +43,8 @@ from .compress import fix_signs
 from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import default_reject_tol
-from .inner import InnerProduct, as_inner, check_same_inner
+from .inner import InnerProduct, as_inner, check_same_inner, inner_arrays, inner_from_arrays
+from .provenance import SourceRecord
 from .rotations import RULES
 from .rows import RowFactor
 from .store import BasisStore, open_store
@@ -73,6 +75,17 @@ def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
     update: they continue so.
     """
     return {"oversampling": 0, **attrs["options"]}
+def _stored_inner(path: Any, state: Any) -> InnerProduct:
+    """Return the inner product a store keeps; Euclidean when it keeps none."""
+    stored = inner_from_arrays(state.arrays)
+    if stored is None:
+        return as_inner(None)
+    if stored.fingerprint != state.inner_fingerprint:
+        raise StoreFormatError(
+            f"`path` {path!s} is damaged: the inner product it keeps does not match its "
+            f"fingerprint {state.inner_fingerprint[:12]}... Restore the store from a copy."
+        )
+    return stored
 
 
 class StreamCompressor:
@@ -121,6 +134,11 @@ class StreamCompressor:
     commit_every : int
         Updates between two commits (the last ones are committed by :meth:`flush` or
         :meth:`close`).
+    source_record : SourceRecord, optional
+        Where the snapshots come from (path, dataset, shape), kept in the attributes of
+        every commit as :attr:`source_record` (the command line refuses to resume a
+        store from another source). It may be replaced before a commit, when a resumed
+        stream reads a source that gained columns.
 
     The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
@@ -129,6 +147,11 @@ class StreamCompressor:
 
     Notes
     -----
+    Store contents: besides the state, the first commit writes the data of the inner
+    product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
+    keep unchanged, so :meth:`open` needs no ``inner`` (an inner product of another
+    class than the three of :mod:`streamsvd.inner` is recorded by fingerprint only).
+
     Error bound: :attr:`error_bound` is guaranteed, ``||A - U V^T||_F <= error_bound``
     in the norm of ``M`` after every update (theorem in :mod:`streamsvd.bound`); at
     convergence (``sweeps=None``) it is the Pythagorean ``sqrt(sum of discarded
@@ -162,9 +185,16 @@ class StreamCompressor:
         right_vectors: bool = True,
         store: Any = None,
         commit_every: int = 1,
+        source_record: SourceRecord | None = None,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.inner: InnerProduct = as_inner(inner, self.n)
+        if source_record is not None and not isinstance(source_record, SourceRecord):
+            raise InputError(
+                f"`source_record` must be a SourceRecord or None; got "
+                f"{type(source_record).__name__}. Build one with `SourceRecord.of(...)`."
+            )
+        self.source_record = source_record
         self.eps = check_nonnegative(eps, "eps")
         self.rtol = None if rtol is None else check_nonnegative(rtol, "rtol")
         self.max_rank = check_positive_int(max_rank, "max_rank", allow_none=True)
@@ -206,7 +236,12 @@ class StreamCompressor:
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
                 attrs=self._attrs(None),
             )
-            self._commit(None, self.source_offset)
+            try:
+                self._commit(None, self.source_offset)
+            except BaseException:
+                self._store.close()  # release the lock of the store left at generation 0
+                self._store = None
+                raise
 
     KIND = KIND
 
@@ -214,6 +249,10 @@ class StreamCompressor:
     def streaming_rank(self) -> int | None:
         """Most terms kept between updates: ``max_rank + oversampling`` (None: no cap)."""
         return None if self.max_rank is None else self.max_rank + self.oversampling
+    @functools.cached_property
+    def _inner_data(self) -> dict[str, np.ndarray]:
+        """The inner product's arrays that the store keeps (none for an unknown class)."""
+        return inner_arrays(self.inner) or {}
 
     def _new_basis(self) -> BasisBackend:
         """Return the n-sized backend of this facade (in memory)."""
@@ -229,8 +268,9 @@ class StreamCompressor:
         path : str or path-like
             The store written with ``StreamCompressor(..., store=path)``.
         inner : optional
-            The inner product the store was written with (checked by fingerprint);
-            Euclidean when omitted.
+            The inner product the store was written with (checked by fingerprint). When
+            omitted, the one the store keeps (Euclidean if none); a store written before
+            stores kept it, with another inner product than the Euclidean one, needs it.
         mode : {"a", "r"}
             ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
         """
@@ -259,7 +299,14 @@ class StreamCompressor:
                     f"this version reads layout {LAYOUT}. Ingest the snapshots again into a "
                     "new store."
                 )
-            ip = as_inner(inner, state.n)
+            ip = _stored_inner(path, state) if inner is None else as_inner(inner, state.n)
+            if inner is None and ip.fingerprint != state.inner_fingerprint:
+                raise StoreMismatchError(
+                    f"`inner` must be given: the store {path!s} was written with an inner "
+                    f"product (fingerprint {state.inner_fingerprint[:12]}...) that it does not "
+                    "keep (an earlier version of streamsvd, or an inner product of another "
+                    "class). Pass the same matrix or weights."
+                )
             if ip.fingerprint != state.inner_fingerprint:
                 raise StoreMismatchError(
                     f"`inner` must be the inner product the store {path!s} was written with "
@@ -268,9 +315,13 @@ class StreamCompressor:
                 )
             sc = cls._reopen(state.n, ip, attrs, path, **backend)
             sc._restore(state.arrays, attrs)
+            sc.source_record = SourceRecord.from_attrs(attrs.get("source"))
             sc._store = st
             if state.arrays:
-                sc._tracker.restored(state.generation, sc._state, state.arrays["history"])
+                sc._tracker.restored(
+                    state.generation, sc._state, state.arrays["history"],
+                    inner=all(name in state.arrays for name in sc._inner_data),
+                )
             sc._reopened(mode)
         except BaseException:
             st.close()
@@ -289,7 +340,8 @@ class StreamCompressor:
 
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
-        out = StreamCompressor(self.n, inner=self.inner, **self._options())
+        out = StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
+                               **self._options())
         out._state = copy.deepcopy(self._state)
         out._history = list(self._history)
         out.source_offset = self.source_offset
@@ -381,6 +433,7 @@ class StreamCompressor:
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
+            "source": None if self.source_record is None else self.source_record.to_attrs(),
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
@@ -413,6 +466,7 @@ class StreamCompressor:
         appended = self._tracker.appended(
             self._store.generation, s, basis=dict(basis), compact=compact,
             V0=None if rows is None else rows[0], replaced=replaced, history=self._history,
+            inner=self._inner_data,
         )
         attrs = self._attrs(plan)
         attrs.update(
@@ -437,7 +491,8 @@ class StreamCompressor:
             # killed between the creation of the store and its first commit: the store
             # holds the options only, and nothing was absorbed
             return
-        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()}
+        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
+             if not k.startswith("inner_")}
         pieces, start = [], 0
         for shape in attrs["small_layout"]:
             size = int(np.prod(shape))
@@ -714,5 +769,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "source_offset": sc.source_offset, "updates": len(sc.history),
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
-        "options": sc._options(), "amplitudes_head": sc.amplitudes[:10].tolist(),
+        "options": sc._options(), "inner": repr(sc.inner),
+        "source": None if sc.source_record is None else sc.source_record.to_attrs(),
+        "amplitudes_head": sc.amplitudes[:10].tolist(),
     }

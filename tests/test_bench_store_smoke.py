@@ -40,3 +40,16 @@ def test_store_benchmark_tiny(bench, tmp_path):
     mod.main(["--out", str(tmp_path), "--ms", "60", "--n", "20", "--block", "3", "--updates",
               "2", "--max-rank", "6", "--baseline", str(baseline)])
     assert (tmp_path / "store_benchmark.png").stat().st_size > 0
+
+
+def test_store_benchmark_tiny_in_a_mass_matrix_product(bench, tmp_path):
+    """With --inner mass the store keeps the matrix: written by the save, never again."""
+    report = bench("store_benchmark").main([
+        "--out", str(tmp_path), "--dir", str(tmp_path / "stores"), "--ms", "60,600",
+        "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6", "--inner", "mass",
+    ])
+    assert (tmp_path / "store_benchmark_mass.png").stat().st_size > 0
+    assert not (tmp_path / "store_benchmark.json").exists()
+    small, large = report["results"]
+    assert small["same_as_in_memory"] and large["store_reopens_bit_for_bit"]
+    assert large["written_bytes"]["max"] < large["V0_bytes"] / 4
