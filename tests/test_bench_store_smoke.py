@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from _figures import assert_drawn
+
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
@@ -21,7 +23,7 @@ def test_store_benchmark_tiny(bench, tmp_path):
         "--out", str(tmp_path), "--dir", str(tmp_path / "stores"), "--ms", "60,600",
         "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6",
     ])
-    assert (tmp_path / "store_benchmark.png").stat().st_size > 0
+    assert_drawn(tmp_path / "store_benchmark.png")
     saved = json.loads((tmp_path / "store_benchmark.json").read_text())
     assert [r["m"] for r in saved["results"]] == [60, 600]
     for r in report["results"]:
@@ -39,7 +41,7 @@ def test_store_benchmark_tiny(bench, tmp_path):
     (tmp_path / "store_benchmark.png").unlink()
     mod.main(["--out", str(tmp_path), "--ms", "60", "--n", "20", "--block", "3", "--updates",
               "2", "--max-rank", "6", "--baseline", str(baseline)])
-    assert (tmp_path / "store_benchmark.png").stat().st_size > 0
+    assert_drawn(tmp_path / "store_benchmark.png")
 
 
 def test_store_benchmark_tiny_in_a_mass_matrix_product(bench, tmp_path):
@@ -48,7 +50,7 @@ def test_store_benchmark_tiny_in_a_mass_matrix_product(bench, tmp_path):
         "--out", str(tmp_path), "--dir", str(tmp_path / "stores"), "--ms", "60,600",
         "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6", "--inner", "mass",
     ])
-    assert (tmp_path / "store_benchmark_mass.png").stat().st_size > 0
+    assert_drawn(tmp_path / "store_benchmark_mass.png")
     assert not (tmp_path / "store_benchmark.json").exists()
     small, large = report["results"]
     assert small["same_as_in_memory"] and large["store_reopens_bit_for_bit"]
