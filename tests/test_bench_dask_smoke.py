@@ -6,7 +6,6 @@ import math
 from pathlib import Path
 
 import pytest
-
 from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"

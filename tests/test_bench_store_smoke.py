@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 import pytest
-
 from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"

@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-
 from _figures import assert_drawn
 
 ROOT = Path(__file__).resolve().parents[1]
