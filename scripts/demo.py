@@ -92,21 +92,30 @@ def main(argv: list[str] | None = None) -> int:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    ax[0].semilogy(s_ref, "k-", lw=2, label="LAPACK")
-    ax[0].semilogy(streamed.amplitudes, "c.", ms=3, label="streamed (1 sweep / block)")
-    ax[0].semilogy(final.amplitudes, "r.", ms=2, label="after final sweeps")
-    ax[0].set(xlabel="mode", ylabel="singular value", title=name)
+    def modes(x: np.ndarray) -> np.ndarray:
+        return np.arange(1, x.size + 1)
+
+    ax[0].semilogy(modes(s_ref), s_ref, "k-", lw=2, label="LAPACK")
+    ax[0].semilogy(modes(streamed.amplitudes), streamed.amplitudes, "c.", ms=3,
+                   label="streamed (1 sweep / block)")
+    ax[0].semilogy(modes(final.amplitudes), final.amplitudes, "r.", ms=2,
+                   label="after final sweeps")
+    ax[0].set(xlabel="mode i", ylabel="singular value (units of the data)", title=name)
     ax[0].legend()
-    tiny = np.finfo(np.float64).tiny
+    floor = np.finfo(np.float64).eps / 10  # exact agreement drawn at eps / 10
     for e, style, label in ((streamed, "c.", "streamed"), (final, "r.", "final")):
         k = min(e.rank, s_ref.size)
         err = np.abs(e.amplitudes[:k] - s_ref[:k]) / s_ref[0]
-        ax[1].semilogy(np.arange(1, k + 1), np.maximum(err, tiny), style, ms=3, label=label)
-    ax[1].set(xlabel="mode", ylabel="|sigma_i - sigma_i(LAPACK)| / sigma_1",
+        ax[1].semilogy(np.arange(1, k + 1), np.maximum(err, floor), style, ms=3, label=label)
+    ax[1].axhline(np.finfo(np.float64).eps, color="0.5", ls=":", lw=1, label="eps")
+    ax[1].set(xlabel="mode i", ylabel="|sigma_i - sigma_i(LAPACK)| / sigma_1",
               title=f"singular values, rule {args.rule}")
     ax[1].legend()
-    ax[2].semilogy([max(h.orthogonality, 1e-18) for h in history], "r.-")
-    ax[2].set(xlabel="update", ylabel="||U^T U - I||_2", title="orthogonality")
+    ax[2].semilogy(np.arange(1, len(history) + 1),
+                   [max(h.orthogonality, 1e-18) for h in history], "r.-")
+    ax[2].set(xlabel="update", ylabel="||U^T U - I||_2 (dimensionless)",
+              title="orthogonality")
+    ax[2].xaxis.get_major_locator().set_params(integer=True)
     fig.tight_layout()
     fig.savefig(args.out / "spectrum.png", dpi=120)
     plt.close(fig)
