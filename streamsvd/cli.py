@@ -123,6 +123,76 @@ def _sweeps(text: str) -> int | str:
     return value
 
 
+def _storage_option(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE``: VALUE as JSON when it parses (true, 3, "x"), else as the text."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or any(not part for part in key.strip().split(".")):
+        raise argparse.ArgumentTypeError(
+            f"must be KEY=VALUE (for example endpoint_url=http://localhost:9000 or "
+            f"client_kwargs.region_name=eu-west-1); got {text!r}"
+        )
+    try:
+        parsed: Any = json.loads(value)
+    except ValueError:
+        parsed = value
+    return key.strip(), parsed
+
+
+def _storage_options(args: Any) -> dict[str, Any] | None:
+    """Return the ``--storage-option`` pairs as a dict (a dotted KEY nests), or None."""
+    pairs = getattr(args, "storage_option", None)
+    if not pairs:
+        return None
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        *parents, last = key.split(".")
+        node = out
+        for part in parents:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise InputError(
+                    f"--storage-option {key} nests below {part}, which was given a value "
+                    f"({child!r}); give either {part}=VALUE or {part}.KEY=VALUE."
+                )
+            node = child
+        node[last] = value
+    return out
+
+
+def _add_storage_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--storage-option", metavar="KEY=VALUE", type=_storage_option, action="append",
+        help="option of the object store of an s3:// (or other fsspec) URL, for SOURCE and "
+        "STORE alike, such as endpoint_url=URL, key=ID, secret=S, anon=true; a dotted KEY "
+        "nests (client_kwargs.region_name=R); repeatable (default: none; the AWS_* "
+        "environment variables apply)",
+    )
+
+
+def _locate(args: Any) -> None:
+    """Turn STORE into a storage and a SOURCE URL into its zarr array (with the options)."""
+    from .sources import open_zarr_url
+    from .storage import is_url, open_storage
+
+    options = _storage_options(args)
+    urls = [getattr(args, name) for name in ("store", "source") if hasattr(args, name)]
+    if options and not any(is_url(u) for u in urls):
+        raise InputError(
+            "--storage-option only applies to URLs (s3://...); SOURCE and STORE are local "
+            "paths. Drop --storage-option."
+        )
+    args.store = open_storage(
+        args.store, storage_options=options if is_url(args.store) else None,
+        argument="store",
+    )
+    if is_url(getattr(args, "source", None)):
+        args.source = open_zarr_url(
+            args.source, dataset=args.dataset,
+            storage_options=options,  # the same options as STORE's
+        )
+        args.dataset = None
+
+
 def _scheduler(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError(
@@ -152,11 +222,11 @@ def _parser() -> argparse.ArgumentParser:
         epilog=_INGEST_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ing.add_argument("source", metavar="SOURCE",
-                     help=".npy, .h5/.hdf5/.he5 file or zarr array/group; columns are "
-                     "snapshots")
+                     help=".npy, .h5/.hdf5/.he5 file or zarr array/group, or the URL of a "
+                     "zarr array/group (s3://BUCKET/run.zarr); columns are snapshots")
     ing.add_argument("store", metavar="STORE",
-                     help="basis store directory (zarr v3): created, or continued with "
-                     "--resume")
+                     help="basis store (zarr v3): a directory or a URL (file://, "
+                     "s3://BUCKET/basis.zarr); created, or continued with --resume")
     ing.add_argument("--dataset", metavar="NAME",
                      help="dataset of an HDF5 file or array of a zarr group (default: the "
                      "only one there)")
@@ -205,6 +275,7 @@ def _parser() -> argparse.ArgumentParser:
     ing.add_argument("--chunk-rows", metavar="R", type=_positive_int,
                      help="rows per chunk of the panels, tall mode only (default: the "
                      "source's row chunks, else 16384)")
+    _add_storage_option(ing)
 
     info = sub.add_parser("info", help="summarise a store",
                           description="Summarise a basis store: sizes, rank, options, "
@@ -212,6 +283,7 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     info.add_argument("--json", action="store_true",
                       help="print the summary as JSON (default: off, a text report)")
+    _add_storage_option(info)
 
     exp = sub.add_parser("export", help="write U, V and the amplitudes to .npz or .h5",
                          description="Write U, V, the amplitudes ||v_i|| and the error "
@@ -219,6 +291,7 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     exp.add_argument("out", metavar="OUT",
                      help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
+    _add_storage_option(exp)
 
     plot = sub.add_parser("plot", help="amplitudes, energy and orthogonality as PNG",
                           description="Plot the amplitudes, the cumulative energy and the "
@@ -226,6 +299,7 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     plot.add_argument("out", metavar="OUT",
                       help="output image, .png (or .pdf, .svg); overwritten if it exists")
+    _add_storage_option(plot)
     return ap
 
 
@@ -261,6 +335,7 @@ _NAMES = {
     "max_rank": "--max-rank", "rule": "--rule", "sweeps": "--sweeps",
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
+    "storage_options": "--storage-option",
 }
 
 # a sentence holding Python code: a quoted call, a keyword argument, a module path
@@ -308,6 +383,7 @@ def main(argv: list[str] | None = None) -> int:
         # (here, lazily); the config can be given by environment, which workers inherit
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     try:
+        _locate(args)
         return int(_COMMANDS[args.command](args))
     except KeyboardInterrupt:
         print(_interrupted(args), file=sys.stderr)
@@ -420,8 +496,8 @@ def _resume_options_given(args: Any) -> bool:
     return args.resume and any(getattr(args, name) is not None for name, _ in _STORE_OPTIONS)
 
 
-def _check_store_path(args: Any) -> Path:
-    store = Path(args.store)
+def _check_store_path(args: Any) -> Any:
+    store = args.store  # a storage (see _locate)
     if args.resume and not store.exists():
         raise StoreError(
             f"STORE {store} does not exist, so --resume has nothing to continue; drop "
@@ -554,7 +630,9 @@ def _check_store_kind(store: Path, *, tall: bool) -> None:
 
 def _open(path: Any) -> Any:
     """Open the compressor of a store read-only, whichever kind wrote it."""
-    if Path(path).is_file():
+    from .storage import open_storage
+
+    if open_storage(path).is_file():
         raise StoreError(
             f"STORE {path} is a file; a basis store is a directory written by "
             "`streamsvd ingest`."
@@ -684,7 +762,7 @@ def _figure(sc: Any, *, name: str) -> Any:
 def _plot(args: Any) -> int:
     out = Path(args.out)
     with _open(args.store) as sc:
-        fig = _figure(sc, name=Path(args.store).name)
+        fig = _figure(sc, name=Path(str(args.store).rstrip("/")).name)
     fig.savefig(out, dpi=120)
     print(f"wrote {out}")
     return 0

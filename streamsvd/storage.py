@@ -29,13 +29,14 @@ An object store needs the optional packages of the ``s3`` extra
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import shutil
 import uuid
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any, Protocol, TypeVar, cast
 
 from .errors import InputError, OptionalDependencyError, StoreError
 
@@ -123,6 +124,9 @@ class LocalStorage:
 
     def __repr__(self) -> str:
         return f"LocalStorage({self.url!r})"
+
+    def __str__(self) -> str:
+        return self.url
 
     def _path(self, key: str) -> Path:
         return self.root / key if key else self.root
@@ -225,6 +229,43 @@ class LocalStorage:
 # ----------------------------------------------------------------------- object
 
 
+def remote_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions an object-store client raises besides :class:`OSError` (botocore's)."""
+    try:
+        from botocore.exceptions import BotoCoreError
+    except ImportError:
+        return ()
+    return (BotoCoreError,)
+
+
+@contextlib.contextmanager
+def _reaching(url: str) -> Iterator[None]:
+    """Report a failure to reach the object store as a StoreError naming ``url``."""
+    errors = remote_errors()
+    try:
+        yield
+    except errors as exc:
+        raise StoreError(
+            f"`store` {url} cannot be reached ({type(exc).__name__}: {exc}). Check the "
+            "endpoint, the network and the credentials (AWS_* variables, "
+            "`storage_options`)."
+        ) from exc
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _reached(method: _F) -> _F:
+    """Run an :class:`ObjectStorage` method under :func:`_reaching`."""
+
+    @functools.wraps(method)
+    def wrapper(self: ObjectStorage, *args: Any, **kwargs: Any) -> Any:
+        with _reaching(self.url):
+            return method(self, *args, **kwargs)
+
+    return cast(_F, wrapper)
+
+
 def _precondition_failed(exc: BaseException) -> bool:
     """Whether ``exc`` (as s3fs translates it) is an HTTP 412 or 409 refusal."""
     text = str(exc)
@@ -271,6 +312,9 @@ class ObjectStorage:
     def __repr__(self) -> str:
         return f"ObjectStorage({self.url!r})"
 
+    def __str__(self) -> str:
+        return self.url
+
     def __reduce__(self) -> Any:
         return (ObjectStorage, (self.url, self.storage_options))
 
@@ -281,20 +325,24 @@ class ObjectStorage:
         bucket, _, rest = self._full(key).partition("/")
         return bucket, rest
 
+    @_reached
     def exists(self) -> bool:
         """Whether an object exists below the prefix (or the prefix is an object)."""
         self.fs.invalidate_cache(self.path)
         return bool(self.fs.exists(self.path))
 
+    @_reached
     def is_file(self) -> bool:
         """Whether the prefix names an object."""
         self.fs.invalidate_cache(self.path)
         return bool(self.fs.isfile(self.path))
 
+    @_reached
     def get(self, key: str) -> bytes:
         """Return the bytes of the object ``key``."""
         return cast(bytes, self.fs.cat_file(self._full(key)))
 
+    @_reached
     def get_tagged(self, key: str) -> tuple[bytes, str] | None:
         """Return the bytes of ``key`` and its ETag from one ``GET``, or None if absent."""
         from fsspec.asyn import sync
@@ -315,10 +363,12 @@ class ObjectStorage:
         except FileNotFoundError:
             return None
 
+    @_reached
     def put(self, key: str, data: bytes) -> None:
         """Write the object ``key`` with one ``PUT``."""
         self.fs.pipe_file(self._full(key), data)
 
+    @_reached
     def _conditional_put(self, key: str, data: bytes, condition: dict[str, str]) -> str | None:
         if not self.conditional:
             raise StoreError(
@@ -345,6 +395,7 @@ class ObjectStorage:
         """``PUT`` with ``If-Match: tag``; None when the object changed or is gone."""
         return self._conditional_put(key, data, {"IfMatch": tag})
 
+    @_reached
     def list(self, prefix: str = "") -> list[str]:
         """Return the names directly below ``prefix``."""
         full = self._full(prefix)
@@ -355,6 +406,7 @@ class ObjectStorage:
             return []
         return sorted({str(e).rstrip("/").rsplit("/", 1)[-1] for e in entries} - {""})
 
+    @_reached
     def delete(self, key: str) -> None:
         """Delete the object ``key`` and every object below ``key/``."""
         full = self._full(key)

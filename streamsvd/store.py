@@ -103,7 +103,7 @@ from .errors import (
 )
 from .locks import LOCK_NAME
 from .segments import Appended, Piece, assemble, digest, pack, plan_appended, plan_whole
-from .storage import LocalStorage, Storage, open_storage
+from .storage import LocalStorage, Storage, open_storage, remote_errors
 
 __all__ = [
     "DEFAULT_CHUNK_BYTES",
@@ -966,6 +966,7 @@ class BasisStore:
         user_attrs: dict[str, Any],
     ) -> None:
         gkey = f"{GENERATIONS}/{_gen_name(k)}"
+        self._check_pointer_unchanged(k)
         if _gen_name(k) in self._storage.list(GENERATIONS):
             logger.warning("removing %s/%s, left by an interrupted commit", self._path, gkey)
             self._storage.delete(gkey)
@@ -990,6 +991,7 @@ class BasisStore:
             "committed": doc["streamsvd"]["committed"],
         }
         switched = False
+        failures: tuple[type[BaseException], ...] = (OSError, *remote_errors())
         try:
             zstore = self._storage.zarr_store(read_only=False)
             try:
@@ -1011,7 +1013,7 @@ class BasisStore:
                 )
             self._switch(pointer, k)
             switched = True
-        except OSError as exc:
+        except failures as exc:
             if isinstance(exc, StoreError):
                 raise
             raise StoreError(
@@ -1019,7 +1021,7 @@ class BasisStore:
                 f"generation {self._generation} is unchanged. Fix the cause and commit again."
             ) from exc
         finally:
-            if not switched:
+            if not switched and self._not_committed_by_another(k):
                 self._storage.delete(gkey)
         self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
         self._docs[k] = doc
@@ -1028,6 +1030,34 @@ class BasisStore:
         self._written = written
         self._prune()
         logger.debug("committed generation %d of %s (%s)", k, self._path, written)
+
+    def _pointer_changed(self, k: int) -> StoreLockedError:
+        return StoreLockedError(
+            f"`store` {self._path}: the pointer {POINTER_NAME} was changed by another "
+            f"writer ({self._lock.holder() if self._lock is not None else 'unknown'}) "
+            f"since this one last committed; generation {k} was not committed. Make "
+            "sure a single writer opens the store."
+        )
+
+    def _check_pointer_unchanged(self, k: int) -> None:
+        """On an object store, refuse to start a commit if another writer committed since.
+
+        Nothing is written or deleted then (generation ``k`` may be the other writer's).
+        """
+        if not self._storage.conditional or self._pointer_tag is None:
+            return
+        seen = self._storage.get_tagged(POINTER_NAME)
+        if seen is None or seen[1] != self._pointer_tag:
+            raise self._pointer_changed(k)
+
+    def _not_committed_by_another(self, k: int) -> bool:
+        """Whether generation ``k`` is not another writer's committed one (safe to delete)."""
+        if not self._storage.conditional:
+            return True
+        try:
+            return bool(_read_pointer(self._storage)["generation"] < k)
+        except StoreError:
+            return False
 
     def _switch(self, pointer: dict[str, Any], k: int) -> None:
         """Make ``pointer`` current: an atomic replace locally, a conditional PUT remotely.
@@ -1047,12 +1077,7 @@ class BasisStore:
             else storage.put_if_match(POINTER_NAME, data, self._pointer_tag)
         )
         if tag is None:
-            raise StoreLockedError(
-                f"`store` {self._path}: the pointer {POINTER_NAME} was changed by another "
-                f"writer ({self._lock.holder() if self._lock is not None else 'unknown'}) "
-                f"since this one last committed; generation {k} was not committed. Make "
-                "sure a single writer opens the store."
-            )
+            raise self._pointer_changed(k)
         self._pointer_tag = tag
 
     def _prune(self) -> None:
