@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -411,3 +412,27 @@ def test_cli_tree_and_tall_modes_on_a_local_cluster_with_s3(s3, rng, tmp_path, m
         assert sc.error_bound == ref.error_bound
     if mode == "tall":
         assert any(name.startswith("p") for name in open_storage(f"{s3}/tall").list("panels"))
+
+
+def test_local_stores_work_without_the_s3_extra_and_urls_name_it(tmp_path):
+    refuse = (
+        "import importlib.abc, sys\n"
+        "class _Refuse(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name.split('.')[0] in {'s3fs', 'botocore', 'aiobotocore', 'moto', 'obstore'}:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+        "sys.meta_path.insert(0, _Refuse())\n"
+    )
+    code = refuse + (
+        "import numpy as np, streamsvd as ss\n"
+        f"st = ss.BasisStore.create({str(tmp_path / 'b')!r}, n=3, inner_fingerprint='e')\n"
+        "st.commit({'x': np.ones(3)}); st.close()\n"
+        "try:\n"
+        "    ss.open_store('s3://bucket/basis.zarr')\n"
+        "except ss.errors.OptionalDependencyError as exc:\n"
+        "    print(exc)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr
+    assert "pip install 'streamsvd[s3]'" in out.stdout
