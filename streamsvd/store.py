@@ -7,14 +7,18 @@ offset, tolerances, discarded energy, error bound, history, ...). Every
 so that a process killed at any instant leaves the last committed generation intact and
 readable.
 
-Layout of a store directory::
+A store lives in a local directory or under a prefix of an object store
+(``s3://bucket/basis.zarr``); :mod:`streamsvd.storage` gives both the same small
+interface (keys and bytes, conditional writes, a zarr store over the root) and
+:mod:`streamsvd.locks` their writer lock or lease. Layout (directory or prefix)::
 
     <path>/
       zarr.json                  root group; attributes: format, format_version, n,
                                  dtype, inner_fingerprint, created, library_version,
                                  chunk_bytes
       current.json               the pointer: number of the current generation
-      writer.lock                present while a writer has the store open
+      writer.lock                present while a writer has the store open (local)
+      writer.lease               the same, with an expiry, in an object store
       generations/
         g00000005/               an older generation whose segments are still used
         g00000007/               previous generation (kept)
@@ -45,7 +49,12 @@ reader never sees a torn document, but it never calls ``fsync`` on the file nor 
 directory, so after a power failure the rename may be lost or the file found empty;
 atomic replacement is moreover not part of zarr's store contract (other stores do not
 offer it). Keeping the pointer apart from zarr metadata also leaves the root metadata
-immutable after creation.
+immutable after creation. In an object store, which has no rename, the pointer is one
+object overwritten by a single ``PUT`` (atomic: a reader gets the old or the new one
+whole), and conditionally: ``If-Match`` the ETag of the pointer this writer last wrote or
+read (``If-None-Match: *`` at creation). A writer that lost its lease therefore can never
+replace another writer's commit; it gets :class:`~streamsvd.errors.StoreLockedError`,
+and so does a commit that finds, before writing anything, that the pointer changed.
 
 *Commit.* A generation's pack is written completely first (with the attributes holding
 the caller's attributes and the segment lists), its files and directory are
@@ -54,7 +63,16 @@ SHA-256 of the generation's attributes, so the chain pointer -> attributes -> se
 bytes is verified on every read. After the switch, every generation directory that is
 neither the current nor the previous generation nor holds a segment either of them
 uses is deleted. A generation left half-written by a killed process is never pointed to
-and is deleted by the next writer. Nothing written is ever modified.
+and is deleted by the next writer. Nothing written is ever modified. In an object store
+there is nothing to ``fsync``: an object is durable once its ``PUT`` returned, and the
+pointer is written after every object of the pack.
+
+*Readers and garbage collection.* A reader (mode ``"r"``) reads the pointer, then the
+generation it names. That generation stays until the writer has committed two more
+(it is kept as the previous one after the next commit), so a read that takes less than
+one commit interval always succeeds; a read that finds its generation deleted, and the
+pointer moved, starts again from the new pointer (three attempts). The same holds in a
+directory and in an object store: nothing relies on open files staying readable.
 
 *Checksums.* One per segment: its SHA-256, recorded in the attributes, verified on
 every read (this also catches a missing chunk, which zarr would read as zeros). The
@@ -69,8 +87,10 @@ holds the writer's pid, host name and start time, and the writer keeps an adviso
 ``flock`` on it while the store is open. A second writer gets
 :class:`~streamsvd.errors.StoreLockedError` naming the holder. A lock whose holder is on
 this host and no longer runs (its pid is gone, or its ``flock`` is released, which also
-covers a reused pid) is stale and is taken over with a logged warning. Readers (mode
-``"r"``) never take the lock.
+covers a reused pid) is stale and is taken over with a logged warning. In an object
+store the lock is a lease, ``writer.lease``, created and renewed by conditional writes,
+with an expiry after which a dead writer's lease is taken over
+(:class:`streamsvd.locks.Lease`). Readers (mode ``"r"``) never take the lock.
 """
 
 from __future__ import annotations

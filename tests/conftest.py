@@ -38,7 +38,7 @@ def s3_server():
     """A moto S3 server on localhost for the session (skipped without moto and s3fs)."""
     pytest.importorskip("moto.server")
     pytest.importorskip("s3fs")
-    from _s3server import start
+    from streamsvd.testing.s3server import start
 
     server = start()
     yield server

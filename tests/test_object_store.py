@@ -436,3 +436,26 @@ def test_local_stores_work_without_the_s3_extra_and_urls_name_it(tmp_path):
                          timeout=300, cwd=Path(__file__).resolve().parents[1])
     assert out.returncode == 0, out.stderr
     assert "pip install 'streamsvd[s3]'" in out.stdout
+
+
+def test_reader_whose_generation_is_collected_retries_from_the_new_pointer(s3, monkeypatch):
+    url = f"{s3}/race-read.zarr"
+    writer = BasisStore.create(url, n=4, inner_fingerprint="e")
+    writer.commit({"x": np.full(4, 1.0)})
+    reader = open_store(url, "r")
+    real = BasisStore._load
+    calls = []
+
+    def writer_moves_on(self, k, digest):
+        if self is reader and not calls:  # between the reader's pointer read and its load
+            writer.commit({"x": np.full(4, 2.0)})
+            writer.commit({"x": np.full(4, 3.0)})  # generation 1 is collected now
+            assert "g00000001" not in open_storage(url).list(GENERATIONS)
+        calls.append(k)
+        return real(self, k, digest)
+
+    monkeypatch.setattr(BasisStore, "_load", writer_moves_on)
+    state = reader.read()
+    assert calls == [1, 3] and np.array_equal(state.arrays["x"], np.full(4, 3.0))
+    reader.close()
+    writer.close()

@@ -1,9 +1,10 @@
-"""A local S3-compatible server (moto in server mode) for the object-store tests.
+"""A local S3-compatible server (moto in server mode) for tests and benchmarks.
 
 :func:`start` launches ``python -m moto.server`` on 127.0.0.1 at a free port, waits for
-it to answer and returns it; nothing leaves the machine. :func:`s3_environment` is the
-environment the library and its subprocesses (the CLI, dask workers) need to reach it:
-the usual ``AWS_*`` variables, with ``AWS_ENDPOINT_URL`` naming the local server.
+it to answer and returns it; nothing leaves the machine. :meth:`S3Server.environment` is
+what the library and its subprocesses (the CLI, dask workers) need to reach it: the
+usual ``AWS_*`` variables, with ``AWS_ENDPOINT_URL`` naming the local server. Needs the
+test extra (``moto[server]``, ``s3fs``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import sys
 import time
 import urllib.request
 from dataclasses import dataclass
+
+__all__ = ["S3Server", "start"]
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,23 @@ def _free_port() -> int:
 
 
 def start(timeout: float = 60.0) -> S3Server:
-    """Start a moto server on a free local port; raise RuntimeError if it does not answer."""
+    """Start a moto server on a free local port.
+
+    Parameters
+    ----------
+    timeout : float
+        Seconds to wait for the server to answer.
+
+    Returns
+    -------
+    S3Server
+        The running server; call :meth:`S3Server.stop` when done.
+
+    Raises
+    ------
+    RuntimeError
+        The server exited or did not answer within ``timeout``.
+    """
     port = _free_port()
     env = dict(os.environ, MOTO_ALLOW_NONEXISTENT_REGION="true")
     process = subprocess.Popen(
