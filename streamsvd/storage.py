@@ -412,10 +412,7 @@ class ObjectStorage:
         full = self._full(key)
         self.fs.invalidate_cache(full)
         try:
-            if self.fs.isfile(full):
-                self.fs.rm_file(full)
-            elif self.fs.exists(full):
-                self.fs.rm(full, recursive=True)
+            self.fs.rm(full, recursive=True)  # one listing, then a batched delete
         except FileNotFoundError:
             pass
         except OSError as exc:
