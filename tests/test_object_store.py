@@ -459,3 +459,28 @@ def test_reader_whose_generation_is_collected_retries_from_the_new_pointer(s3, m
     assert calls == [1, 3] and np.array_equal(state.arrays["x"], np.full(4, 3.0))
     reader.close()
     writer.close()
+
+
+def test_sources_at_urls(s3, rng, tmp_path, monkeypatch):
+    from streamsvd.errors import SourceError
+    from streamsvd.sources import open_source
+
+    A = rng.standard_normal((20, 30))
+    _write_zarr(f"{s3}/a.zarr", A)
+    with open_source(f"{s3}/a.zarr") as src:
+        assert src.shape == (20, 30) and np.array_equal(src.read(3, 9), A[:, 3:9])
+    endpoint = os.environ["AWS_ENDPOINT_URL"]
+    monkeypatch.delenv("AWS_ENDPOINT_URL")  # the options alone reach the server
+    with open_source(f"{s3}/a.zarr", storage_options={"endpoint_url": endpoint}) as src:
+        assert np.array_equal(src.read(0, 30), A)
+    import zarr
+
+    zarr.create_array(store=str(tmp_path / "b.zarr"), shape=A.shape, dtype=A.dtype)[...] = A
+    with open_source(f"file://{tmp_path / 'b.zarr'}") as src:
+        assert np.array_equal(src.read(0, 30), A)
+    with pytest.raises(InputError, match="`storage_options` only apply to a URL source"):
+        open_source(A, storage_options={"anon": True})
+    with pytest.raises(InputError, match="read from local paths only"):
+        open_source(f"{s3}/a.npy")
+    with pytest.raises(SourceError, match="does not exist"):
+        open_source(f"{s3}/missing.zarr", storage_options={"endpoint_url": endpoint})
