@@ -239,14 +239,14 @@ def remote_errors() -> tuple[type[BaseException], ...]:
 
 
 @contextlib.contextmanager
-def _reaching(url: str) -> Iterator[None]:
-    """Report a failure to reach the object store as a StoreError naming ``url``."""
+def _reaching(named: str) -> Iterator[None]:
+    """Report a failure to reach the object store as a StoreError naming it."""
     errors = remote_errors()
     try:
         yield
     except errors as exc:
         raise StoreError(
-            f"`store` {url} cannot be reached ({type(exc).__name__}: {exc}). Check the "
+            f"{named} cannot be reached ({type(exc).__name__}: {exc}). Check the "
             "endpoint, the network and the credentials (AWS_* variables, "
             "`storage_options`)."
         ) from exc
@@ -260,7 +260,7 @@ def _reached(method: _F) -> _F:
 
     @functools.wraps(method)
     def wrapper(self: ObjectStorage, *args: Any, **kwargs: Any) -> Any:
-        with _reaching(self.url):
+        with _reaching(self.named):
             return method(self, *args, **kwargs)
 
     return cast(_F, wrapper)
@@ -286,22 +286,28 @@ class ObjectStorage:
     storage_options : dict
         Passed to the fsspec file system (for s3fs: ``key``, ``secret``,
         ``endpoint_url``, ``client_kwargs``, ...).
+    argument : str
+        How the location is named in messages (``"store"``, ``"source"``, ...).
     """
 
-    def __init__(self, url: str, storage_options: Mapping[str, Any]) -> None:
+    def __init__(
+        self, url: str, storage_options: Mapping[str, Any], *, argument: str = "store"
+    ) -> None:
         import fsspec
 
         self.url = url.rstrip("/")
         self.storage_options = dict(storage_options)
+        self.argument = argument
+        self.named = f"`{argument}` {self.url}"
         try:
             fs, path = fsspec.url_to_fs(self.url, **self.storage_options)
         except ImportError as exc:
             raise OptionalDependencyError(
-                f"`store` {url} needs a package that is not installed ({exc}). {_EXTRA_HINT}"
+                f"`{argument}` {url} needs a package that is not installed ({exc}). {_EXTRA_HINT}"
             ) from None
         except (ValueError, TypeError) as exc:
             raise InputError(
-                f"`store` {url!r} is not a URL fsspec can open ({exc}). Pass a local path "
+                f"`{argument}` {url!r} is not a URL fsspec can open ({exc}). Pass a local path "
                 "or a URL such as s3://bucket/basis.zarr, and valid `storage_options`."
             ) from None
         self.fs = fs
@@ -316,7 +322,7 @@ class ObjectStorage:
         return self.url
 
     def __reduce__(self) -> Any:
-        return (ObjectStorage, (self.url, self.storage_options))
+        return (_rebuild, (self.url, self.storage_options, self.argument))
 
     def _full(self, key: str) -> str:
         return f"{self.path}/{key}" if key else self.path
@@ -372,7 +378,7 @@ class ObjectStorage:
     def _conditional_put(self, key: str, data: bytes, condition: dict[str, str]) -> str | None:
         if not self.conditional:
             raise StoreError(
-                f"`store` {self.url}: writing needs conditional writes (If-None-Match, "
+                f"{self.named}: writing needs conditional writes (If-None-Match, "
                 "If-Match), which streamsvd implements for s3:// only. Write to an s3:// "
                 "URL or a local directory; other URLs can be read."
             )
@@ -440,6 +446,11 @@ class ObjectStorage:
         return Lease(self, key)
 
 
+def _rebuild(url: str, storage_options: dict[str, Any], argument: str) -> ObjectStorage:
+    """Unpickle an :class:`ObjectStorage` (its file system is opened anew)."""
+    return ObjectStorage(url, storage_options, argument=argument)
+
+
 # ------------------------------------------------------------------------ entry
 
 
@@ -499,7 +510,7 @@ def open_storage(
                     f"{dict(storage_options)!r} with `{argument}` {location!r}. Drop them."
                 )
             return LocalStorage(Path(location.split("://", 1)[1]))
-        return ObjectStorage(location, storage_options or {})
+        return ObjectStorage(location, storage_options or {}, argument=argument)
     if isinstance(location, str | os.PathLike):
         if storage_options:
             raise InputError(
