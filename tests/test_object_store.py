@@ -340,21 +340,27 @@ def test_cli_sigkill_then_resume_on_s3_is_bit_identical(s3, rng, tmp_path):
     A = _problem(rng, n=150, m=400)
     np.save(tmp_path / "a.npy", A)
     _write_zarr(f"{s3}/a.zarr", A)
-    opts = ["--block", "8", "--max-rank", "10", "--quiet"]
+    opts = ["--block", "4", "--max-rank", "10", "--quiet"]  # 100 commits
     assert main(["ingest", str(tmp_path / "a.npy"), str(tmp_path / "ref.zarr"), *opts]) == 0
     store = f"{s3}/killed.zarr"
     storage = open_storage(store)
     env = dict(os.environ, PYTHONWARNINGS="ignore")
+
+    def generation():
+        seen = storage.get_tagged(POINTER_NAME)
+        return -1 if seen is None else json.loads(seen[0])["generation"]
+
     kills = 0
-    for delay in np.random.default_rng(7).uniform(0.3, 1.5, 4):
-        resume = ["--resume"] if POINTER_NAME in storage.list() else []
+    for delay in np.random.default_rng(7).uniform(0.0, 0.4, 4):
+        before = generation()
+        resume = ["--resume"] if before >= 0 else []
         if not resume and storage.list():
             storage.delete("")  # killed while the store itself was being created
         proc = subprocess.Popen(_cli("ingest", f"{s3}/a.zarr", store, *opts, *resume),
                                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        # kill once the run has committed something of its own
-        try:
-            _wait_for(lambda p=proc: POINTER_NAME in storage.list() or p.poll() is not None)
+        floor = max(before, 1)  # generations 0 and 1: the creation and the empty state
+        try:  # kill once this run has committed an update of its own
+            _wait_for(lambda p=proc, g=floor: generation() > g or p.poll() is not None)
         except AssertionError:
             proc.kill()
             raise
@@ -366,6 +372,8 @@ def test_cli_sigkill_then_resume_on_s3_is_bit_identical(s3, rng, tmp_path):
         proc.send_signal(signal.SIGKILL)
         proc.communicate()
         kills += 1
+        with StreamCompressor.open(store, mode="r") as reader:  # the last commit is whole
+            assert reader.n_seen == reader.source_offset > 0
         # the killed writer's lease is left behind: the next run takes it over (dead pid)
     else:
         subprocess.run(_cli("ingest", f"{s3}/a.zarr", store, *opts, "--resume"),
