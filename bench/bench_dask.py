@@ -185,7 +185,8 @@ def run_method(method: str, cfg: dict, path: Path, work: Path) -> dict[str, Any]
     cluster = client = None
     if workers:
         cluster, client = _client(workers)
-    opts = {"max_rank": k + cfg["oversample"], "sweeps": None, "rule": "jacobi"}
+    opts = {"max_rank": k + cfg["oversample"], "oversampling": 0, "sweeps": None,
+            "rule": "jacobi"}
     out: dict[str, Any] = {"method": method, "workers": workers}
     x = da.from_zarr(str(path))
     sched = client if client is not None else "threads"

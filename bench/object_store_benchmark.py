@@ -93,8 +93,10 @@ def run_one(location: Any, label: str, args: argparse.Namespace) -> dict[str, An
     store.commit = timed_commit  # type: ignore[method-assign]
     for B in blocks:
         sc.absorb(B)
-    U = sc.expansion.U
-    sc.close()
+    store.commit = real_commit  # type: ignore[method-assign]  # the updates' commits only
+    sc.close()  # the final sweeps and their commit, not timed
+    with StreamCompressor.open(location, mode="r") as closed:
+        U = closed.expansion.U
     t0 = time.perf_counter()
     with open_store(location, "a") as again:
         reopen_seconds = time.perf_counter() - t0

@@ -2,6 +2,7 @@
 
     python bench/store_benchmark.py                      # m = 1e3 ... 1e5, n = 100, b = 5
     python bench/store_benchmark.py --ms 1000,10000 --updates 20
+    python bench/store_benchmark.py --inner mass         # in a sparse mass-matrix product
 
 Setup
 -----
@@ -13,7 +14,9 @@ committing after each one, as the command line does by default. The snapshots ar
 ``Q1 diag(s) z_j + 1e-3 g_j`` (``Q1`` orthonormal ``n x 40``, ``s`` log-spaced from 1 to
 1e-4, ``z_j`` and ``g_j`` Gaussian), so every block brings new directions and the basis is
 compacted from time to time. A copy of the compressor without a store absorbs the same
-blocks: the update's own cost.
+blocks: the update's own cost. With ``--inner mass`` the basis is orthonormal in the
+product of a tridiagonal sparse SPD matrix (a P1 mass matrix on a uniform 1-D mesh),
+whose data the store keeps: written by the first commit (the save), kept by the others.
 
 Measures
 --------
@@ -28,7 +31,8 @@ The same script measures the previous layout (every commit rewrote all arrays): 
 with ``PYTHONPATH`` pointing at a checkout of streamsvd before format version 2 (the
 written bytes are then not counted, NaN in the JSON) and ``--out`` elsewhere.
 
-Writes ``store_benchmark.json`` and ``store_benchmark.png`` to ``--out``.
+Writes ``store_benchmark.json`` and ``store_benchmark.png`` to ``--out``
+(``store_benchmark_mass.*`` with ``--inner mass``).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 BENCH_DIR = Path(__file__).resolve().parent
 if str(BENCH_DIR) not in sys.path:
@@ -68,6 +73,8 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--block", type=int, default=5, help="columns per timed update")
     p.add_argument("--updates", type=int, default=40, help="timed updates per m")
     p.add_argument("--max-rank", type=int, default=20, help="max_rank of the compressor")
+    p.add_argument("--inner", choices=("euclidean", "mass"), default="euclidean",
+                   help="inner product: Euclidean, or a sparse 1-D P1 mass matrix")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--baseline", default=None,
                    help="JSON of a run with the previous layout, plotted for comparison")
@@ -78,6 +85,14 @@ def _columns(Q1: np.ndarray, s: np.ndarray, count: int, rng: np.random.Generator
     """``count`` snapshots ``Q1 diag(s) z + 1e-3 g``."""
     Z = rng.standard_normal((Q1.shape[1], count))
     return (Q1 * s) @ Z + 1e-3 * rng.standard_normal((Q1.shape[0], count))
+
+
+def _mass(n: int) -> sp.csr_array:
+    """The P1 mass matrix of ``n`` interior nodes of a uniform mesh of [0, 1]."""
+    ones = np.ones(n)
+    h = 1.0 / (n + 1)
+    return sp.csr_array(sp.diags_array([ones[:-1] / 6, 4 * ones / 6, ones[:-1] / 6],
+                                       offsets=[-1, 0, 1]) * h)
 
 
 def _summary(values: list[float]) -> dict[str, float]:
@@ -95,7 +110,8 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     k = min(40, n)
     Q1 = np.linalg.qr(rng.standard_normal((n, k)))[0]
     s = np.logspace(0, -4, k)
-    sc = StreamCompressor(n, max_rank=args.max_rank)
+    inner = _mass(n) if args.inner == "mass" else None
+    sc = StreamCompressor(n, inner=inner, max_rank=args.max_rank, oversampling=0)
     for j in range(0, m, _LOAD_BLOCK):
         sc.absorb(_columns(Q1, s, min(_LOAD_BLOCK, m - j), rng))
     memory = sc.copy()
@@ -132,12 +148,12 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     rows = sc._state.rows
     assert rows is not None
     v0_bytes = 8 * rows.m * rows.width
-    sc.close()
+    sc.close(finalize=False)  # the streamed state, as the in-memory copy holds it
     with StreamCompressor.open(path, mode="r") as back:
         resumed = bool(np.array_equal(back.expansion.V, memory.expansion.V))
     shutil.rmtree(path, ignore_errors=True)
     return {
-        "m": m, "n": n, "block": args.block, "updates": args.updates,
+        "m": m, "n": n, "block": args.block, "updates": args.updates, "inner": args.inner,
         "rank": memory.rank, "stored_width": memory._state.basis.width,
         "V0_bytes": v0_bytes, "save_seconds": save_seconds,
         "commit_seconds": _summary(commit_times),
@@ -175,7 +191,8 @@ def _plot(
     ax.set_ylabel("wall time per update (ms)")
     ax.text(0.02, 0.02, "lines: median; bands: up to the 90th percentile",
             transform=ax.transAxes, fontsize=7)
-    ax.set_title(f"n = {results[0]['n']}, b = {results[0]['block']} columns per update")
+    ax.set_title(f"n = {results[0]['n']}, b = {results[0]['block']} columns per update, "
+                 f"{results[0].get('inner', 'euclidean')} inner product")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     bx.plot(ms, [r["written_bytes"]["median"] for r in results], "o-",
@@ -218,8 +235,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.baseline is not None:
         baseline = json.loads(Path(args.baseline).read_text())["results"]
     report = {"machine": machine, "options": vars(args), "results": results}
-    write_json(out / "store_benchmark.json", report)
-    _plot(results, baseline, out / "store_benchmark.png")
+    stem = "store_benchmark" if args.inner == "euclidean" else f"store_benchmark_{args.inner}"
+    write_json(out / f"{stem}.json", report)
+    _plot(results, baseline, out / f"{stem}.png")
     print_table(
         ["m", "V0 MB", "commit ms (med/p90/max)", "update in memory ms", "update+commit ms",
          "written B (med/max)", "save s"],
@@ -235,7 +253,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             ]
             for r in results
         ],
-        title=f"store benchmark (load average before {machine['load_average']}, after "
+        title=f"store benchmark, {args.inner} inner product (load average before "
+        f"{machine['load_average']}, after "
         f"{machine['load_average_after']})",
     )
     return report

@@ -26,8 +26,9 @@ absorbed.
 
 Methods
 -------
-* ``streamsvd``: ``StreamCompressor(n, max_rank=t, rule=..., sweeps=...)`` for both
-  rules and ``sweeps`` = 1, 2 and converged (``None``);
+* ``streamsvd``: ``StreamCompressor(n, max_rank=t, oversampling=0, rule=...,
+  sweeps=...)`` for both rules and ``sweeps`` = 1, 2 and converged (``None``): truncated
+  to ``t`` at every update, as the baselines are;
 * ``brand``: Brand's incremental SVD (``bench/brand.py``: block CGS2, Householder QR of
   the residual, LAPACK SVD of the ``(p + b)`` core, truncation to ``t``);
 * ``ipca``: ``sklearn.decomposition.IncrementalPCA(n_components=t).partial_fit`` on the
@@ -250,7 +251,8 @@ def _warm_up(method: str, rule: str | None, sweeps: int | None) -> None:
     if method == "streamsvd":
         import streamsvd as ss
 
-        sc = ss.StreamCompressor(64, max_rank=6, rule=rule or "paper", sweeps=sweeps)
+        sc = ss.StreamCompressor(64, max_rank=6, oversampling=0, rule=rule or "paper",
+                                 sweeps=sweeps)
         sc.absorb(X[:, :10])
         sc.absorb(X[:, 10:20])
         sc.absorb(X[:, 20:21])
@@ -313,7 +315,7 @@ def make_method(spec: dict[str, Any], n: int, columns: int) -> Any:
     if method == "streamsvd":
         import streamsvd as ss
 
-        return ss.StreamCompressor(n, max_rank=target, rule=spec["rule"],
+        return ss.StreamCompressor(n, max_rank=target, oversampling=0, rule=spec["rule"],
                                    sweeps=spec["sweeps"])
     if method == "brand":
         return BrandSVD(n, rank=target, max_columns=columns, max_block=max(b, target))
@@ -617,7 +619,8 @@ def profile_streamsvd(A: np.ndarray, *, block: int, target: int, rule: str,
     done = sched[skip : skip + updates]
     runs: list[tuple[float, float, dict[str, float]]] = []
     for _ in range(max(repeats, 1)):
-        sc = ss.StreamCompressor(A.shape[0], max_rank=target, rule=rule, sweeps=sweeps)
+        sc = ss.StreamCompressor(A.shape[0], max_rank=target, oversampling=0, rule=rule,
+                                 sweeps=sweeps)
         for a, c in sched[:skip]:
             sc.absorb(A[:, a:c])
         prof = cProfile.Profile()
@@ -650,7 +653,7 @@ def long_stream(*, n: int, rank: int, target: int, updates: int, rule: str,
     r = min(rank, n)
     Q1s = orthonormal(rng, n, r) * spectrum(r)
     _warm_up("streamsvd", rule, sweeps)
-    sc = ss.StreamCompressor(n, max_rank=target, rule=rule, sweeps=sweeps)
+    sc = ss.StreamCompressor(n, max_rank=target, oversampling=0, rule=rule, sweeps=sweeps)
     orth = np.empty(updates)
     secs = np.empty(updates)
     ranks = np.empty(updates, dtype=np.int64)

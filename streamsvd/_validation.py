@@ -139,6 +139,13 @@ def check_nonnegative(value: Any, name: str) -> float:
     return out
 
 
+def check_nonnegative_int(value: Any, name: str) -> int:
+    """Return ``value`` as an int >= 0; raise otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+        raise InputError(f"`{name}` must be an integer >= 0; got {_describe(value)}.")
+    return int(value)
+
+
 def check_positive_int(value: Any, name: str, *, allow_none: bool = False) -> int | None:
     """Return ``value`` as an int >= 1 (or None when allowed); raise otherwise."""
     if value is None and allow_none:

@@ -25,7 +25,11 @@ import logging
 import math
 import os
 import re
+import shlex
 import sys
+import time
+from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -50,11 +54,15 @@ _DEFAULT_BLOCK = 100
 _DEFAULT_RULE = "paper"
 _DEFAULT_SWEEPS = 1
 _DEFAULT_COMMIT_EVERY = 1
+_DEFAULT_OVERSAMPLING = 10
+#: The ``--final-sweeps`` values: converge the core at the end, or leave it as streamed.
+_FINAL_SWEEPS = (CONVERGE, "none")
 
 # options of the compressor that a store records at creation (``--resume`` reuses them)
 _STORE_OPTIONS = (
-    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"), ("rule", "--rule"),
-    ("sweeps", "--sweeps"), ("commit_every", "--commit-every"),
+    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"),
+    ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
+    ("commit_every", "--commit-every"),
 )
 
 _INGEST_EPILOG = """\
@@ -71,10 +79,23 @@ modes:
   --leaf-columns is for the tree mode only, --chunk-rows for the tall mode only and
   --workers for --scheduler local only; an option of another mode is refused.
 
+resume:
+  with --resume, STORE is continued from its recorded source offset if it exists and
+  created otherwise, so one command line starts an ingestion and restarts it after an
+  interruption. STORE records its options and SOURCE (path, --dataset, shape): an option
+  or a SOURCE that differs is refused, naming both values; a SOURCE that gained columns
+  is the same SOURCE, continued; --source-changed-ok continues STORE from another SOURCE.
+  A command that fails before its first commit of snapshots leaves no new STORE behind.
+
 output:
   the progress bar goes to stderr; the JSON summary (as `streamsvd info --json`) goes
   to stdout; --quiet prints neither.
 """
+
+_INNER_HELP = (
+    ".npy (1-D positive weights or a 2-D SPD matrix), .npz (a scipy sparse matrix saved "
+    "by scipy.sparse.save_npz) or .mtx (Matrix Market)"
+)
 
 
 # -------------------------------------------------------------------------- parsing
@@ -86,6 +107,16 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         """Print the usage error on one line and exit with status 2."""
         self.exit(2, f"streamsvd: error: {message} (see `{self.prog} --help`).\n")
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0; got {text!r}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -186,6 +217,7 @@ def _locate(args: Any) -> None:
         argument="store",
     )
     if is_url(getattr(args, "source", None)):
+        args.source_given = (args.source, args.dataset)  # what the store records
         args.source = open_zarr_url(
             args.source, dataset=args.dataset,
             storage_options=options,  # the same options as STORE's
@@ -240,7 +272,11 @@ def _parser() -> argparse.ArgumentParser:
                      help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
                      "none; not with --eps)")
     ing.add_argument("--max-rank", metavar="K", type=_positive_int,
-                     help="keep at most K terms (default: no limit)")
+                     help="keep K terms in the end: K + --oversampling while streaming, "
+                     "cut to K by the final sweeps (default: no limit)")
+    ing.add_argument("--oversampling", metavar="P", type=_nonnegative_int,
+                     help="extra terms kept while streaming with --max-rank; 0 cuts to K "
+                     f"at every update (default: {_DEFAULT_OVERSAMPLING})")
     ing.add_argument("--rule", choices=("paper", "jacobi"),
                      help="rotation of a pair of terms: 'paper' turns by tan(theta) = "
                      "(v_j|v_i)/(v_j|v_j) (eq. 5, linear convergence), 'jacobi' by the angle "
@@ -250,13 +286,29 @@ def _parser() -> argparse.ArgumentParser:
                      help="rotation sweeps per update: a positive integer, or "
                      f"'{CONVERGE}' to sweep until no pair rotates (an incremental SVD) "
                      f"(default: {_DEFAULT_SWEEPS})")
+    ing.add_argument("--final-sweeps", choices=_FINAL_SWEEPS,
+                     help=f"at the end, '{CONVERGE}': sweep the core until no pair rotates "
+                     "(Jacobi rule) and cut by --eps/--rtol/--max-rank, so that STORE holds "
+                     "the SVD of what was absorbed; 'none': keep the streamed expansion "
+                     f"(default: {CONVERGE})")
     ing.add_argument("--commit-every", metavar="C", type=_positive_int,
                      help="updates per commit to STORE, in memory and with --tall; the "
                      f"tree mode commits once (default: {_DEFAULT_COMMIT_EVERY})")
+    ing.add_argument("--inner", metavar="FILE",
+                     help="inner product in which U is orthonormal (a mass matrix, "
+                     f"quadrature weights): {_INNER_HELP}; STORE keeps it, so --resume, "
+                     "info, export and plot need it only for a store written before "
+                     "stores kept it (checked against STORE when given) (default: "
+                     "Euclidean, or the one STORE keeps)")
     ing.add_argument("--resume", action="store_true",
                      help="continue STORE from its recorded source offset, with the "
                      "options it was created with (an option given again must have the "
-                     "same value) (default: off, STORE must not exist)")
+                     "same value) and the SOURCE it was built from; create STORE when it "
+                     "does not exist yet (default: off, STORE must not exist)")
+    ing.add_argument("--source-changed-ok", action="store_true",
+                     help="with --resume, continue STORE from a SOURCE other than the one "
+                     "it records (another path or --dataset, fewer columns) (default: off, "
+                     "refused)")
     ing.add_argument("--quiet", action="store_true",
                      help="no progress bar on stderr and no summary on stdout (default: off)")
     ing.add_argument("--scheduler", metavar="S", type=_scheduler,
@@ -283,7 +335,6 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     info.add_argument("--json", action="store_true",
                       help="print the summary as JSON (default: off, a text report)")
-    _add_storage_option(info)
 
     exp = sub.add_parser("export", help="write U, V and the amplitudes to .npz or .h5",
                          description="Write U, V, the amplitudes ||v_i|| and the error "
@@ -291,7 +342,6 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     exp.add_argument("out", metavar="OUT",
                      help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
-    _add_storage_option(exp)
 
     plot = sub.add_parser("plot", help="amplitudes, energy and orthogonality as PNG",
                           description="Plot the amplitudes, the cumulative energy and the "
@@ -299,7 +349,13 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
     plot.add_argument("out", metavar="OUT",
                       help="output image, .png (or .pdf, .svg); overwritten if it exists")
-    _add_storage_option(plot)
+    for reader in (info, exp, plot):
+        reader.add_argument("--inner", metavar="FILE",
+                            help="the inner product STORE was written with, for a store "
+                            f"that does not keep it (written before stores kept it): "
+                            f"{_INNER_HELP}; checked against STORE (default: the one STORE "
+                            "keeps, else Euclidean)")
+        _add_storage_option(reader)
     return ap
 
 
@@ -324,6 +380,8 @@ _REWRITES = (
      r"commit it again, or restore the store from a copy\.",
      "Restore the store from a copy."),
     (r"Pass dataset=<one of them>\.", "Pass --dataset with one of them."),
+    (r"Use the in-memory StreamCompressor, or lump the mass matrix into weights\.",
+     "Drop --tall, or lump the mass matrix into weights."),
     (r"Drop the `dataset` argument\.", "Drop --dataset."),
     (r"got dataset=('[^']*')", r"got --dataset \1"),
 )
@@ -332,10 +390,11 @@ _REWRITES = (
 _NAMES = {
     "path": "STORE", "store": "STORE", "source": "SOURCE", "out": "OUT",
     "dataset": "--dataset", "block": "--block", "eps": "--eps", "rtol": "--rtol",
-    "max_rank": "--max-rank", "rule": "--rule", "sweeps": "--sweeps",
+    "max_rank": "--max-rank", "oversampling": "--oversampling", "rule": "--rule",
+    "sweeps": "--sweeps",
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
-    "storage_options": "--storage-option",
+    "inner": "--inner", "storage_options": "--storage-option",
 }
 
 # a sentence holding Python code: a quoted call, a keyword argument, a module path
@@ -373,6 +432,7 @@ def main(argv: list[str] | None = None) -> int:
         (reported on one line of stderr as ``streamsvd: error: ...``), 130 after Ctrl-C
         (one line saying what the store holds and the command that continues).
     """
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version (0) or a usage error (2), already printed
@@ -386,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         _locate(args)
         return int(_COMMANDS[args.command](args))
     except KeyboardInterrupt:
-        print(_interrupted(args), file=sys.stderr)
+        print(_interrupted(args, argv), file=sys.stderr)
         return 130
     except (StreamSVDError, OSError, ValueError) as err:
         if args.debug:
@@ -395,19 +455,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _interrupted(args: Any) -> str:
+def _interrupted(args: Any, argv: list[str]) -> str:
     """Return the line printed after Ctrl-C: what the store holds, how to continue."""
     if args.command != "ingest":
         return "streamsvd: interrupted."
+    again = " ".join(shlex.quote(a) for a in argv if a != "--resume")
     try:
         from .store import open_store
 
         with open_store(args.store, "r") as st:
             offset = int(st.read().attrs.get("source_offset", 0))
     except (StreamSVDError, OSError, ValueError):
-        return f"streamsvd: interrupted; nothing was committed to STORE {args.store}."
-    again = " ".join(a for a in sys.argv[1:] if a != "--resume") if sys.argv[1:] else (
-        f"ingest {args.source} {args.store}")
+        return (
+            f"streamsvd: interrupted; nothing was committed to STORE {args.store}; start "
+            f"again with: streamsvd {again} --resume"
+        )
     return (
         f"streamsvd: interrupted; STORE {args.store} holds the snapshots up to column "
         f"{offset} of SOURCE (its last commit); continue with: streamsvd {again} --resume"
@@ -441,6 +503,11 @@ def _check_mode_options(args: Any, mode: str) -> None:
             f"{where}. Add --scheduler local, or drop --workers (a remote cluster is sized "
             "where it runs)."
         )
+    if args.source_changed_ok and not args.resume:
+        raise InputError(
+            "--source-changed-ok applies to --resume only (a new STORE records its SOURCE); "
+            "add --resume, or drop it."
+        )
     if args.commit_every is not None and mode == "tree":
         raise InputError(
             "--commit-every does not apply to the tree mode (--scheduler without --tall), "
@@ -448,15 +515,18 @@ def _check_mode_options(args: Any, mode: str) -> None:
         )
 
 
-def _compressor_options(args: Any, mode: str) -> dict[str, Any]:
-    """Return the options of a new store, with the command's defaults (none to resume)."""
-    if args.resume:
-        return {}
+def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
+                        ) -> dict[str, Any]:
+    """Return the options of a new store, with the command's defaults (to resume: inner)."""
+    if resume:
+        return {} if inner is None else {"inner": inner}
     sweeps = _DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
     options: dict[str, Any] = {
-        "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
+        "inner": inner, "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
         "max_rank": args.max_rank, "rule": args.rule or _DEFAULT_RULE,
         "sweeps": None if sweeps == CONVERGE else sweeps,
+        "oversampling": (_DEFAULT_OVERSAMPLING if args.oversampling is None
+                         else args.oversampling),
     }
     if mode != "tree":
         options["commit_every"] = args.commit_every or _DEFAULT_COMMIT_EVERY
@@ -477,9 +547,9 @@ def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
     than silently ignored.
     """
     differ = []
-    for name, flag in _STORE_OPTIONS:
+    for name, flag in (*_STORE_OPTIONS, ("chunk_rows", "--chunk-rows")):
         value = getattr(args, name)
-        if value is None:
+        if value is None or name not in recorded:
             continue
         wanted = None if value == CONVERGE else value
         if wanted != recorded[name]:
@@ -492,65 +562,162 @@ def _check_resume_options(args: Any, recorded: dict[str, Any]) -> None:
         )
 
 
-def _resume_options_given(args: Any) -> bool:
-    return args.resume and any(getattr(args, name) is not None for name, _ in _STORE_OPTIONS)
+# how a difference of SourceRecord.differences is named on the command line
+_SOURCE_PARTS = {"path": "SOURCE", "dataset": "--dataset", "shape": "SOURCE of shape"}
 
 
-def _check_store_path(args: Any) -> Any:
-    store = args.store  # a storage (see _locate)
-    if args.resume and not store.exists():
-        raise StoreError(
-            f"STORE {store} does not exist, so --resume has nothing to continue; drop "
-            "--resume to create it."
+def _check_resume(args: Any, sc: Any, record: Any) -> None:
+    """Refuse to continue the compressor ``sc`` with other options or another SOURCE.
+
+    ``record`` describes SOURCE as given. Its snapshot size must be the store's; its
+    path, dataset and number of columns are checked against the source the store
+    records (a store written before stores recorded it is not checked), unless
+    --source-changed-ok is given. On success the store will record ``record``.
+    """
+    recorded = sc._options()
+    if hasattr(sc, "chunk_rows"):  # a tall store keeps the row chunks of its panels
+        recorded["chunk_rows"] = sc.chunk_rows
+    _check_resume_options(args, recorded)
+    n = record.shape[0]
+    if n != sc.n:
+        raise ShapeMismatchError(
+            f"SOURCE has snapshots of size {n}; STORE {args.store} holds a basis of size "
+            f"{sc.n}. Pass the source the store was built from."
         )
+    source = sc.source_record
+    differ = [] if source is None else source.differences(record)
+    if differ and not args.source_changed_ok:
+        said = ", ".join(f"{_SOURCE_PARTS[what]} {given} (STORE has {had})"
+                         for what, given, had in differ)
+        raise InputError(
+            f"{said}: STORE {args.store} was built from another source. Pass the SOURCE "
+            "(and --dataset) it was built from, or add --source-changed-ok to continue it "
+            "from this one."
+        )
+    if differ:
+        logger.warning("continuing STORE %s from another source (%s)", args.store,
+                       ", ".join(f"{what} {had} -> {given}" for what, given, had in differ))
+    sc.source_record = record
+
+
+def _resuming(args: Any, store: Any) -> bool:
+    """Whether the command continues STORE (--resume and STORE holds a store).
+
+    With --resume, a path that holds no store pointer (nothing, an empty directory, or
+    the leftovers of a creation killed before its first generation) gets a new store;
+    creating refuses a directory holding anything else.
+    """
+    from .store import POINTER_NAME
+
+    exists = POINTER_NAME in store.list()  # store: a storage (see _locate)
     if not args.resume and store.exists():
         raise StoreError(
             f"STORE {store} already exists; pass --resume to continue it, or choose "
             "another path."
         )
-    return store
+    if args.resume and not exists:
+        logger.info("STORE %s does not exist yet: --resume creates it", store)
+    return bool(args.resume and exists)
+
+
+def _source_record(args: Any) -> Any:
+    """Open SOURCE (checking it) and return its record."""
+    from .provenance import SourceRecord
+    from .sources import open_source
+
+    source, dataset = getattr(args, "source_given", (args.source, args.dataset))
+    with open_source(args.source, dataset=args.dataset) as src:
+        return SourceRecord.of(source, dataset=dataset, shape=src.shape,
+                               description=src.description)
+
+
+@contextlib.contextmanager
+def _removed_on_failure(store: Path, *, new: bool) -> Iterator[None]:
+    """Remove STORE if this command created it and fails before committing a snapshot."""
+    started = math.floor(time.time())
+    try:
+        yield
+    except BaseException:
+        if new:
+            _remove_new_store(store, since=started)
+        raise
+
+
+def _remove_new_store(store: Path, *, since: float) -> None:
+    """Delete STORE if it holds no snapshot, no writer has it and it was created since."""
+    from .storage import open_storage
+    from .store import open_store
+
+    try:
+        with open_store(store, "a") as st:  # the writer lock: no other writer is at work
+            created = datetime.fromisoformat(st.root_attrs["created"]).timestamp()
+            state = st.read()  # generation 0 (no arrays) or a commit of no snapshot
+            empty = not state.arrays or int(state.attrs.get("source_offset", 0)) == 0
+    except (StreamSVDError, OSError, ValueError, KeyError):
+        return  # not a store this command made, or one another writer holds
+    if empty and created >= since:
+        logger.info("removing STORE %s: the command failed before its first commit", store)
+        open_storage(store).delete("")
+
+
+def _load_inner(args: Any) -> Any:
+    if args.inner is None:
+        return None
+    from .inner import load_inner
+
+    return load_inner(args.inner)
 
 
 def _ingest(args: Any) -> int:
     mode = _mode(args)
     _check_mode_options(args, mode)
-    options = _compressor_options(args, mode)
-    store = _check_store_path(args)
+    store = args.store  # a storage (see _locate)
+    resume = _resuming(args, store)
+    if args.oversampling is not None and args.max_rank is None and not resume:
+        raise InputError(
+            "--oversampling adds terms to --max-rank while streaming; add --max-rank K, or "
+            "drop --oversampling."
+        )
+    options = _compressor_options(args, mode, resume=resume, inner=_load_inner(args))
     block = args.block or _DEFAULT_BLOCK
-    try:
-        if mode == "memory":
-            summary = _ingest_memory(args, store, block, options)
-        else:
-            summary = _ingest_dask(args, mode, store, block, options)
-    except StoreMismatchError:
-        if args.resume:
-            _check_store_kind(store, tall=mode == "tall")
-        raise
+    record = _source_record(args)
+    with _removed_on_failure(store, new=not resume):
+        try:
+            if mode == "memory":
+                summary = _ingest_memory(args, store, block, options, resume=resume,
+                                         record=record)
+            else:
+                summary = _ingest_dask(args, mode, store, block, options, resume=resume,
+                                       record=record)
+        except StoreMismatchError:
+            if resume:
+                _check_store_kind(store, tall=mode == "tall")
+            raise
     if not args.quiet:
         print(json.dumps(summary, indent=2))
     return 0
 
 
-def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
-                   ) -> dict[str, Any]:
+def _final(args: Any) -> bool:
+    """Whether the command ends with the final sweeps (``--final-sweeps``)."""
+    return args.final_sweeps in (None, CONVERGE)
+
+
+def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any], *,
+                   resume: bool, record: Any) -> dict[str, Any]:
     from tqdm import tqdm
 
     from .sources import open_source
-    from .stream import StreamCompressor
+    from .stream import StreamCompressor, summary_of
 
     with open_source(args.source, dataset=args.dataset) as src:
-        if args.resume:
-            sc = StreamCompressor.open(store)
+        if resume:
+            sc = StreamCompressor.open(store, **options)
         else:
-            sc = StreamCompressor(src.n, store=store, **options)
-        with sc:
-            if args.resume:
-                _check_resume_options(args, sc._options())
-            if src.n != sc.n:
-                raise ShapeMismatchError(
-                    f"SOURCE has snapshots of size {src.n}; STORE {store} holds a basis of "
-                    f"size {sc.n}. Pass the source the store was built from."
-                )
+            sc = StreamCompressor(src.n, store=store, source_record=record, **options)
+        try:
+            if resume:
+                _check_resume(args, sc, record)
             start = sc.source_offset
             bar = tqdm(total=src.m, initial=start, unit="col", disable=args.quiet,
                        dynamic_ncols=True, desc="ingest", file=sys.stderr)
@@ -561,16 +728,20 @@ def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any]
                     bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
                                     refresh=False)
                     bar.update(X.shape[1])
-            return _summary(sc)
+            if _final(args) and not sc.finalized:
+                sc.finalize()
+            return summary_of(sc)
+        finally:
+            sc.close(finalize=False)
 
 
-def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any]
-                 ) -> dict[str, Any]:
+def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any], *,
+                 resume: bool, record: Any) -> dict[str, Any]:
     from .parallel import ingest
 
-    if _resume_options_given(args):  # the engine takes no option with resume: check here
-        with _open(store) as sc:
-            _check_resume_options(args, sc._options())
+    if resume:  # the engine takes no option with resume: check here
+        with _open(store, inner=options.get("inner")) as sc:
+            _check_resume(args, sc, record)
     # dask's progress bars (ProgressBar, distributed.progress) write to stdout, which
     # belongs to the command's output: send whatever the engine prints to stderr
     try:
@@ -579,7 +750,8 @@ def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[st
                 args.source, store, dataset=args.dataset, block=block,
                 scheduler=args.scheduler, workers=args.workers, tall=mode == "tall",
                 leaf_columns=args.leaf_columns, chunk_rows=args.chunk_rows,
-                resume=args.resume, progress=not args.quiet, **options,
+                resume=resume, progress=not args.quiet, finalize=_final(args),
+                **options,
             )
     except NonFiniteError:
         if mode == "tall":  # the tall engine counts the bad entries but cannot place them
@@ -628,8 +800,11 @@ def _check_store_kind(store: Path, *, tall: bool) -> None:
 # ------------------------------------------------------------------- info, export, plot
 
 
-def _open(path: Any) -> Any:
-    """Open the compressor of a store read-only, whichever kind wrote it."""
+def _open(path: Any, *, inner: Any = None) -> Any:
+    """Open the compressor of a store read-only, whichever kind wrote it.
+
+    ``inner``: the inner product, needed only for a store that does not keep its own.
+    """
     from .storage import open_storage
 
     if open_storage(path).is_file():
@@ -640,38 +815,40 @@ def _open(path: Any) -> Any:
     from .stream import StreamCompressor
 
     try:
-        return StreamCompressor.open(path, mode="r")
+        return StreamCompressor.open(path, mode="r", inner=inner)
     except StoreMismatchError:
         from .parallel import open_compressor  # a tall store: dask is needed to read it
 
-        return open_compressor(path, mode="r")
-
-
-def _summary(sc: Any) -> dict[str, Any]:
-    amps = sc.amplitudes
-    return {
-        "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
-        "source_offset": sc.source_offset, "updates": len(sc.history),
-        "error_bound": sc.error_bound, "discarded_energy": sc.discarded_energy,
-        "orthogonality": sc.orthogonality_error(), "options": sc._options(),
-        "amplitudes_head": amps[:10].tolist(),
-    }
+        return open_compressor(path, mode="r", inner=inner)
 
 
 def _info(args: Any) -> int:
-    with _open(args.store) as sc:
-        summary = _summary(sc)
+    from .stream import summary_of
+
+    with _open(args.store, inner=_load_inner(args)) as sc:
+        summary = summary_of(sc)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
     opts = summary["options"]
     sweeps = CONVERGE if opts["sweeps"] is None else opts["sweeps"]
     print(f"store         {summary['store']}")
+    source = summary["source"]
+    if source is not None:
+        n, m = source["shape"]
+        where = "" if source["resolved"] in (None, source["path"]) else f", {source['resolved']}"
+        print(f"source        {source['description']} ({n} x {m}){where}")
+    print(f"inner product {summary['inner']}")
     print(f"snapshots     n = {summary['n']}, absorbed {summary['n_seen']} "
           f"(source offset {summary['source_offset']}) in {summary['updates']} "
           f"update{'' if summary['updates'] == 1 else 's'}")
     print(f"rank          {summary['rank']}  (rule {opts['rule']}, sweeps {sweeps}, "
-          f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']})")
+          f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']}, "
+          f"oversampling {opts['oversampling']})")
+    print("final sweeps  " + (
+        "converged: the expansion is the SVD of what was absorbed" if summary["finalized"]
+        else "not run: the expansion is as streamed (`streamsvd ingest --resume` without "
+        "--final-sweeps none converges it)"))
     print(f"error bound   ||A - U V^T||_F <= {summary['error_bound']:.3e}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
     head = ", ".join(f"{a:.4g}" for a in summary["amplitudes_head"])
@@ -685,7 +862,7 @@ def _export(args: Any) -> int:
         raise InputError(f"OUT must end with .npz, .h5 or .hdf5; got {out.name!r}.")
     import numpy as np
 
-    with _open(args.store) as sc:
+    with _open(args.store, inner=_load_inner(args)) as sc:
         e = sc.expansion
         bound = sc.error_bound
     data = {"U": e.U, "V": e.V, "amplitudes": e.amplitudes, "error_bound": np.array(bound)}
@@ -761,7 +938,7 @@ def _figure(sc: Any, *, name: str) -> Any:
 
 def _plot(args: Any) -> int:
     out = Path(args.out)
-    with _open(args.store) as sc:
+    with _open(args.store, inner=_load_inner(args)) as sc:
         fig = _figure(sc, name=Path(str(args.store).rstrip("/")).name)
     fig.savefig(out, dpi=120)
     print(f"wrote {out}")

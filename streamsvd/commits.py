@@ -11,7 +11,10 @@ commit that are unchanged:
 * ``V0``, by rows: the rows of the previous commit are unchanged unless the factor was
   rebased or replaced since (``rows.rewrites`` moved, or the plan replaces it); the
   columns added since are zero in those rows;
-* ``history``, one row per update, only appended.
+* ``history``, one row per update, only appended;
+* the inner product's data (``inner_weights``, ``inner_matrix`` or the CSR arrays
+  ``inner_indptr``, ``inner_indices``, ``inner_data``; :func:`streamsvd.inner.inner_arrays`),
+  written by the first commit and kept unchanged by every later one.
 
 The small state (``Gu``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the
 compressor. :class:`CommitTracker` remembers those extents for the generation a commit
@@ -42,6 +45,7 @@ class _Mark:
     rewrites: int
     rows: int
     records: int
+    inner: bool  # whether the generation holds the inner product's data
 
 
 class CommitTracker:
@@ -50,6 +54,7 @@ class CommitTracker:
     def __init__(self) -> None:
         self._mark: _Mark | None = None
         self._pending: int | None = None
+        self._inner_pending = True  # whether the pending generation holds the inner data
         # rows [0, _valid) of _rows encode the committed records (they never change)
         self._rows = np.zeros((0, len(HISTORY_FIELDS)))
         self._valid = 0
@@ -64,12 +69,14 @@ class CommitTracker:
         V0: np.ndarray | None,
         replaced: bool,
         history: list[UpdateRecord],
+        inner: dict[str, np.ndarray],
     ) -> dict[str, Appended]:
         """Return the appended arrays of a commit on top of generation ``generation``.
 
         ``basis`` holds the planned basis arrays (``Q``, ``MQ``), ``compact`` whether
         the plan compacts it; ``V0`` the planned rows, ``replaced`` whether the plan
-        replaces them; ``history`` the records including the planned one.
+        replaces them; ``history`` the records including the planned one; ``inner`` the
+        inner product's arrays (the same at every commit).
         """
         mark = self._mark
         if mark is not None and mark.generation != generation:
@@ -88,6 +95,9 @@ class CommitTracker:
         if V0 is not None:
             out["V0"] = Appended(V0, axis=0, unchanged=min(rows, V0.shape[0]))
         out["history"] = Appended(self._history(history, records), axis=0, unchanged=records)
+        kept = mark is not None and mark.inner
+        for name, a in inner.items():
+            out[name] = Appended(a, axis=0, unchanged=a.shape[0] if kept else 0)
         return out
 
     def _history(self, history: list[UpdateRecord], keep: int) -> np.ndarray:
@@ -115,13 +125,22 @@ class CommitTracker:
             rewrites=0 if state.rows is None else state.rows.rewrites,
             rows=0 if state.rows is None else state.rows.m,
             records=records,
+            inner=self._inner_pending,
         )
         self._valid = records
         self._pending = None
+        self._inner_pending = True
 
-    def restored(self, generation: int, state: State, history: np.ndarray) -> None:
-        """Remember the extents of a state restored from ``generation``."""
+    def restored(
+        self, generation: int, state: State, history: np.ndarray, *, inner: bool
+    ) -> None:
+        """Remember the extents of a state restored from ``generation``.
+
+        ``inner``: whether that generation holds the inner product's data (a store
+        written before it was kept does not; the next commit then writes it).
+        """
         self._rows = np.array(history, dtype=np.float64).reshape(-1, len(HISTORY_FIELDS))
         self._valid = self._rows.shape[0]
         self._pending = generation
+        self._inner_pending = inner
         self.settle(state, self._valid)

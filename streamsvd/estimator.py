@@ -409,7 +409,7 @@ class StreamingSVD(_Mixin, _Base):
             inner = as_inner(self.inner, n_features)
             sc = StreamCompressor(
                 n_features, inner=inner, rtol=opts.tol, max_rank=opts.max_rank,
-                rule=opts.rule, sweeps=opts.sweeps, right_vectors=False,
+                oversampling=0, rule=opts.rule, sweeps=opts.sweeps, right_vectors=False,
             )
             n_old, mu, m2 = 0, np.zeros(n_features), np.zeros(n_features)
         n_new = n_old + n_b

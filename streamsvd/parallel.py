@@ -39,8 +39,9 @@ from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreMismatchError
 from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
 from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
+from .provenance import SourceRecord
 from .store import open_store
-from .stream import StreamCompressor
+from .stream import StreamCompressor, summary_of
 
 __all__ = [
     "COMPRESSOR_OPTIONS",
@@ -108,20 +109,22 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
         yield client
 
 
-def open_compressor(path: Any, *, mode: str = "r", client: Any = None,
+def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
                     ) -> StreamCompressor | TallCompressor:
     """Reopen the compressor of a store, in memory or tall, whichever wrote it.
 
     Both kinds offer ``n``, ``n_seen``, ``rank``, ``amplitudes``, ``error_bound``,
     ``discarded_energy``, ``history``, ``orthogonality_error()``, ``expansion``,
-    ``source_offset``, ``store_path`` and ``close()``.
+    ``source_offset``, ``source_record``, ``store_path`` and ``close()``. ``inner`` is
+    needed only for a store that does not keep its inner product (see
+    :meth:`StreamCompressor.open`).
     """
     with open_store(path, "r") as st:
         kind = st.read().attrs.get("kind")
     if kind == KIND:
-        return TallCompressor.open(path, mode=mode, client=client)
+        return TallCompressor.open(path, mode=mode, client=client, inner=inner)
     if kind == "streamsvd.StreamCompressor":
-        return StreamCompressor.open(path, mode=mode)
+        return StreamCompressor.open(path, mode=mode, inner=inner)
     raise StoreMismatchError(
         f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
         "or TallCompressor store."
@@ -156,10 +159,11 @@ def tall_compress(
     store : str or path-like, optional
         Store of the basis: created, or continued from its recorded source offset with
         ``resume=True``. Every update is committed (``commit_every``); a failure leaves
-        the store at its last commit.
+        the store at its last commit. The source is recorded in the store
+        (:attr:`~streamsvd.StreamCompressor.source_record`).
     resume : bool
-        Continue the existing store (its options are used; pass only ``inner`` when it
-        holds weights).
+        Continue the existing store (its options and weights are used; ``inner``, if
+        passed, is checked against them).
     chunk_rows : int, optional
         Rows per chunk: by default the source's row chunks when it is a dask or zarr
         array chunked uniformly by rows, else 16384.
@@ -181,6 +185,8 @@ def tall_compress(
     spec = SourceSpec.of(source, dataset=dataset)
     x = _as_dask(spec, chunk_rows)
     rows = chunk_rows if chunk_rows is not None else _uniform_rows(x)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
     if resume:
         inner = options.pop("inner", None)
         if store is None or options:
@@ -190,13 +196,15 @@ def tall_compress(
             )
         tc = TallCompressor.open(store, inner=inner, client=client)
         if tc.n != spec.n:
-            tc.close()
+            tc.close(finalize=False)
             raise ShapeMismatchError(
                 f"`source` must have snapshots of size {tc.n} (the store's n); got {spec.n} "
                 f"from {spec.description}. Pass the source the store was built from."
             )
+        tc.source_record = record
     else:
-        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client, **options)
+        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client,
+                            source_record=record, **options)
     try:
         bar = None
         if progress:
@@ -214,7 +222,7 @@ def tall_compress(
                     bar.update(stop - a)
         tc.flush()
     except BaseException:
-        tc.close()
+        tc.close(finalize=False)
         raise
     return tc
 
@@ -296,6 +304,7 @@ def ingest(
     chunk_rows: int | None = None,
     resume: bool = False,
     progress: bool = True,
+    finalize: bool = True,
     **options: Any,
 ) -> dict[str, Any]:
     """Compress a source into a store on dask: what ``streamsvd ingest`` runs.
@@ -321,8 +330,13 @@ def ingest(
         Continue the store from its recorded source offset.
     progress : bool
         Show a progress bar (dask's for the tree, per column for the tall mode).
+    finalize : bool
+        Converge the core at the end and cut to ``max_rank``
+        (:meth:`~streamsvd.StreamCompressor.finalize`, committed), unless the store
+        already is (default).
     **options
-        Compressor options (``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ...).
+        Compressor options (``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``,
+        ``sweeps``, ...).
 
     Returns
     -------
@@ -352,16 +366,11 @@ def ingest(
                                dataset=dataset, client=client, store=store, resume=resume,
                                progress=progress, **options)
         try:
-            amps = sc.amplitudes
-            summary = {
-                "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
-                "source_offset": sc.source_offset, "updates": len(sc.history),
-                "error_bound": sc.error_bound, "discarded_energy": sc.discarded_energy,
-                "orthogonality": sc.orthogonality_error(), "options": sc._options(),
-                "amplitudes_head": amps[:10].tolist(), "mode": "tall" if tall else "tree",
-                "scheduler": scheduler or "threads",
-            }
+            if finalize and not sc.finalized:
+                sc.finalize()
+            summary = summary_of(sc)
+            summary.update(mode="tall" if tall else "tree", scheduler=scheduler or "threads")
         finally:
-            sc.close()
+            sc.close(finalize=False)
     summary["seconds"] = time.perf_counter() - t0
     return summary

@@ -34,7 +34,7 @@ from .inner import DiagonalInner, InnerProduct, as_inner
 from .panels import PanelBasis
 from .parallel_tree import check_client, execute
 from .storage import LocalStorage, ObjectStorage, open_storage
-from .stream import StreamCompressor, UpdateRecord
+from .stream import StreamCompressor, UpdateRecord, stored_options
 
 __all__ = ["DEFAULT_CHUNK_ROWS", "KIND", "TallCompressor"]
 
@@ -71,8 +71,8 @@ class TallCompressor(StreamCompressor):
         Euclidean or diagonal weights (a matrix inner product couples the row chunks and
         is not offered out of core).
     **options
-        ``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ``reject_tol``,
-        ``reorth_tol``, ``right_vectors``, ``commit_every``: as for
+        ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
+        ``reject_tol``, ``reorth_tol``, ``right_vectors``, ``commit_every``: as for
         :class:`~streamsvd.StreamCompressor`.
 
     Notes
@@ -161,7 +161,7 @@ class TallCompressor(StreamCompressor):
         cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
     ) -> Any:
         return cls(n, inner=inner, workdir=path, client=backend.get("client"),
-                   chunk_rows=int(attrs["basis"]["chunk_rows"]), **attrs["options"])
+                   chunk_rows=int(attrs["basis"]["chunk_rows"]), **stored_options(attrs))
 
     def _reopened(self, mode: str) -> None:
         self._commits = (set(self._panels.panels), set())
@@ -173,9 +173,14 @@ class TallCompressor(StreamCompressor):
         self._commits = (set(basis_attrs["panels"]), self._commits[0])
         self._panels.collect(self._commits[0] | self._commits[1])
 
-    def close(self) -> None:
-        """Commit what is pending, release the store's lock, remove a temporary workdir."""
-        super().close()
+    def close(self, *, finalize: bool = True) -> None:
+        """Finalise, commit what is pending, release the store's lock, remove a workdir.
+
+        As :meth:`StreamCompressor.close <streamsvd.StreamCompressor.close>`; a
+        temporary workdir (no store, no ``workdir``) is removed with its panels, and
+        nothing is finalised then.
+        """
+        super().close(finalize=finalize and self._cleanup is None)
         if self._cleanup is not None:
             self._cleanup()
             self._cleanup = None

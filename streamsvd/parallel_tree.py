@@ -40,6 +40,7 @@ from threadpoolctl import threadpool_limits
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
 from .inner import as_inner
+from .provenance import SourceRecord
 from .sources import Source, open_source, open_zarr_url
 from .storage import is_url, open_storage
 from .stream import StreamCompressor
@@ -49,7 +50,7 @@ __all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
 logger = logging.getLogger(__name__)
 
 COMPRESSOR_OPTIONS = (
-    "inner", "eps", "rtol", "max_rank", "rule", "sweeps", "reject_tol",
+    "inner", "eps", "rtol", "max_rank", "oversampling", "rule", "sweeps", "reject_tol",
     "reorth_tol",
 )
 """Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
@@ -311,7 +312,8 @@ def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
     probe = StreamCompressor(n, **opts)
     return {
         "inner": probe.inner, "eps": probe.eps, "rtol": probe.rtol,
-        "max_rank": probe.max_rank, "rule": probe.rule, "sweeps": probe.sweeps,
+        "max_rank": probe.max_rank, "oversampling": probe.oversampling, "rule": probe.rule,
+        "sweeps": probe.sweeps,
         "reject_tol": probe.reject_tol,
         "reorth_tol": probe.reorth_tol,
     }
@@ -321,7 +323,8 @@ def options_of(sc: StreamCompressor) -> dict[str, Any]:
     """Return the options of an existing compressor, as :func:`check_options` does."""
     return {
         "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
-        "rule": sc.rule, "sweeps": sc.sweeps, "reject_tol": sc.reject_tol,
+        "oversampling": sc.oversampling, "rule": sc.rule, "sweeps": sc.sweeps,
+        "reject_tol": sc.reject_tol,
         "reorth_tol": sc.reorth_tol,
     }
 
@@ -377,16 +380,19 @@ def tree_compress(
         the store's compressor is reopened first (taking its writer lock), the columns
         from its recorded source offset on are compressed, and the root is merged into
         it (one commit). A failure anywhere before that commit leaves an existing store
-        as it was.
+        as it was. The source is recorded in the store
+        (:attr:`~streamsvd.StreamCompressor.source_record`).
     resume : bool
-        Continue the existing store at ``store`` (its options are used; pass only
-        ``inner`` when the store was not written with the Euclidean inner product).
+        Continue the existing store at ``store`` (its options and inner product are
+        used; ``inner``, if passed, is checked against the store's).
     progress : bool
         Show dask's progress bar.
     **options
         Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
-        ``eps``, ``rtol``, ``max_rank``, ``rule``, ``sweeps``, ``reject_tol``,
-        ``reorth_tol``.
+        ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
+        ``reject_tol``, ``reorth_tol``. The root is streamed at ``max_rank +
+        oversampling`` terms; closing it (or :meth:`~streamsvd.StreamCompressor.finalize`)
+        cuts to ``max_rank``.
 
     Returns
     -------
@@ -417,6 +423,8 @@ def tree_compress(
     if leaf_columns is not None:
         leaf_columns = cast(int, check_positive_int(leaf_columns, "leaf_columns"))
     spec = SourceSpec.of(source, dataset=dataset)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
     target: StreamCompressor | None = None
     path = None if store is None else open_storage(store, argument="store")
     if resume:
@@ -442,7 +450,7 @@ def tree_compress(
             opts = options_of(target)
             start = target.source_offset
         except BaseException:
-            target.close()
+            target.close(finalize=False)
             raise
     else:
         opts = check_options(options, spec.n)
@@ -459,12 +467,14 @@ def tree_compress(
         if target is None:
             # a new store: the root is written as it is (one commit, no further update)
             target = root if root is not None else StreamCompressor(spec.n, **opts)
+            target.source_record = record
             target.save(path)
         elif root is not None:
+            target.source_record = record
             target.merge(root)
     except BaseException:
         if target is not None:
-            target.close()
+            target.close(finalize=False)
         raise
     return target
 

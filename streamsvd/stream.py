@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import time
 from typing import Any
@@ -28,7 +29,13 @@ import numpy as np
 
 from ._core import Truncation, UpdateRecord, r_factor, record_from_row
 from ._scaling import safe_column_norms
-from ._validation import as_float_array, check_choice, check_nonnegative, check_positive_int
+from ._validation import (
+    as_float_array,
+    check_choice,
+    check_nonnegative,
+    check_nonnegative_int,
+    check_positive_int,
+)
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
 from .commits import CommitTracker
@@ -36,7 +43,8 @@ from .compress import fix_signs
 from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import default_reject_tol
-from .inner import InnerProduct, as_inner, check_same_inner
+from .inner import InnerProduct, as_inner, check_same_inner, inner_arrays, inner_from_arrays
+from .provenance import SourceRecord
 from .rotations import RULES
 from .rows import RowFactor
 from .store import BasisStore, open_store
@@ -51,13 +59,33 @@ from .update import (
     plan_merge,
 )
 
-__all__ = ["StreamCompressor", "UpdateRecord"]
+__all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
 logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 KIND = "streamsvd.StreamCompressor"
 LAYOUT = 3  # version of the arrays a StreamCompressor commits (3: Q, V0, history appended)
+
+
+def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
+    """Return the compressor options recorded in a store's attributes.
+
+    Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
+    update: they continue so.
+    """
+    return {"oversampling": 0, **attrs["options"]}
+def _stored_inner(path: Any, state: Any) -> InnerProduct:
+    """Return the inner product a store keeps; Euclidean when it keeps none."""
+    stored = inner_from_arrays(state.arrays)
+    if stored is None:
+        return as_inner(None)
+    if stored.fingerprint != state.inner_fingerprint:
+        raise StoreFormatError(
+            f"`path` {path!s} is damaged: the inner product it keeps does not match its "
+            f"fingerprint {state.inner_fingerprint[:12]}... Restore the store from a copy."
+        )
+    return stored
 
 
 class StreamCompressor:
@@ -74,7 +102,15 @@ class StreamCompressor:
     rtol : float, optional
         Relative threshold: terms with ``||v_i|| < rtol * ||v_1||`` are cut.
     max_rank : int, optional
-        Keep at most this many terms (the ones of largest amplitude after the sweeps).
+        Keep this many terms in the end (the ones of largest amplitude). While streaming,
+        ``max_rank + oversampling`` terms are kept, and :meth:`finalize` (called by
+        :meth:`close`) cuts to ``max_rank`` once the core is converged: a cap applied at
+        every update compounds its errors, the oversampled stream does not (measured in
+        ``bench/README.md``, "The SVD by default").
+    oversampling : int
+        Extra terms kept while streaming with ``max_rank`` (default 10; 0 truncates to
+        ``max_rank`` at every update, as IncrementalPCA does). Ignored without
+        ``max_rank``.
     rule : {"paper", "jacobi"}
         Rotation rule of the sweeps (see :func:`streamsvd.compress`).
     sweeps : int or None
@@ -98,9 +134,24 @@ class StreamCompressor:
     commit_every : int
         Updates between two commits (the last ones are committed by :meth:`flush` or
         :meth:`close`).
+    source_record : SourceRecord, optional
+        Where the snapshots come from (path, dataset, shape), kept in the attributes of
+        every commit as :attr:`source_record` (the command line refuses to resume a
+        store from another source). It may be replaced before a commit, when a resumed
+        stream reads a source that gained columns.
+
+    The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
+    nothing) runs :meth:`finalize`, which converges the small core and truncates it
+    optimally, then commits. Call ``close(finalize=False)`` to keep the streamed state
+    as it is.
 
     Notes
     -----
+    Store contents: besides the state, the first commit writes the data of the inner
+    product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
+    keep unchanged, so :meth:`open` needs no ``inner`` (an inner product of another
+    class than the three of :mod:`streamsvd.inner` is recorded by fingerprint only).
+
     Error bound: :attr:`error_bound` is guaranteed, ``||A - U V^T||_F <= error_bound``
     in the norm of ``M`` after every update (theorem in :mod:`streamsvd.bound`); at
     convergence (``sweeps=None``) it is the Pythagorean ``sqrt(sum of discarded
@@ -126,6 +177,7 @@ class StreamCompressor:
         eps: float = 0.0,
         rtol: float | None = None,
         max_rank: int | None = None,
+        oversampling: int = 10,
         rule: str = "paper",
         sweeps: int | None = 1,
         reject_tol: float | None = None,
@@ -133,12 +185,20 @@ class StreamCompressor:
         right_vectors: bool = True,
         store: Any = None,
         commit_every: int = 1,
+        source_record: SourceRecord | None = None,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.inner: InnerProduct = as_inner(inner, self.n)
+        if source_record is not None and not isinstance(source_record, SourceRecord):
+            raise InputError(
+                f"`source_record` must be a SourceRecord or None; got "
+                f"{type(source_record).__name__}. Build one with `SourceRecord.of(...)`."
+            )
+        self.source_record = source_record
         self.eps = check_nonnegative(eps, "eps")
         self.rtol = None if rtol is None else check_nonnegative(rtol, "rtol")
         self.max_rank = check_positive_int(max_rank, "max_rank", allow_none=True)
+        self.oversampling = check_nonnegative_int(oversampling, "oversampling")
         self.rule = check_choice(rule, "rule", RULES)
         self.sweeps = check_positive_int(sweeps, "sweeps", allow_none=True)
         self.reject_tol = (
@@ -157,7 +217,7 @@ class StreamCompressor:
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._opts = StepOptions(
             inner=self.inner, rule=self.rule, sweeps=self.sweeps,
-            truncation=Truncation(self.eps, self.rtol, self.max_rank),
+            truncation=Truncation(self.eps, self.rtol, self.streaming_rank),
             reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
         )
         self._state = State(
@@ -176,9 +236,23 @@ class StreamCompressor:
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
                 attrs=self._attrs(None),
             )
-            self._commit(None, self.source_offset)
+            try:
+                self._commit(None, self.source_offset)
+            except BaseException:
+                self._store.close()  # release the lock of the store left at generation 0
+                self._store = None
+                raise
 
     KIND = KIND
+
+    @property
+    def streaming_rank(self) -> int | None:
+        """Most terms kept between updates: ``max_rank + oversampling`` (None: no cap)."""
+        return None if self.max_rank is None else self.max_rank + self.oversampling
+    @functools.cached_property
+    def _inner_data(self) -> dict[str, np.ndarray]:
+        """The inner product's arrays that the store keeps (none for an unknown class)."""
+        return inner_arrays(self.inner) or {}
 
     def _new_basis(self) -> BasisBackend:
         """Return the n-sized backend of this facade (in memory)."""
@@ -194,8 +268,9 @@ class StreamCompressor:
         path : str or path-like
             The store written with ``StreamCompressor(..., store=path)``.
         inner : optional
-            The inner product the store was written with (checked by fingerprint);
-            Euclidean when omitted.
+            The inner product the store was written with (checked by fingerprint). When
+            omitted, the one the store keeps (Euclidean if none); a store written before
+            stores kept it, with another inner product than the Euclidean one, needs it.
         mode : {"a", "r"}
             ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
         """
@@ -224,7 +299,14 @@ class StreamCompressor:
                     f"this version reads layout {LAYOUT}. Ingest the snapshots again into a "
                     "new store."
                 )
-            ip = as_inner(inner, state.n)
+            ip = _stored_inner(path, state) if inner is None else as_inner(inner, state.n)
+            if inner is None and ip.fingerprint != state.inner_fingerprint:
+                raise StoreMismatchError(
+                    f"`inner` must be given: the store {path!s} was written with an inner "
+                    f"product (fingerprint {state.inner_fingerprint[:12]}...) that it does not "
+                    "keep (an earlier version of streamsvd, or an inner product of another "
+                    "class). Pass the same matrix or weights."
+                )
             if ip.fingerprint != state.inner_fingerprint:
                 raise StoreMismatchError(
                     f"`inner` must be the inner product the store {path!s} was written with "
@@ -233,9 +315,13 @@ class StreamCompressor:
                 )
             sc = cls._reopen(state.n, ip, attrs, path, **backend)
             sc._restore(state.arrays, attrs)
+            sc.source_record = SourceRecord.from_attrs(attrs.get("source"))
             sc._store = st
             if state.arrays:
-                sc._tracker.restored(state.generation, sc._state, state.arrays["history"])
+                sc._tracker.restored(
+                    state.generation, sc._state, state.arrays["history"],
+                    inner=all(name in state.arrays for name in sc._inner_data),
+                )
             sc._reopened(mode)
         except BaseException:
             st.close()
@@ -247,14 +333,15 @@ class StreamCompressor:
         cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
     ) -> Any:
         """Return a compressor with a store's options, before its state is restored."""
-        return cls(n, inner=inner, **attrs["options"])
+        return cls(n, inner=inner, **stored_options(attrs))
 
     def _reopened(self, mode: str) -> None:
         """Run once a store was reopened (a backend may clean what it left)."""
 
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
-        out = StreamCompressor(self.n, inner=self.inner, **self._options())
+        out = StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
+                               **self._options())
         out._state = copy.deepcopy(self._state)
         out._history = list(self._history)
         out.source_offset = self.source_offset
@@ -289,19 +376,39 @@ class StreamCompressor:
             self._commit(None, self.source_offset)
             self._uncommitted = 0
 
-    def close(self) -> None:
-        """Commit what is pending and release the store's writer lock."""
+    def close(self, *, finalize: bool = True) -> None:
+        """Finalise the expansion, commit what is pending and release the store's lock.
+
+        Parameters
+        ----------
+        finalize : bool
+            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
+            closed expansion is the SVD, truncated to ``max_rank``. A store opened
+            read-only is never finalised.
+        """
+        writable = self._store is None or self._store.mode == "a"
+        if finalize and writable and not self.finalized:
+            self.finalize()
         if self._store is not None:
-            if self._store.mode == "a":
+            if writable:
                 self.flush()
             self._store.close()
             self._store = None
 
+    @property
+    def finalized(self) -> bool:
+        """Whether the expansion is its own SVD, truncated by the rules without oversampling.
+
+        True when the last update was :meth:`finalize`, or nothing was absorbed yet.
+        """
+        return not self._history or self._history[-1].kind == "finalize"
+
     def __enter__(self) -> StreamCompressor:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        # a block that raised keeps its streamed state: what was committed stays as it was
+        self.close(finalize=exc_type is None)
 
     @property
     def store_path(self) -> str | None:
@@ -310,8 +417,9 @@ class StreamCompressor:
 
     def _options(self) -> dict[str, Any]:
         return {
-            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank, "rule": self.rule,
-            "sweeps": self.sweeps, "reject_tol": self.reject_tol,
+            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank,
+            "oversampling": self.oversampling, "rule": self.rule, "sweeps": self.sweeps,
+            "reject_tol": self.reject_tol,
             "reorth_tol": self.reorth_tol, "right_vectors": self.right_vectors,
             "commit_every": self.commit_every,
         }
@@ -325,6 +433,7 @@ class StreamCompressor:
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
+            "source": None if self.source_record is None else self.source_record.to_attrs(),
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
@@ -357,6 +466,7 @@ class StreamCompressor:
         appended = self._tracker.appended(
             self._store.generation, s, basis=dict(basis), compact=compact,
             V0=None if rows is None else rows[0], replaced=replaced, history=self._history,
+            inner=self._inner_data,
         )
         attrs = self._attrs(plan)
         attrs.update(
@@ -381,7 +491,8 @@ class StreamCompressor:
             # killed between the creation of the store and its first commit: the store
             # holds the options only, and nothing was absorbed
             return
-        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()}
+        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
+             if not k.startswith("inner_")}
         pieces, start = [], 0
         for shape in attrs["small_layout"]:
             size = int(np.prod(shape))
@@ -613,11 +724,12 @@ class StreamCompressor:
 
         Rotation sweeps of ``rule`` (``"jacobi"`` by default: quadratic convergence) run
         on the core until a sweep rotates nothing (at most 200), and the truncation rules
-        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted) are
-        applied to the converged amplitudes: the optimal (Eckart-Young) truncation of
-        the expansion. Costs one compaction of the basis at most, nothing in the number
-        of snapshots; recorded in :attr:`history` (kind ``"finalize"``) and committed like
-        any update. The stream may continue afterwards (with the compressor's options).
+        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted, without
+        the oversampling) are applied to the converged amplitudes: the optimal
+        (Eckart-Young) truncation of the expansion. Costs one compaction of the basis at
+        most, nothing in the number of snapshots; recorded in :attr:`history` (kind
+        ``"finalize"``) and committed like any update. :meth:`close` calls it. The stream
+        may continue afterwards (with the compressor's options).
         """
         t0 = time.perf_counter()
         cap = check_positive_int(max_rank, "max_rank", allow_none=True)
@@ -648,3 +760,16 @@ class StreamCompressor:
         self._version += 1
         self.source_offset = source_offset
         return plan.record
+
+
+def summary_of(sc: StreamCompressor) -> dict[str, Any]:
+    """Return what ``streamsvd info --json`` prints of a compressor (JSON-able)."""
+    return {
+        "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
+        "source_offset": sc.source_offset, "updates": len(sc.history),
+        "finalized": sc.finalized, "error_bound": sc.error_bound,
+        "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
+        "options": sc._options(), "inner": repr(sc.inner),
+        "source": None if sc.source_record is None else sc.source_record.to_attrs(),
+        "amplitudes_head": sc.amplitudes[:10].tolist(),
+    }

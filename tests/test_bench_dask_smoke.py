@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 import pytest
+from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -17,7 +18,7 @@ def test_bench_dask_tiny(monkeypatch, tmp_path):
         "--tall-block", "40", "--k", "4", "--oversample", "6", "--signal", "12",
         "--workers", "1", "--inprocess", "--out", str(tmp_path), "--tmpdir", str(tmp_path),
     ])
-    assert (tmp_path / "bench_dask.png").stat().st_size > 10_000
+    assert_drawn(tmp_path / "bench_dask.png")
     data = json.loads((tmp_path / "bench_dask.json").read_text())
     assert not any(p.name.startswith("streamsvd-bench-") for p in tmp_path.iterdir())
     runs = {(r["method"], r["workers"]): r for r in data["runs"]}

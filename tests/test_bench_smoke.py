@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -29,7 +30,7 @@ def _read(path):
 def test_fig1_pair_dynamics(bench, tmp_path):
     mod = bench("fig1_pair_dynamics")
     mod.main(["--out", str(tmp_path), "--steps", "12", "--random", "10"])
-    assert (tmp_path / "fig1_pair_dynamics.png").stat().st_size > 10_000
+    assert_drawn(tmp_path / "fig1_pair_dynamics.png")
     data = _read(tmp_path / "fig1_pair_dynamics.json")
     assert data["max_deviation_plotted"] < 1e-12
     assert data["max_deviation_random"]["eta"] < 1e-12
@@ -48,7 +49,7 @@ def test_fig3_rbs480a(bench, tmp_path, rbs480a_path):
     mod.main(["--out", str(tmp_path), "--data", str(rbs480a_path), "--size", "40",
               "--max-sweeps", "8", "--steep-modes", "5"])
     for name in ("fig2_rbs480a_spectra.png", "fig3_rbs480a.png"):
-        assert (tmp_path / name).stat().st_size > 10_000
+        assert_drawn(tmp_path / name)
     data = _read(tmp_path / "fig3_rbs480a.json")
     assert data["sweep_list"] == [1, 2, 3, 5, 8]
     assert set(data["configurations"]) == {"original", "medium slope", "strong initial slope"}
@@ -75,7 +76,7 @@ def test_speed_vs_error_generated(bench, tmp_path):
     mod.main(["--out", str(tmp_path), "--matrices", "generated", "--n", "48",
               "--decades", "3", "--ranks", "5,20", "--run-cap", "3",
               "--literal-cap", "3", "--literal-max-n", "64"])
-    assert (tmp_path / "speed_vs_error_generated.png").stat().st_size > 10_000
+    assert_drawn(tmp_path / "speed_vs_error_generated.png")
     st = _read(tmp_path / "speed_vs_error_generated.json")
     assert set(st["series"]) == {"fast/paper", "fast/jacobi", "literal/jacobi"}
     for s in st["series"].values():
@@ -99,3 +100,25 @@ def test_speed_vs_error_missing_data(bench, tmp_path):
     with pytest.raises(SystemExit, match="Matrix Market"):
         mod.main(["--out", str(tmp_path), "--matrices", "rbs480a",
                   "--data", str(tmp_path / "absent.mtx")])
+
+
+def test_final_benchmark_tiny(bench, tmp_path):
+    """The final sweeps store the SVD of the expansion kept; oversampling helps."""
+    mod = bench("final_benchmark")
+    mod.main(["--out", str(tmp_path), "--n", "200", "--m", "60", "--k", "4",
+              "--oversampling", "0,10", "--spectra", "gap,log3", "--modes", "memory,tall"])
+    assert_drawn(tmp_path / "final_benchmark.png")
+    rows = _read(tmp_path / "final_benchmark.json")["rows"]
+    assert len(rows) == 2 * 2 * 4
+    for r in rows:
+        if r["case"] == "no max-rank":  # the SVD of the data, at LAPACK accuracy
+            assert r["rank"] == 60 and r["sv_err"] <= 50 * 60 * np.finfo(float).eps
+        elif "final none" not in r["case"]:
+            assert r["rank"] == 4 and r["kept_err_eps"] <= 50 * 60
+            assert r["err_over_opt"] >= 1 - 1e-12  # never better than Eckart-Young
+    for spectrum in ("gap", "log3"):
+        by = {(r["mode"], r["case"]): r for r in rows if r["spectrum"] == spectrum}
+        for mode in ("memory", "tall"):
+            assert by[mode, "os 10"]["err_over_opt"] < by[mode, "os 0"]["err_over_opt"]
+        assert by["tall", "os 10"]["err_over_opt"] == pytest.approx(
+            by["memory", "os 10"]["err_over_opt"], rel=1e-9)

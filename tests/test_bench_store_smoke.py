@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
+from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -21,7 +22,7 @@ def test_store_benchmark_tiny(bench, tmp_path):
         "--out", str(tmp_path), "--dir", str(tmp_path / "stores"), "--ms", "60,600",
         "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6",
     ])
-    assert (tmp_path / "store_benchmark.png").stat().st_size > 0
+    assert_drawn(tmp_path / "store_benchmark.png")
     saved = json.loads((tmp_path / "store_benchmark.json").read_text())
     assert [r["m"] for r in saved["results"]] == [60, 600]
     for r in report["results"]:
@@ -39,4 +40,17 @@ def test_store_benchmark_tiny(bench, tmp_path):
     (tmp_path / "store_benchmark.png").unlink()
     mod.main(["--out", str(tmp_path), "--ms", "60", "--n", "20", "--block", "3", "--updates",
               "2", "--max-rank", "6", "--baseline", str(baseline)])
-    assert (tmp_path / "store_benchmark.png").stat().st_size > 0
+    assert_drawn(tmp_path / "store_benchmark.png")
+
+
+def test_store_benchmark_tiny_in_a_mass_matrix_product(bench, tmp_path):
+    """With --inner mass the store keeps the matrix: written by the save, never again."""
+    report = bench("store_benchmark").main([
+        "--out", str(tmp_path), "--dir", str(tmp_path / "stores"), "--ms", "60,600",
+        "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6", "--inner", "mass",
+    ])
+    assert_drawn(tmp_path / "store_benchmark_mass.png")
+    assert not (tmp_path / "store_benchmark.json").exists()
+    small, large = report["results"]
+    assert small["same_as_in_memory"] and large["store_reopens_bit_for_bit"]
+    assert large["written_bytes"]["max"] < large["V0_bytes"] / 4

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _figures import assert_drawn
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -39,7 +40,7 @@ def test_stream_benchmark_tiny(bench, tmp_path):
         "--sweeps", "1,none", "--isolation", "inprocess", "--profile-updates", "20:2,1:5",
         "--ortho-updates", "200", "--long-n", "60", "--long-target", "5", "--long-chunk", "50",
     ])
-    assert (tmp_path / "stream_benchmark.png").stat().st_size > 10_000
+    assert_drawn(tmp_path / "stream_benchmark.png")
     data = json.loads((tmp_path / "stream_benchmark.json").read_text())
     assert data["configurations"].keys() == {"block20", "block1"}
     assert data["configurations"]["block20"]["updates"] == 4
@@ -105,7 +106,7 @@ def test_engine_benchmark_tiny(bench, tmp_path):
         assert len(res["mean_per_1000"]) == 2
     saved = json.loads((tmp_path / "engine_benchmark.json").read_text())
     assert {r["method"] for r in saved["block"]} == set(rows)
-    assert (tmp_path / "engine_benchmark.png").stat().st_size > 20_000
+    assert_drawn(tmp_path / "engine_benchmark.png")
 
 
 def test_estimator_benchmark_tiny(bench, tmp_path):
@@ -115,4 +116,4 @@ def test_estimator_benchmark_tiny(bench, tmp_path):
     assert set(res) == {"200", "2000"}
     assert all(v["wall_s"] > 0 and v["cpu_s"] >= 0 for v in res.values())
     assert "IncrementalPCA" in report["results"]  # scikit-learn is a test extra
-    assert (tmp_path / "estimator_benchmark_quick.png").stat().st_size > 20_000
+    assert_drawn(tmp_path / "estimator_benchmark_quick.png")

@@ -17,6 +17,7 @@ from streamsvd.stream import StreamCompressor
 from streamsvd.testing import with_spectrum
 
 WORKTREE = Path(__file__).resolve().parents[1]
+EPS = np.finfo(np.float64).eps
 
 # the ingest options of each mode, as a user picks them
 MODES = {"memory": [], "tree": ["--scheduler", "threads"], "tall": ["--tall"]}
@@ -224,6 +225,186 @@ def test_progress_postfix_shows_the_update_just_done(tmp_path, rng, capsys, monk
 
 
 @pytest.mark.parametrize("mode", ["memory", "tree", "tall"])
+def test_one_resume_command_starts_and_restarts_in_every_mode(tmp_path, matrix, capsys, mode):
+    """--resume on a missing STORE creates it: a restart script needs one command line."""
+    src = tmp_path / "a.npy"
+    store = tmp_path / "b.zarr"
+    command = ["ingest", str(src), str(store), "--block", "10", "--rule", "jacobi",
+               "--sweeps", "converge", "--resume", "--quiet", *MODES[mode]]
+    np.save(src, matrix[:, :30])
+    assert main(command) == 0  # the first run: STORE does not exist yet
+    with cli._open(store) as sc:
+        assert sc.n_seen == 30 and sc.rule == "jacobi" and sc.sweeps is None
+    np.save(src, matrix)  # the solver appended snapshots: the same SOURCE, continued
+    assert main(command) == 0
+    assert main(command) == 0  # nothing new: a no-op
+    info = json.loads(run_cli(["info", store, "--json"], capsys)[1])
+    assert info["n_seen"] == 60 and info["source"]["shape"] == [80, 60]
+    assert info["source"]["resolved"] == str(src.resolve())
+    s = np.linalg.svd(matrix, compute_uv=False)
+    np.testing.assert_allclose(info["amplitudes_head"], s[:10], atol=100 * 80 * EPS * s[0])
+
+
+def test_resume_replaces_the_leftovers_of_an_interrupted_creation(tmp_path, npy, capsys):
+    store = tmp_path / "s.zarr"
+    assert main(["ingest", str(npy), str(store), "--quiet"]) == 0
+    (store / "current.json").unlink()  # as a creation killed before its first generation
+    assert main(["ingest", str(npy), str(store), "--resume", "--quiet"]) == 0
+    with StreamCompressor.open(store, mode="r") as sc:
+        assert sc.n_seen == 60
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    status, _, err = run_cli(["ingest", npy, foreign, "--resume", "--quiet"], capsys)
+    assert_one_line_error(status, err)
+    assert "holds other files" in err and (foreign / "notes.txt").exists()
+
+
+def test_help_says_that_resume_creates_a_missing_store(capsys):
+    status, out, _ = run_cli(["ingest", "--help"], capsys)
+    text = " ".join(out.split())
+    assert status == 0
+    assert "create STORE when it does not exist yet" in text
+    assert "STORE is continued from its recorded source offset if it exists and created " \
+           "otherwise, so one command line starts an ingestion and restarts it" in text
+
+
+@pytest.mark.parametrize("mode", ["memory", "tree", "tall"])
+def test_resume_from_another_source_is_refused_naming_both(tmp_path, matrix, capsys, mode,
+                                                           monkeypatch, caplog):
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    np.save(a, matrix[:, :30])
+    np.save(b, matrix)
+    store = tmp_path / "s.zarr"
+    assert main(["ingest", str(a), str(store), "--block", "10", "--quiet", *MODES[mode]]) == 0
+    generation = ss_generation(store)
+    status, _, err = run_cli(["ingest", b, store, "--resume", "--quiet", *MODES[mode]], capsys)
+    assert_one_line_error(status, err)
+    assert f"SOURCE {b.resolve()} (STORE has {a.resolve()}): STORE {store} was built from " \
+           "another source. Pass the SOURCE (and --dataset) it was built from, or add " \
+           "--source-changed-ok to continue it from this one." in err
+    np.save(a, matrix[:, :20])  # fewer columns than recorded: another file at that path
+    status, _, err = run_cli(["ingest", a, store, "--resume", "--quiet", *MODES[mode]], capsys)
+    assert_one_line_error(status, err)
+    assert "SOURCE of shape 80 x 20 (STORE has 80 x 30)" in err
+    assert ss_generation(store) == generation  # refused: STORE unchanged
+    # the same file by another relative path is the same source
+    monkeypatch.chdir(tmp_path)
+    np.save(a, matrix[:, :40])
+    assert main(["ingest", "a.npy", "s.zarr", "--resume", "--block", "10", "--quiet",
+                 *MODES[mode]]) == 0
+    # the override: continued from b, which the store then records
+    status, _, err = run_cli(["ingest", b, store, "--resume", "--source-changed-ok",
+                              "--block", "10", "--quiet", *MODES[mode]], capsys)
+    assert status == 0, err
+    assert "continuing STORE" in caplog.text and f"-> {b.resolve()}" in caplog.text
+    info = json.loads(run_cli(["info", store, "--json"], capsys)[1])
+    assert info["n_seen"] == 60 and info["source"]["resolved"] == str(b.resolve())
+    assert main(["ingest", str(b), str(store), "--resume", "--quiet", *MODES[mode]]) == 0
+
+
+def test_resume_with_another_dataset_is_refused(tmp_path, matrix, capsys):
+    src = tmp_path / "a.h5"
+    with h5py.File(src, "w") as f:
+        f["u"], f["v"] = matrix[:, :30], matrix
+    store = tmp_path / "s.zarr"
+    assert main(["ingest", str(src), str(store), "--dataset", "/u", "--quiet"]) == 0
+    status, _, err = run_cli(["ingest", src, store, "--dataset", "v", "--resume", "--quiet"],
+                             capsys)
+    assert_one_line_error(status, err)
+    assert "--dataset v (STORE has u)" in err and "SOURCE " + str(src) not in err
+    assert main(["ingest", str(src), str(store), "--dataset", "u", "--resume", "--quiet"]) == 0
+
+
+def ss_generation(store):
+    from streamsvd.store import open_store
+
+    with open_store(store, "r") as st:
+        return st.generation
+
+
+def _nan_first_block(tmp_path, matrix):
+    bad = matrix.copy()
+    bad[3, 2] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    return ["ingest", tmp_path / "nan.npy"]
+
+
+def _unreadable_first_block(tmp_path, matrix):
+    src = tmp_path / "a.h5"
+    with h5py.File(src, "w") as f:  # a dataset compressed by a filter, then damaged
+        f.create_dataset("u", data=matrix, chunks=(80, 60), compression="gzip")
+        offset = f["u"].id.get_chunk_info(0).byte_offset
+    with open(src, "r+b") as fh:
+        fh.seek(offset + 10)
+        fh.write(b"\xff" * 64)
+    return ["ingest", src]
+
+
+@pytest.mark.parametrize("mode", ["memory", "tree", "tall"])
+@pytest.mark.parametrize("cause", ["nan", "unreadable", "weights", "commit", "interrupt"])
+def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, monkeypatch):
+    """A command that fails before its first commit of snapshots removes the STORE it made,
+    with --resume too; one that existed before is never removed."""
+    np.save(tmp_path / "a.npy", matrix)
+    argv = ["ingest", tmp_path / "a.npy"]
+    if cause == "nan":
+        argv = _nan_first_block(tmp_path, matrix)
+    elif cause == "unreadable":
+        argv = _unreadable_first_block(tmp_path, matrix)
+    elif cause == "weights":  # a bad --inner, refused after SOURCE was opened
+        np.save(tmp_path / "w.npy", -np.ones(80))
+        argv += ["--inner", tmp_path / "w.npy"]
+    elif cause == "commit":  # the first commit fails (a full disk)
+        def full(*args, **kwargs):
+            raise OSError("No space left on device")
+
+        monkeypatch.setattr("streamsvd.store.BasisStore.commit", full)
+    else:  # Ctrl-C during the first update
+        def interrupt(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupt)
+    for resume in ([], ["--resume"]):
+        store = tmp_path / "s.zarr"
+        status, _, err = run_cli([*argv, store, "--block", "7", "--quiet", *resume,
+                                  *MODES[mode]], capsys)
+        if cause == "interrupt":
+            assert status == 130, err
+            assert err.strip().endswith(f"nothing was committed to STORE {store}; start again "
+                                        f"with: streamsvd {' '.join(map(str, argv))} {store} "
+                                        f"--block 7 --quiet {' '.join(MODES[mode])}"
+                                        .strip() + " --resume"), err
+        else:
+            assert_one_line_error(status, err)
+        assert not store.exists(), (resume, err)
+    if cause in ("interrupt", "commit"):
+        return
+    # a store that existed before the command is kept, even when it holds no snapshot
+    store = tmp_path / "kept.zarr"
+    if mode == "tall":
+        from streamsvd.parallel import TallCompressor
+
+        TallCompressor(80, store=store).close()
+    else:
+        StreamCompressor(80, store=store).close()
+    status, _, err = run_cli([*argv, store, "--resume", "--quiet", *MODES[mode]], capsys)
+    assert status == 2 and store.exists(), err
+
+
+def test_a_failure_after_a_commit_keeps_the_store(tmp_path, matrix, capsys):
+    bad = matrix.copy()
+    bad[10, 50] = np.nan
+    np.save(tmp_path / "bad.npy", bad)
+    store = tmp_path / "s.zarr"
+    status, _, err = run_cli(["ingest", tmp_path / "bad.npy", store, "--block", "7",
+                              "--quiet"], capsys)
+    assert status == 2
+    with StreamCompressor.open(store, mode="r") as sc:
+        assert sc.source_offset == 49
+
+
+@pytest.mark.parametrize("mode", ["memory", "tree", "tall"])
 def test_non_finite_entry_is_reported_in_source_coordinates(tmp_path, matrix, capsys, mode):
     bad = matrix.copy()
     bad[10, 50] = np.nan  # in the block of columns 49:56, at (10, 1) inside it
@@ -268,8 +449,13 @@ def test_user_mistakes_print_one_line_in_cli_words(tmp_path, matrix, capsys):
         (["ingest", t / "a.npy", t / "s.zarr", "--dataset", "u"], r"got --dataset 'u' .* Drop "
                                                                    r"--dataset\."),
         (["ingest", t / "complex.npy", t / "s.zarr"], r"SOURCE must be real"),
-        (["ingest", t / "a.npy", t / "missing.zarr", "--resume"],
-         r"STORE .* does not exist, so --resume has nothing to continue"),
+        (["ingest", t / "a.npy", t / "s.zarr", "--source-changed-ok"],
+         r"--source-changed-ok applies to --resume only"),
+        (["ingest", t / "a.npy", t / "s.zarr", "--inner", t / "x.mtx"],
+         r"--inner file .*x.mtx cannot be read as a .mtx file"),
+        (["ingest", t / "a.npy", t / "s.zarr", "--inner", t / "afile"],
+         r"--inner must be a .npy \(weights or a dense matrix\), .npz \(scipy.sparse.save_npz\) "
+         r"or .mtx \(Matrix Market\) file; got 'afile'"),
         (["ingest", t / "a.npy", t / "tall.zarr", "--resume"],
          r"was written with --tall; resume it with --tall\."),
         (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--tall"],
@@ -277,12 +463,19 @@ def test_user_mistakes_print_one_line_in_cli_words(tmp_path, matrix, capsys):
         (["ingest", t / "small.npy", t / "mem.zarr", "--resume"],
          r"SOURCE has snapshots of size 50; STORE .* holds a basis of size 80"),
         (["ingest", t / "small.npy", t / "tall.zarr", "--resume", "--tall"],
-         r"SOURCE must have snapshots of size 80"),
+         r"SOURCE has snapshots of size 50; STORE .* holds a basis of size 80"),
         (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--eps", "1", "--rule", "jacobi"],
          r"--eps 1.0 \(STORE has 0.0\), --rule jacobi \(STORE has paper\): --resume continues "
          r"STORE with the options it was created with"),
         (["ingest", t / "a.npy", t / "tall.zarr", "--resume", "--tall", "--sweeps", "converge"],
          r"--sweeps converge \(STORE has 1\)"),
+        (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--scheduler", "threads",
+          "--rtol", "0.1"], r"--rtol 0.1 \(STORE has none\): --resume continues STORE"),
+        (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--commit-every", "3"],
+         r"--commit-every 3 \(STORE has 1\)"),
+        (["ingest", t / "a.npy", t / "tall.zarr", "--resume", "--tall", "--chunk-rows", "7",
+          "--max-rank", "3"],
+         r"--max-rank 3 \(STORE has none\), --chunk-rows 7 \(STORE has 16384\): --resume "),
         (["ingest", t / "a.npy", t / "s.zarr", "--block", "0"],
          r"argument --block: must be a positive integer; got '0'"),
         (["ingest", t / "a.npy", t / "s.zarr", "--eps", "nan"],
@@ -387,7 +580,7 @@ def test_ingest_defaults_are_none_so_given_options_can_be_told_apart():
     _, commands = _subparsers()
     args = commands["ingest"].parse_args(["a.npy", "b.zarr"])
     for name in ("block", "eps", "rtol", "max_rank", "rule", "sweeps", "commit_every",
-                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset"):
+                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset", "inner"):
         assert getattr(args, name) is None, name
 
 
@@ -454,12 +647,133 @@ def test_info_export(tmp_path, matrix, capsys):
         assert f["U"].shape == (80, info["rank"])
 
 
+def test_store_of_the_heat_example_is_read_without_its_mass_matrix(tmp_path, capsys):
+    """examples/heat_pod.py writes a store in the mass-matrix inner product: info, export
+    and plot read it without being given the matrix."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("heat_pod", WORKTREE / "examples" / "heat_pod.py")
+    heat = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(heat)
+    assert heat.main(["--n", "60", "--steps", "100", "--block", "25", "--out", str(tmp_path)]) == 0
+    store = tmp_path / "pod.zarr"
+    capsys.readouterr()
+    status, out, err = run_cli(["info", store, "--json"], capsys)
+    assert status == 0, err
+    info = json.loads(out)
+    assert info["inner"].startswith("MatrixInner(n=60, sparse") and info["n_seen"] == 100
+    assert info["orthogonality"] <= 50 * 60 * EPS
+    assert run_cli(["plot", store, tmp_path / "p.png"], capsys)[0] == 0
+    assert run_cli(["export", store, tmp_path / "u.npz"], capsys)[0] == 0
+    M = heat.fe_matrices(60)[0]
+    with np.load(tmp_path / "u.npz") as z:
+        U = z["U"]
+    gram = U.T @ (M @ U)
+    assert np.linalg.norm(gram - np.eye(U.shape[1]), 2) <= 50 * 60 * EPS
+
+
+def _inner_file(tmp_path, kind, n, rng):
+    """An inner product on R^n and a file holding it, in each format --inner reads."""
+    import scipy.io
+    import scipy.sparse as sp
+
+    w = rng.uniform(0.5, 2.0, n)
+    M = sp.diags_array([w[:-1] / 8, w, w[:-1] / 8], offsets=[-1, 0, 1]).tocsr()
+    path = tmp_path / {"weights": "w.npy", "dense": "m.npy", "sparse": "m.npz",
+                       "mtx": "m.mtx"}[kind]
+    if kind == "weights":
+        np.save(path, w)
+        return path, np.diag(w)
+    if kind == "dense":
+        np.save(path, M.toarray())
+    elif kind == "sparse":
+        sp.save_npz(path, M)
+    else:
+        scipy.io.mmwrite(path, M)
+    return path, M.toarray()
+
+
+@pytest.mark.parametrize("kind", ["weights", "dense", "sparse", "mtx"])
+def test_inner_file_for_ingest_kept_by_the_store(tmp_path, matrix, capsys, kind, rng):
+    path, M = _inner_file(tmp_path, kind, 80, rng)
+    src = tmp_path / "a.npy"
+    np.save(src, matrix[:, :30])
+    store = tmp_path / "s.zarr"
+    assert main(["ingest", str(src), str(store), "--inner", str(path), "--block", "10",
+                 "--quiet"]) == 0
+    np.save(src, matrix)
+    assert main(["ingest", str(src), str(store), "--resume", "--block", "10", "--quiet"]) == 0
+    with StreamCompressor.open(store, mode="r") as sc:  # the store's own inner product
+        U, bound, n_seen = sc.expansion.U, sc.error_bound, sc.n_seen
+        V = sc.expansion.V
+    assert n_seen == 60
+    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= 50 * 80 * EPS
+    L = np.linalg.cholesky(M)
+    assert np.linalg.norm(L.T @ (matrix - U @ V.T)) <= bound * (1 + 1e-9) + 1e-12
+    # given again, it is checked against the store; another one is refused
+    assert run_cli(["info", store, "--inner", path], capsys)[0] == 0
+    np.save(tmp_path / "other.npy", np.ones(80))
+    for argv in (["info", store], ["ingest", src, store, "--resume", "--quiet"]):
+        status, _, err = run_cli([*argv, "--inner", tmp_path / "other.npy"], capsys)
+        assert_one_line_error(status, err)
+        assert "--inner must be the inner product the store" in err
+
+
+def test_dask_modes_keep_the_inner_product_and_tall_refuses_a_matrix(tmp_path, matrix,
+                                                                     capsys, rng):
+    w_path, _ = _inner_file(tmp_path, "weights", 80, rng)
+    m_path, M = _inner_file(tmp_path, "sparse", 80, rng)
+    src = tmp_path / "a.npy"
+    np.save(src, matrix)
+    store = tmp_path / "t.zarr"
+    status, _, err = run_cli(["ingest", src, store, "--tall", "--inner", m_path, "--quiet"],
+                             capsys)
+    assert_one_line_error(status, err)
+    assert "Drop --tall, or lump the mass matrix into weights." in err
+    assert not store.exists()
+    assert main(["ingest", str(src), str(store), "--tall", "--inner", str(w_path), "--quiet"]) == 0
+    status, out, _ = run_cli(["info", store, "--json"], capsys)
+    assert status == 0 and json.loads(out)["inner"].startswith("DiagonalInner(n=80")
+    tree = tmp_path / "tree.zarr"
+    assert main(["ingest", str(src), str(tree), "--scheduler", "threads", "--inner",
+                 str(m_path), "--quiet"]) == 0
+    assert run_cli(["export", tree, tmp_path / "u.npz"], capsys)[0] == 0
+    with np.load(tmp_path / "u.npz") as z:
+        U = z["U"]
+    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= 50 * 80 * EPS
+
+
+def test_store_that_does_not_keep_its_inner_product_needs_inner(tmp_path, matrix, capsys,
+                                                                rng, monkeypatch):
+    """A store written before stores kept the inner product opens with --inner, and keeps
+    it from the next commit on."""
+    path, _ = _inner_file(tmp_path, "weights", 80, rng)
+    src = tmp_path / "a.npy"
+    np.save(src, matrix[:, :30])
+    store = tmp_path / "old.zarr"
+    with monkeypatch.context() as m:  # as an earlier version wrote it: no inner data
+        m.setattr("streamsvd.stream.inner_arrays", lambda inner: None)
+        assert main(["ingest", str(src), str(store), "--inner", str(path), "--quiet"]) == 0
+    status, _, err = run_cli(["info", store], capsys)
+    assert_one_line_error(status, err)
+    assert f"--inner must be given: the store {store} was written with an inner product" in err
+    assert "Pass the same matrix or weights." in err
+    assert run_cli(["info", store, "--inner", path], capsys)[0] == 0
+    np.save(src, matrix)
+    assert main(["ingest", str(src), str(store), "--resume", "--inner", str(path),
+                 "--quiet"]) == 0
+    status, out, _ = run_cli(["info", store, "--json"], capsys)
+    assert status == 0 and json.loads(out)["n_seen"] == 60
+
+
 def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
-    """A tree store has one update: its point is drawn, ticks are integers, titles say what."""
+    """A tree store without final sweeps has one update: its point is drawn, ticks are
+    integers, titles say what."""
     import matplotlib.image
 
     store = tmp_path / "tree.zarr"
-    assert main(["ingest", str(npy), str(store), "--scheduler", "threads", "--quiet"]) == 0
+    assert main(["ingest", str(npy), str(store), "--scheduler", "threads", "--quiet",
+                 "--final-sweeps", "none"]) == 0
     png = tmp_path / "p.png"
     status, out, _ = run_cli(["plot", store, png], capsys)
     assert status == 0 and out == f"wrote {png}\n"

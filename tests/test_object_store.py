@@ -415,9 +415,18 @@ def test_cli_tree_and_tall_modes_on_a_local_cluster_with_s3(s3, rng, tmp_path, m
 
     with open_compressor(tmp_path / "ref") as ref, open_compressor(f"{s3}/{mode}") as sc:
         assert sc.n_seen == ref.n_seen == A.shape[1]
-        assert np.array_equal(sc.expansion.U, ref.expansion.U)
-        assert np.array_equal(sc.expansion.V, ref.expansion.V)
-        assert sc.error_bound == ref.error_bound
+        es, er = sc.expansion, ref.expansion
+        if mode == "tree":  # the same tasks on the same data: bit for bit
+            assert np.array_equal(es.U, er.U) and np.array_equal(es.V, er.V)
+            assert sc.error_bound == ref.error_bound
+        else:
+            # the tall mode's final sweeps reduce row chunks on the cluster in the order
+            # the workers finish, so two runs on local paths differ by rounding too:
+            # LAPACK's test ratio (threshold 50) between the two stored bases
+            tol = 50 * max(A.shape) * np.finfo(float).eps
+            assert np.abs(es.U - er.U).max() <= tol
+            assert np.abs(es.V - er.V).max() <= tol * np.linalg.norm(A, 2)
+            assert abs(sc.error_bound - ref.error_bound) <= tol * np.linalg.norm(A)
     if mode == "tall":
         assert any(name.startswith("p") for name in open_storage(f"{s3}/tall").list("panels"))
 

@@ -41,7 +41,7 @@ def test_resume_is_bit_for_bit(tmp_path, rng, inner):
     sc = StreamCompressor(A.shape[0], store=path, **opts)
     for j in range(0, 40, 8):
         sc.absorb(A[:, j : j + 8])
-    sc.close()
+    sc.close(finalize=False)  # a pause: the streamed state, not its SVD
     sc = StreamCompressor.open(path, inner=ip)
     assert sc.source_offset == 40 and len(sc.history) == 5
     for j in range(40, 80, 8):
@@ -110,7 +110,9 @@ def test_second_writer_and_foreign_stores_are_refused(tmp_path, rng):
         StreamCompressor.open(path, inner=np.ones(A.shape[0]) * 2.0)
     sc.close()
     with pytest.raises(ss.StoreMismatchError, match=r"`inner` must be the inner product the store"):
-        StreamCompressor.open(path)
+        StreamCompressor.open(path, inner=np.ones(A.shape[0]))
+    with pytest.raises(ss.StoreMismatchError, match=r"`inner` must be the inner product the store"):
+        StreamCompressor.open(path, inner=np.eye(A.shape[0]))
     with pytest.raises(ss.StoreError, match=r"already"):
         StreamCompressor(A.shape[0], store=path)
     from streamsvd.store import BasisStore
@@ -299,3 +301,92 @@ def test_store_of_the_previous_layout_is_refused_naming_both(tmp_path, rng):
                       attrs={"kind": StreamCompressor.KIND, "layout": 2}).close()
     with pytest.raises(ss.StoreFormatError, match=r"of layout 2, .* reads layout 3"):
         StreamCompressor.open(other)
+
+
+def _inner(kind, n, rng):
+    import scipy.sparse as sp
+
+    w = rng.uniform(0.5, 2.0, n)
+    M = sp.diags_array([w[:-1] / 8, w, w[:-1] / 8], offsets=[-1, 0, 1]).tocsr()
+    return {"weights": w, "dense": M.toarray(), "sparse": M}[kind]
+
+
+@pytest.mark.parametrize("kind", ["weights", "dense", "sparse"])
+def test_inner_product_is_kept_written_once_and_reopened_without_it(tmp_path, rng, kind):
+    """The first commit writes the inner product's data; later commits keep it (write
+    none of it); `open` without `inner` rebuilds it and resumes bit for bit."""
+    A = _data(rng)
+    M = _inner(kind, A.shape[0], rng)
+    path = tmp_path / "b.zarr"
+    sc = StreamCompressor(A.shape[0], inner=M, max_rank=12, store=path)
+    first = set(sc._store.last_written)
+    assert {k for k in first if k.startswith("inner_")}, first  # written at creation
+    for j in range(0, 40, 8):
+        sc.absorb(A[:, j : j + 8])
+        assert not [k for k in sc._store.last_written if k.startswith("inner_")]
+    fingerprint = sc.inner.fingerprint
+    sc.close(finalize=False)  # a pause: resumed below, bit for bit
+    with StreamCompressor.open(path, mode="r") as back:
+        assert back.inner.fingerprint == fingerprint and type(back.inner) is type(sc.inner)
+    sc = StreamCompressor.open(path)  # no inner: the store's own
+    for j in range(40, 80, 8):
+        sc.absorb(A[:, j : j + 8])
+    _assert_same(sc, _stream(A, 8, inner=M, max_rank=12))
+    sc.close()
+
+
+def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
+        tmp_path, rng, monkeypatch):
+    """A store written before stores kept the inner product (none of its data, the same
+    layout) still opens with `inner=` given; its next commit writes the data once."""
+    A = _data(rng)
+    w = rng.uniform(0.5, 2.0, A.shape[0])
+    path = tmp_path / "old.zarr"
+    with monkeypatch.context() as m:
+        m.setattr("streamsvd.stream.inner_arrays", lambda inner: None)
+        with StreamCompressor(A.shape[0], inner=w, store=path) as sc:
+            sc.absorb(A[:, :20])
+    with pytest.raises(ss.StoreMismatchError, match=r"`inner` must be given: the store .* "
+                                                    r"was written with an inner product"):
+        StreamCompressor.open(path)
+    with StreamCompressor.open(path, inner=w) as sc:
+        sc.absorb(A[:, 20:30])
+        assert "inner_weights" in sc._store.last_written
+        sc.absorb(A[:, 30:40])
+        assert "inner_weights" not in sc._store.last_written
+    with StreamCompressor.open(path, mode="r") as back:
+        assert back.n_seen == 40 and back.inner == ss.DiagonalInner(w)
+
+
+def test_source_record_is_kept_by_every_commit_and_compared():
+    from streamsvd.provenance import SourceRecord
+
+    rec = SourceRecord.of("run.h5", dataset="/u", shape=(60, 30), description="HDF5")
+    assert rec.dataset == "u" and rec.resolved.endswith("/run.h5")
+    assert SourceRecord.from_attrs(rec.to_attrs()) == rec
+    grown = SourceRecord.of("run.h5", dataset="u", shape=(60, 50), description="HDF5")
+    assert rec.differences(grown) == []  # columns appended: the same source, continued
+    other = SourceRecord.of("other.h5", dataset="v", shape=(60, 20), description="HDF5")
+    assert [d[0] for d in rec.differences(other)] == ["path", "dataset", "shape"]
+    assert rec.differences(other)[2] == ("shape", "60 x 20", "60 x 30")
+    array = SourceRecord.of(np.zeros((60, 30)), dataset=None, shape=(60, 30),
+                            description="numpy array of shape (60, 30)")
+    assert rec.differences(array)[0] == ("path", "numpy array of shape (60, 30)",
+                                         rec.resolved)
+    with pytest.raises(ss.InputError, match=r"source record must hold path"):
+        SourceRecord.from_attrs({"path": "x"})
+
+
+def test_source_record_survives_commits_and_reopening(tmp_path, rng):
+    from streamsvd.provenance import SourceRecord
+
+    A = _data(rng)
+    rec = SourceRecord.of("a.npy", dataset=None, shape=A.shape, description=".npy file a.npy")
+    path = tmp_path / "b.zarr"
+    with StreamCompressor(A.shape[0], store=path, source_record=rec) as sc:
+        sc.absorb(A[:, :10])
+        assert sc.copy().source_record == rec
+    with StreamCompressor.open(path, mode="r") as back:
+        assert back.source_record == rec
+    with pytest.raises(ss.InputError, match=r"`source_record` must be a SourceRecord or None"):
+        StreamCompressor(4, source_record={"path": "a.npy"})

@@ -61,6 +61,8 @@ def test_truncated_stream_is_near_optimal_and_bounded(rng, order):
             "shuffled": np.random.default_rng(4).permutation(120)}[order]
     k = 10
     sc = stream(A[:, perm], 10, rule="jacobi", sweeps=None, max_rank=k)
+    assert sc.rank == k + 10  # max_rank + oversampling while streaming
+    sc.finalize()
     e = sc.expansion
     assert e.rank == k
     err = np.linalg.norm(A[:, perm] - e.to_dense())
@@ -154,8 +156,10 @@ def test_geometric_spectrum_to_1e_minus20(rng):
 def test_rank_cap_below_true_rank_keeps_best_directions(rng):
     s = np.r_[10.0, 5.0, 1e-6 * np.ones(20)]
     A = with_spectrum(s, 40, 60, rng)
-    sc = stream(A, 3, rule="jacobi", sweeps=None, max_rank=2)
-    np.testing.assert_allclose(sc.expansion.amplitudes, s[:2], rtol=1e-6)
+    for oversampling in (0, 10):
+        sc = stream(A, 3, rule="jacobi", sweeps=None, max_rank=2, oversampling=oversampling)
+        sc.finalize()
+        np.testing.assert_allclose(sc.expansion.amplitudes, s[:2], rtol=1e-6)
 
 
 def test_long_stream_orthogonality_stays_flat(rng):
