@@ -24,6 +24,7 @@ from .errors import (
     InnerProductMismatchError,
     InputError,
     NonFiniteError,
+    OptionalDependencyError,
     ShapeMismatchError,
     SourceError,
     SparseInputError,
@@ -40,6 +41,7 @@ if TYPE_CHECKING:
     from .gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
     from .inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
     from .rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
+    from .storage import open_storage
     from .store import BasisStore, open_store
     from .stream import StreamCompressor, UpdateRecord
 
@@ -68,14 +70,16 @@ _LAZY = {
     "StreamCompressor": "stream",
     "BasisStore": "store",
     "open_store": "store",
+    "open_storage": "storage",
     "UpdateRecord": "stream",
 }
 
 # submodules reachable as attributes (``streamsvd.store``) without importing them first
 _SUBMODULES = frozenset({
     "basis", "bound", "cli", "compress", "errors", "estimator", "expansion",
-    "gram_schmidt", "inner", "panels", "parallel", "parallel_tall", "parallel_tree",
-    "provenance", "rotations", "rows", "sources", "store", "stream", "testing", "update",
+    "gram_schmidt", "inner", "locks", "panels", "parallel", "parallel_tall",
+    "parallel_tree", "provenance", "rotations", "rows", "sources", "storage", "store",
+    "stream", "testing", "update",
 })
 
 
@@ -126,6 +130,7 @@ __all__ = [
     "InputError",
     "MatrixInner",
     "NonFiniteError",
+    "OptionalDependencyError",
     "PairDynamics",
     "PairRotation",
     "ShapeMismatchError",
@@ -144,6 +149,7 @@ __all__ = [
     "compress",
     "orthonormalize",
     "open_store",
+    "open_storage",
     "orthonormalize_literal",
     "pair_dynamics",
     "rotate_pair",

@@ -26,7 +26,6 @@ import math
 import os
 import re
 import shlex
-import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -155,6 +154,77 @@ def _sweeps(text: str) -> int | str:
     return value
 
 
+def _storage_option(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE``: VALUE as JSON when it parses (true, 3, "x"), else as the text."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or any(not part for part in key.strip().split(".")):
+        raise argparse.ArgumentTypeError(
+            f"must be KEY=VALUE (for example endpoint_url=http://localhost:9000 or "
+            f"client_kwargs.region_name=eu-west-1); got {text!r}"
+        )
+    try:
+        parsed: Any = json.loads(value)
+    except ValueError:
+        parsed = value
+    return key.strip(), parsed
+
+
+def _storage_options(args: Any) -> dict[str, Any] | None:
+    """Return the ``--storage-option`` pairs as a dict (a dotted KEY nests), or None."""
+    pairs = getattr(args, "storage_option", None)
+    if not pairs:
+        return None
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        *parents, last = key.split(".")
+        node = out
+        for part in parents:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise InputError(
+                    f"--storage-option {key} nests below {part}, which was given a value "
+                    f"({child!r}); give either {part}=VALUE or {part}.KEY=VALUE."
+                )
+            node = child
+        node[last] = value
+    return out
+
+
+def _add_storage_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--storage-option", metavar="KEY=VALUE", type=_storage_option, action="append",
+        help="option of the object store of an s3:// (or other fsspec) URL, for SOURCE and "
+        "STORE alike, such as endpoint_url=URL, key=ID, secret=S, anon=true; a dotted KEY "
+        "nests (client_kwargs.region_name=R); repeatable (default: none; the AWS_* "
+        "environment variables apply)",
+    )
+
+
+def _locate(args: Any) -> None:
+    """Turn STORE into a storage and a SOURCE URL into its zarr array (with the options)."""
+    from .sources import open_zarr_url
+    from .storage import is_url, open_storage
+
+    options = _storage_options(args)
+    urls = [getattr(args, name) for name in ("store", "source") if hasattr(args, name)]
+    if options and not any(is_url(u) for u in urls):
+        raise InputError(
+            "--storage-option only applies to URLs (s3://...); SOURCE and STORE are local "
+            "paths. Drop --storage-option."
+        )
+    args.store = open_storage(
+        args.store, storage_options=options if is_url(args.store) else None,
+        argument="store",
+    )
+    if is_url(getattr(args, "source", None)):
+        args.source_given = (args.source, args.dataset)  # what the store records
+        args.source = open_zarr_url(
+            args.source, dataset=args.dataset,
+            storage_options=options,  # the same options as STORE's
+        )
+        args.dataset = None
+
+
 def _scheduler(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError(
@@ -184,11 +254,11 @@ def _parser() -> argparse.ArgumentParser:
         epilog=_INGEST_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ing.add_argument("source", metavar="SOURCE",
-                     help=".npy, .h5/.hdf5/.he5 file or zarr array/group; columns are "
-                     "snapshots")
+                     help=".npy, .h5/.hdf5/.he5 file or zarr array/group, or the URL of a "
+                     "zarr array/group (s3://BUCKET/run.zarr); columns are snapshots")
     ing.add_argument("store", metavar="STORE",
-                     help="basis store directory (zarr v3): created, or continued with "
-                     "--resume")
+                     help="basis store (zarr v3): a directory or a URL (file://, "
+                     "s3://BUCKET/basis.zarr); created, or continued with --resume")
     ing.add_argument("--dataset", metavar="NAME",
                      help="dataset of an HDF5 file or array of a zarr group (default: the "
                      "only one there)")
@@ -257,6 +327,7 @@ def _parser() -> argparse.ArgumentParser:
     ing.add_argument("--chunk-rows", metavar="R", type=_positive_int,
                      help="rows per chunk of the panels, tall mode only (default: the "
                      "source's row chunks, else 16384)")
+    _add_storage_option(ing)
 
     info = sub.add_parser("info", help="summarise a store",
                           description="Summarise a basis store: sizes, rank, options, "
@@ -284,6 +355,7 @@ def _parser() -> argparse.ArgumentParser:
                             f"that does not keep it (written before stores kept it): "
                             f"{_INNER_HELP}; checked against STORE (default: the one STORE "
                             "keeps, else Euclidean)")
+        _add_storage_option(reader)
     return ap
 
 
@@ -322,7 +394,7 @@ _NAMES = {
     "sweeps": "--sweeps",
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
-    "inner": "--inner",
+    "inner": "--inner", "storage_options": "--storage-option",
 }
 
 # a sentence holding Python code: a quoted call, a keyword argument, a module path
@@ -371,6 +443,7 @@ def main(argv: list[str] | None = None) -> int:
         # (here, lazily); the config can be given by environment, which workers inherit
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     try:
+        _locate(args)
         return int(_COMMANDS[args.command](args))
     except KeyboardInterrupt:
         print(_interrupted(args, argv), file=sys.stderr)
@@ -527,7 +600,7 @@ def _check_resume(args: Any, sc: Any, record: Any) -> None:
     sc.source_record = record
 
 
-def _resuming(args: Any, store: Path) -> bool:
+def _resuming(args: Any, store: Any) -> bool:
     """Whether the command continues STORE (--resume and STORE holds a store).
 
     With --resume, a path that holds no store pointer (nothing, an empty directory, or
@@ -536,7 +609,7 @@ def _resuming(args: Any, store: Path) -> bool:
     """
     from .store import POINTER_NAME
 
-    exists = (store / POINTER_NAME).exists()
+    exists = POINTER_NAME in store.list()  # store: a storage (see _locate)
     if not args.resume and store.exists():
         raise StoreError(
             f"STORE {store} already exists; pass --resume to continue it, or choose "
@@ -552,8 +625,9 @@ def _source_record(args: Any) -> Any:
     from .provenance import SourceRecord
     from .sources import open_source
 
+    source, dataset = getattr(args, "source_given", (args.source, args.dataset))
     with open_source(args.source, dataset=args.dataset) as src:
-        return SourceRecord.of(args.source, dataset=args.dataset, shape=src.shape,
+        return SourceRecord.of(source, dataset=dataset, shape=src.shape,
                                description=src.description)
 
 
@@ -571,6 +645,7 @@ def _removed_on_failure(store: Path, *, new: bool) -> Iterator[None]:
 
 def _remove_new_store(store: Path, *, since: float) -> None:
     """Delete STORE if it holds no snapshot, no writer has it and it was created since."""
+    from .storage import open_storage
     from .store import open_store
 
     try:
@@ -582,7 +657,7 @@ def _remove_new_store(store: Path, *, since: float) -> None:
         return  # not a store this command made, or one another writer holds
     if empty and created >= since:
         logger.info("removing STORE %s: the command failed before its first commit", store)
-        shutil.rmtree(store, ignore_errors=True)
+        open_storage(store).delete("")
 
 
 def _load_inner(args: Any) -> Any:
@@ -596,7 +671,7 @@ def _load_inner(args: Any) -> Any:
 def _ingest(args: Any) -> int:
     mode = _mode(args)
     _check_mode_options(args, mode)
-    store = Path(args.store)
+    store = args.store  # a storage (see _locate)
     resume = _resuming(args, store)
     if args.oversampling is not None and args.max_rank is None and not resume:
         raise InputError(
@@ -730,7 +805,9 @@ def _open(path: Any, *, inner: Any = None) -> Any:
 
     ``inner``: the inner product, needed only for a store that does not keep its own.
     """
-    if Path(path).is_file():
+    from .storage import open_storage
+
+    if open_storage(path).is_file():
         raise StoreError(
             f"STORE {path} is a file; a basis store is a directory written by "
             "`streamsvd ingest`."
@@ -862,7 +939,7 @@ def _figure(sc: Any, *, name: str) -> Any:
 def _plot(args: Any) -> int:
     out = Path(args.out)
     with _open(args.store, inner=_load_inner(args)) as sc:
-        fig = _figure(sc, name=Path(args.store).name)
+        fig = _figure(sc, name=Path(str(args.store).rstrip("/")).name)
     fig.savefig(out, dpi=120)
     print(f"wrote {out}")
     return 0

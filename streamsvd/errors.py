@@ -70,5 +70,9 @@ class StoreMismatchError(StoreError, ValueError):
     """A basis store holds a basis of another size, dtype or inner product."""
 
 
+class OptionalDependencyError(StreamSVDError, ImportError):
+    """An optional package (of an extra such as ``s3``) is needed but not installed."""
+
+
 class SourceError(StreamSVDError, OSError):
     """A snapshot source cannot be opened or read."""

@@ -2,10 +2,12 @@
 
 :class:`PanelBasis` implements :class:`~streamsvd.basis.BasisBackend` for snapshots too
 long for the basis ``n x w`` to stay in memory. The stored columns are a list of
-*panels*, zarr arrays chunked by rows and written once (``<root>/panels/<name>``); every
-product with them (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph
-over the row chunks, run on the threaded scheduler or on a ``distributed`` cluster whose
-workers reach the directory. The block being absorbed and its workspace are in memory
+*panels*, zarr arrays chunked by rows and written once (``<root>/panels/<name>``, in a
+local directory or an object store: :mod:`streamsvd.storage`); every product with them
+(``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph over the row
+chunks, run on the threaded scheduler or on a ``distributed`` cluster whose workers
+reach the directory or the object store (a panel pickles as its zarr store: a path, or a
+URL and its ``storage_options``). The block being absorbed and its workspace are in memory
 (``n x b``), the basis never is.
 
 The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
@@ -20,9 +22,7 @@ leaves the last commit readable.
 from __future__ import annotations
 
 import logging
-import shutil
 import uuid
-from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -30,6 +30,7 @@ import numpy as np
 from .errors import StoreError, StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
 from .parallel_tree import execute
+from .storage import LocalStorage, ObjectStorage
 
 __all__ = ["PanelBasis"]
 
@@ -50,8 +51,8 @@ class PanelBasis:
         Rows per chunk of the panels and of the products.
     client : distributed.Client or None
         Where the graphs run (the threaded scheduler when None).
-    root : path-like
-        Directory holding ``panels/``.
+    root : LocalStorage or ObjectStorage
+        Where ``panels/`` is (the store's root, or a work directory).
     """
 
     def __init__(
@@ -61,7 +62,8 @@ class PanelBasis:
         self.inner = inner
         self.chunk_rows = int(chunk_rows)
         self.client = client
-        self.root = Path(root)
+        self.root: LocalStorage | ObjectStorage = root
+        self._zstore: Any = None
         self.panels: list[str] = []
         self.widths: list[int] = []
         self._ws: np.ndarray | None = None
@@ -86,8 +88,10 @@ class PanelBasis:
         full, rest = divmod(self.n, self.chunk_rows)
         return (self.chunk_rows,) * full + ((rest,) if rest else ())
 
-    def _dir(self, name: str) -> Path:
-        return self.root / "panels" / name
+    def _store(self) -> Any:
+        if self._zstore is None:
+            self._zstore = self.root.zarr_store(read_only=False)
+        return self._zstore
 
     def _panel(self, name: str) -> Any:
         z = self._zarrs.get(name)
@@ -95,7 +99,7 @@ class PanelBasis:
             import zarr
 
             try:
-                z = zarr.open_array(store=str(self._dir(name)), mode="r")
+                z = zarr.open_array(store=self._store(), path=f"panels/{name}", mode="r")
             except (OSError, ValueError, KeyError) as exc:
                 raise StoreError(
                     f"`store` {self.root}: panel {name} of the basis cannot be opened "
@@ -113,7 +117,7 @@ class PanelBasis:
         cols = int(data.shape[1])
         name = f"p{uuid.uuid4().hex}"
         z = zarr.create_array(
-            store=str(self._dir(name)), shape=(self.n, cols),
+            store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
             chunks=(self.chunk_rows, max(cols, 1)), dtype="float64", fill_value=0.0,
             compressors=[Crc32cCodec()],
         )
@@ -232,7 +236,7 @@ class PanelBasis:
         for staged in (self._staged_new, self._staged_compact):
             if staged is not None and staged[0]:
                 self._zarrs.pop(staged[0], None)
-                shutil.rmtree(self._dir(staged[0]), ignore_errors=True)
+                self.root.delete(f"panels/{staged[0]}")
         self._staged_new = self._staged_compact = None
 
     def cross(self, r: int) -> np.ndarray:
@@ -290,12 +294,9 @@ class PanelBasis:
 
     def collect(self, keep: set[str]) -> None:
         """Delete the panels that neither the state nor ``keep`` refers to."""
-        pdir = self.root / "panels"
-        if not pdir.is_dir():
-            return
         live = set(self.panels) | keep
-        for entry in pdir.iterdir():
-            if entry.is_dir() and entry.name not in live:
-                logger.debug("removing unreferenced panel %s", entry)
-                self._zarrs.pop(entry.name, None)
-                shutil.rmtree(entry, ignore_errors=True)
+        for entry in self.root.list("panels"):
+            if entry.startswith("p") and entry not in live:
+                logger.debug("removing unreferenced panel %s of %s", entry, self.root)
+                self._zarrs.pop(entry, None)
+                self.root.delete(f"panels/{entry}")

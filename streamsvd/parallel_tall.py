@@ -33,6 +33,7 @@ from .errors import InputError, ShapeMismatchError, SourceError
 from .inner import DiagonalInner, InnerProduct, as_inner
 from .panels import PanelBasis
 from .parallel_tree import check_client, execute
+from .storage import LocalStorage, ObjectStorage, open_storage
 from .stream import StreamCompressor, UpdateRecord, stored_options
 
 __all__ = ["DEFAULT_CHUNK_ROWS", "KIND", "TallCompressor"]
@@ -52,13 +53,16 @@ class TallCompressor(StreamCompressor):
     ----------
     n : int
         Size of one snapshot.
-    store : str or path-like, optional
-        Create a basis store there; the panels live in its ``panels/`` directory and the
-        small state is committed every ``commit_every`` updates. Continue an existing
-        one with :meth:`TallCompressor.open`.
-    workdir : str or path-like, optional
-        Without ``store``: directory for the panels (a temporary directory, removed by
-        :meth:`close`, by default). On a remote cluster it must be visible to every worker.
+    store : str, path-like or Storage, optional
+        Create a basis store there (a directory, a ``file://`` or ``s3://`` URL, or a
+        storage from :func:`streamsvd.storage.open_storage`, which carries
+        ``storage_options``); the panels live in its ``panels/`` prefix and the small
+        state is committed every ``commit_every`` updates. Continue an existing one
+        with :meth:`TallCompressor.open`.
+    workdir : str, path-like or Storage, optional
+        Without ``store``: directory (or object-store URL) for the panels (a temporary
+        directory, removed by :meth:`close`, by default). On a remote cluster it must be
+        visible to every worker.
     chunk_rows : int, optional
         Rows per chunk of the panels (default 16384).
     client : distributed.Client, optional
@@ -109,14 +113,15 @@ class TallCompressor(StreamCompressor):
             DEFAULT_CHUNK_ROWS if chunk_rows is None else chunk_rows, "chunk_rows"))
         self.client = check_client(client)
         self._cleanup: Any = None
+        self._root: LocalStorage | ObjectStorage
         if store is not None:
-            self._root = Path(store)
+            self._root = store = open_storage(store, argument="store")
         elif workdir is None:
-            self._root = Path(tempfile.mkdtemp(prefix="streamsvd-tall-"))
-            self._cleanup = weakref.finalize(self, shutil.rmtree, self._root, True)
+            self._root = LocalStorage(Path(tempfile.mkdtemp(prefix="streamsvd-tall-")))
+            self._cleanup = weakref.finalize(self, shutil.rmtree, self._root.root, True)
         else:
-            self._root = Path(workdir)
-            self._root.mkdir(parents=True, exist_ok=True)
+            self._root = open_storage(workdir, argument="workdir")
+            self._root.prepare()
         self._commits: tuple[set[str], set[str]] = (set(), set())
         super().__init__(n, inner=ip, store=store, **options)
 

@@ -41,7 +41,8 @@ from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
 from .inner import as_inner
 from .provenance import SourceRecord
-from .sources import Source, open_source
+from .sources import Source, open_source, open_zarr_url
+from .storage import is_url, open_storage
 from .stream import StreamCompressor
 
 __all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
@@ -188,6 +189,8 @@ class SourceSpec:
             )
         with open_source(source, dataset=dataset) as src:
             n, m, desc = src.n, src.m, src.description
+        if is_url(source):  # a zarr array at a URL: shipped as is, reopened by its URL
+            return cls("zarr", open_zarr_url(source, dataset=dataset), None, n, m, desc)
         if isinstance(source, str | os.PathLike):
             return cls("path", os.fspath(Path(source).resolve()), dataset, n, m, desc)
         module = type(source).__module__ or ""
@@ -423,7 +426,7 @@ def tree_compress(
     record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
                              description=spec.description)
     target: StreamCompressor | None = None
-    path = None if store is None else Path(store)
+    path = None if store is None else open_storage(store, argument="store")
     if resume:
         if path is None:
             raise InputError(

@@ -9,6 +9,10 @@
   exactly one dataset), or an open :class:`h5py.Dataset`;
 * a zarr array or group (a directory, or a path ending in ``.zarr``) and an array name
   (optional when the group holds exactly one array), or an open :class:`zarr.Array`;
+* a zarr array or group at a URL (``file://...``, ``s3://bucket/run.zarr``, any fsspec
+  URL; ``storage_options`` go to the file system, the ``AWS_*`` environment variables
+  apply), opened through :class:`zarr.storage.FsspecStore`. ``.npy`` and HDF5 files are
+  read from local paths only;
 * a dask array, of which each block is computed on its own with ``.compute()`` (the
   whole array is never materialised).
 
@@ -33,8 +37,9 @@ import numpy as np
 
 from ._validation import check_positive_int
 from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
+from .storage import ObjectStorage, is_url, open_storage
 
-__all__ = ["Source", "open_source"]
+__all__ = ["Source", "open_source", "open_zarr_url"]
 
 logger = logging.getLogger(__name__)
 
@@ -358,23 +363,77 @@ def _open_hdf5(path: Path, dataset: str | None) -> Source:
         raise
 
 
-def _open_zarr(path: Path, dataset: str | None) -> Source:
+def _zarr_node(store: Any, dataset: str | None, path: Any) -> tuple[Any, str]:
+    """Open the zarr array to read in ``store``; return it and its description."""
     import zarr
 
     try:
-        node = zarr.open(store=str(path), mode="r")
+        node = zarr.open(store=store, mode="r")
     except (OSError, ValueError, KeyError) as exc:
         raise SourceError(
             f"`source` {path} cannot be opened as a zarr array or group ({exc}). Check the path."
         ) from exc
     if isinstance(node, zarr.Array):
         _no_dataset(dataset, f"the zarr array {path}")
-        return Source(node, f"zarr array {path}")
+        return node, f"zarr array {path}"
     names = sorted(
         name for name, member in node.members(max_depth=None) if isinstance(member, zarr.Array)
     )
     name = _choose(names, dataset, "array", f"zarr group {path}")
-    return Source(node[name], f"zarr array '{name}' in {path}")
+    return node[name], f"zarr array '{name}' in {path}"
+
+
+def _open_zarr(store: Any, dataset: str | None, path: Any) -> Source:
+    node, description = _zarr_node(store, dataset, path)
+    return Source(node, description)
+
+
+def open_zarr_url(
+    url: str, *, dataset: str | None = None, storage_options: Any = None
+) -> Any:
+    """Open the zarr array (or the array ``dataset`` of the group) at an fsspec URL.
+
+    The array pickles with its URL and ``storage_options``, so dask workers reopen it
+    where they run.
+
+    Parameters
+    ----------
+    url : str
+        ``s3://bucket/run.zarr`` or any fsspec URL of a zarr v2/v3 array or group.
+    dataset : str, optional
+        Name of the array in a group; may be omitted when there is exactly one.
+    storage_options : dict, optional
+        Options of the fsspec file system (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...).
+
+    Returns
+    -------
+    zarr.Array
+
+    Raises
+    ------
+    SourceError
+        Nothing is stored at the URL, or it is not a zarr array or group.
+    InputError
+        The URL names a ``.npy`` or HDF5 file, or ``dataset`` is needed or misplaced.
+    OptionalDependencyError
+        The URL needs a package of the ``s3`` extra that is not installed.
+    """
+    storage = open_storage(url, storage_options=storage_options, argument="source")
+    if not isinstance(storage, ObjectStorage):  # file://
+        return _zarr_node(str(storage.root), dataset, storage.url)[0]
+    suffix = Path(url.rstrip("/")).suffix.lower()
+    if suffix in _NPY_SUFFIXES + _HDF5_SUFFIXES:
+        raise InputError(
+            f"`source` {url} is a {suffix} file at a URL; .npy and HDF5 sources are read "
+            "from local paths only. Copy it to a local path, or convert it to a zarr array."
+        )
+    if not storage.exists():
+        raise SourceError(
+            f"`source` {url} does not exist (no object under that prefix). Check the URL, "
+            "the credentials (AWS_* variables, `storage_options`) and the endpoint."
+        )
+    return _zarr_node(storage.zarr_store(read_only=True), dataset, url)[0]
 
 
 def _open_path(path: Path, dataset: str | None) -> Source:
@@ -398,7 +457,7 @@ def _open_path(path: Path, dataset: str | None) -> Source:
     if suffix in _ZARR_SUFFIXES or (
         path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zarray", ".zgroup"))
     ):
-        return _open_zarr(path, dataset)
+        return _open_zarr(str(path), dataset, path)
     if path.is_dir():
         raise InputError(
             f"`source` {path} is a directory but not a zarr array or group (no zarr.json, "
@@ -411,7 +470,9 @@ def _open_path(path: Path, dataset: str | None) -> Source:
     )
 
 
-def open_source(obj: Any, *, dataset: str | None = None) -> Source:
+def open_source(
+    obj: Any, *, dataset: str | None = None, storage_options: Any = None
+) -> Source:
     """Wrap a snapshot matrix (columns are snapshots) in a :class:`Source`.
 
     Parameters
@@ -420,10 +481,14 @@ def open_source(obj: Any, *, dataset: str | None = None) -> Source:
         A real ``n x m`` matrix: an in-memory array, the path of a ``.npy`` file
         (memory-mapped), of an HDF5 file (``.h5``, ``.hdf5``), of a zarr array or group
         (a ``.zarr`` path or a zarr directory), or an open h5py dataset, zarr array or
-        dask array. A :class:`Source` is returned as is.
+        dask array, or the URL of a zarr array or group (``s3://bucket/run.zarr``). A
+        :class:`Source` is returned as is.
     dataset : str, optional
         Name of the dataset in an HDF5 file or of the array in a zarr group; may be
         omitted when there is exactly one.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...); not accepted with anything else.
 
     Returns
     -------
@@ -440,6 +505,15 @@ def open_source(obj: Any, *, dataset: str | None = None) -> Source:
     """
     if dataset is not None and not isinstance(dataset, str):
         raise InputError(f"`dataset` must be a str naming a dataset; got {dataset!r}.")
+    if is_url(obj):
+        arr = open_zarr_url(obj, dataset=dataset, storage_options=storage_options)
+        name = f" '{dataset.strip('/')}'" if dataset else ""
+        return Source(arr, f"zarr array{name} at {obj}")
+    if storage_options is not None:
+        raise InputError(
+            f"`storage_options` only apply to a URL source (s3://..., file://...); got "
+            f"{storage_options!r} with a {type(obj).__name__}. Drop them."
+        )
     if isinstance(obj, Source):
         _no_dataset(dataset, "a Source")
         return obj

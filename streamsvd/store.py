@@ -7,14 +7,18 @@ offset, tolerances, discarded energy, error bound, history, ...). Every
 so that a process killed at any instant leaves the last committed generation intact and
 readable.
 
-Layout of a store directory::
+A store lives in a local directory or under a prefix of an object store
+(``s3://bucket/basis.zarr``); :mod:`streamsvd.storage` gives both the same small
+interface (keys and bytes, conditional writes, a zarr store over the root) and
+:mod:`streamsvd.locks` their writer lock or lease. Layout (directory or prefix)::
 
     <path>/
       zarr.json                  root group; attributes: format, format_version, n,
                                  dtype, inner_fingerprint, created, library_version,
                                  chunk_bytes
       current.json               the pointer: number of the current generation
-      writer.lock                present while a writer has the store open
+      writer.lock                present while a writer has the store open (local)
+      writer.lease               the same, with an expiry, in an object store
       generations/
         g00000005/               an older generation whose segments are still used
         g00000007/               previous generation (kept)
@@ -45,7 +49,12 @@ reader never sees a torn document, but it never calls ``fsync`` on the file nor 
 directory, so after a power failure the rename may be lost or the file found empty;
 atomic replacement is moreover not part of zarr's store contract (other stores do not
 offer it). Keeping the pointer apart from zarr metadata also leaves the root metadata
-immutable after creation.
+immutable after creation. In an object store, which has no rename, the pointer is one
+object overwritten by a single ``PUT`` (atomic: a reader gets the old or the new one
+whole), and conditionally: ``If-Match`` the ETag of the pointer this writer last wrote or
+read (``If-None-Match: *`` at creation). A writer that lost its lease therefore can never
+replace another writer's commit; it gets :class:`~streamsvd.errors.StoreLockedError`,
+and so does a commit that finds, before writing anything, that the pointer changed.
 
 *Commit.* A generation's pack is written completely first (with the attributes holding
 the caller's attributes and the segment lists), its files and directory are
@@ -54,7 +63,16 @@ SHA-256 of the generation's attributes, so the chain pointer -> attributes -> se
 bytes is verified on every read. After the switch, every generation directory that is
 neither the current nor the previous generation nor holds a segment either of them
 uses is deleted. A generation left half-written by a killed process is never pointed to
-and is deleted by the next writer. Nothing written is ever modified.
+and is deleted by the next writer. Nothing written is ever modified. In an object store
+there is nothing to ``fsync``: an object is durable once its ``PUT`` returned, and the
+pointer is written after every object of the pack.
+
+*Readers and garbage collection.* A reader (mode ``"r"``) reads the pointer, then the
+generation it names. That generation stays until the writer has committed two more
+(it is kept as the previous one after the next commit), so a read that takes less than
+one commit interval always succeeds; a read that finds its generation deleted, and the
+pointer moved, starts again from the new pointer (three attempts). The same holds in a
+directory and in an object store: nothing relies on open files staying readable.
 
 *Checksums.* One per segment: its SHA-256, recorded in the attributes, verified on
 every read (this also catches a missing chunk, which zarr would read as zeros). The
@@ -69,24 +87,20 @@ holds the writer's pid, host name and start time, and the writer keeps an adviso
 ``flock`` on it while the store is open. A second writer gets
 :class:`~streamsvd.errors.StoreLockedError` naming the holder. A lock whose holder is on
 this host and no longer runs (its pid is gone, or its ``flock`` is released, which also
-covers a reused pid) is stale and is taken over with a logged warning. Readers (mode
-``"r"``) never take the lock.
+covers a reused pid) is stale and is taken over with a logged warning. In an object
+store the lock is a lease, ``writer.lease``, created and renewed by conditional writes,
+with an expiry after which a dead writer's lease is taken over
+(:class:`streamsvd.locks.Lease`). Readers (mode ``"r"``) never take the lock.
 """
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import hashlib
 import importlib.metadata
 import json
 import logging
 import os
 import re
-import shutil
-import socket
-import time
-import uuid
 import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -98,7 +112,6 @@ from typing import Any, Literal, cast
 import numpy as np
 import zarr
 import zarr.codecs
-from zarr.storage import LocalStore
 
 from ._validation import check_finite, check_positive_int
 from .errors import (
@@ -108,7 +121,9 @@ from .errors import (
     StoreLockedError,
     StoreMismatchError,
 )
+from .locks import LOCK_NAME
 from .segments import Appended, Piece, assemble, digest, pack, plan_appended, plan_whole
+from .storage import LocalStorage, Storage, open_storage, remote_errors
 
 __all__ = [
     "DEFAULT_CHUNK_BYTES",
@@ -133,7 +148,7 @@ DEFAULT_CHUNK_BYTES = 16 * 2**20
 """Target size in bytes of one (uncompressed) chunk of a stored array."""
 
 POINTER_NAME = "current.json"
-LOCK_NAME = "writer.lock"
+LEASE_NAME = "writer.lease"
 GENERATIONS = "generations"
 
 _GEN_RE = re.compile(r"^g(\d{8})$")
@@ -141,8 +156,6 @@ _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _DTYPES = ("float32", "float64")
 # Errors that zarr, numcodecs and the JSON decoder raise on damaged or missing data.
 _READ_ERRORS = (RuntimeError, ValueError, KeyError, TypeError, IndexError, OSError)
-# A lock file without content is given this long (seconds) to be filled by its creator.
-_LOCK_FILL_GRACE = 0.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,26 +274,8 @@ def _prepare_arrays(arrays: Any, dtype: np.dtype) -> dict[str, np.ndarray]:
     return out
 
 
-def _fsync_path(path: Path, *, directory: bool = False) -> None:
-    flags = os.O_RDONLY | (os.O_DIRECTORY if directory else 0)
-    fd = os.open(path, flags)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_tree(top: Path) -> None:
-    """Flush every file and directory below ``top`` (zarr itself never calls fsync)."""
-    for dirpath, _dirnames, filenames in os.walk(top):
-        for name in filenames:
-            _fsync_path(Path(dirpath) / name)
-        _fsync_path(Path(dirpath), directory=True)
-    _fsync_path(top.parent, directory=True)
-
-
 def _write_pack(
-    zstore: LocalStore, path: str, pack: np.ndarray, doc: dict[str, Any], chunk_bytes: int
+    zstore: Any, path: str, pack: np.ndarray, doc: dict[str, Any], chunk_bytes: int
 ) -> None:
     """Create the pack ``path`` (a flat zarr array with attributes ``doc``) and fill it."""
     chunk = max(1, min(chunk_bytes // pack.dtype.itemsize, pack.size))
@@ -300,10 +295,10 @@ def _write_pack(
         arr[...] = pack
 
 
-def _read_generation_doc(path: Path, k: int) -> dict[str, Any] | None:
+def _read_generation_doc(storage: Storage, k: int) -> dict[str, Any] | None:
     """Return the attributes of generation ``k`` from its ``zarr.json`` (None if unreadable)."""
     try:
-        doc = json.loads((path / GENERATIONS / _gen_name(k) / "zarr.json").read_bytes())
+        doc = json.loads(storage.get(f"{GENERATIONS}/{_gen_name(k)}/zarr.json"))
     except (OSError, ValueError):
         return None
     attrs = doc.get("attributes") if isinstance(doc, dict) else None
@@ -320,226 +315,6 @@ def _sources(doc: dict[str, Any]) -> set[int]:
         for seg in info.get("segments", ()):
             out.add(int(seg["generation"]))
     return out
-
-
-def _write_json_atomically(path: Path, doc: Any) -> None:
-    """Replace ``path`` by ``doc`` atomically: temp file, fsync, rename, fsync dir."""
-    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")
-    data = json.dumps(doc, indent=2).encode()
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
-def _remove_tree(path: Path) -> None:
-    try:
-        shutil.rmtree(path)
-    except FileNotFoundError:
-        pass
-    except OSError as exc:
-        logger.warning("could not delete %s: %s", path, exc)
-
-
-# ------------------------------------------------------------------------------ lock
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    except OverflowError:
-        return False
-    return True
-
-
-def _flock_free(path: Path) -> bool | None:
-    """Whether nobody holds an advisory lock on ``path`` (None if it cannot be told)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    except OSError:
-        return None
-    else:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return True
-    finally:
-        os.close(fd)
-
-
-def _describe_holder(info: dict[str, Any] | None) -> str:
-    if info is None:
-        return "a writer that has not yet written its pid into the lock file"
-    return f"pid {info.get('pid')} on host {info.get('host')!r} since {info.get('since')}"
-
-
-class _WriterLock:
-    """The ``writer.lock`` file of a store (see the module docstring)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fd: int | None = None
-        self.owner_pid = os.getpid()
-
-    def acquire(self) -> None:
-        """Create the lock file, taking over a stale one; raise if a live writer holds it."""
-        for _attempt in range(8):
-            try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                seen = self._read()
-                if seen is None:
-                    continue  # released meanwhile
-                info, raw, ident = seen
-                reason = self._stale_reason(info)
-                if reason is None:
-                    again = self._read()
-                    if again is None or again[2] != ident:
-                        continue  # replaced meanwhile
-                    raise StoreLockedError(
-                        f"`path` {self.path.parent} is locked by another writer: "
-                        f"{_describe_holder(info)} (lock file {self.path}). Close that "
-                        "writer first, open the store with mode='r' to read it without the "
-                        "lock, or delete the lock file if that process is gone."
-                    ) from None
-                self._take_over(info, raw, ident, reason)
-            else:
-                self._fill(fd)
-                return
-        raise StoreLockedError(
-            f"`path` {self.path.parent} could not be locked: the lock file {self.path} kept "
-            "changing hands. Make sure a single writer opens the store, then retry."
-        )
-
-    def _fill(self, fd: int) -> None:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            flocked = True
-        except OSError:
-            flocked = False
-        info = {
-            "pid": os.getpid(),
-            "host": socket.gethostname(),
-            "since": _now(),
-            "flock": flocked,
-        }
-        os.write(fd, json.dumps(info).encode())
-        os.fsync(fd)
-        self.fd = fd
-        self.owner_pid = os.getpid()
-
-    def _read(self) -> tuple[dict[str, Any] | None, bytes, tuple[int, int]] | None:
-        """Return (parsed content or None, raw bytes, (device, inode)), or None if absent."""
-        try:
-            fd = os.open(self.path, os.O_RDONLY)
-        except FileNotFoundError:
-            return None
-        try:
-            st = os.fstat(fd)
-            raw = os.read(fd, 65536)
-        finally:
-            os.close(fd)
-        info: dict[str, Any] | None
-        try:
-            info = json.loads(raw)
-        except ValueError:
-            info = None
-        if not isinstance(info, dict) or not isinstance(info.get("pid"), int):
-            info = None
-        return info, raw, (st.st_dev, st.st_ino)
-
-    def _stale_reason(self, info: dict[str, Any] | None) -> str | None:
-        """Why the lock described by ``info`` is stale, or None if it is (maybe) live."""
-        if info is None:
-            if _flock_free(self.path):
-                time.sleep(_LOCK_FILL_GRACE)
-                again = self._read()
-                if again is not None and again[0] is None and _flock_free(self.path):
-                    return "its holder stopped before writing into it (the file is empty)"
-            return None
-        if info.get("host") != socket.gethostname():
-            return None
-        pid = int(info["pid"])
-        if not _pid_alive(pid):
-            return f"process {pid} is no longer running"
-        if info.get("flock") and _flock_free(self.path):
-            return f"its holder released it (pid {pid} now belongs to another process)"
-        return None
-
-    def _take_over(
-        self, info: dict[str, Any] | None, raw: bytes, ident: tuple[int, int], reason: str
-    ) -> None:
-        """Move the stale lock file away, unless another writer replaced it meanwhile."""
-        moved = self.path.with_name(f"{LOCK_NAME}.stale-{uuid.uuid4().hex}")
-        try:
-            os.rename(self.path, moved)
-        except FileNotFoundError:
-            return
-        st = os.stat(moved)
-        if (st.st_dev, st.st_ino) != ident or moved.read_bytes() != raw:
-            # Another writer replaced the stale lock in between: put its lock back.
-            with contextlib.suppress(FileExistsError):
-                os.link(moved, self.path)
-            moved.unlink()
-            return
-        moved.unlink()
-        logger.warning(
-            "taking over the stale lock %s held by %s: %s",
-            self.path,
-            _describe_holder(info),
-            reason,
-        )
-
-    def owned(self) -> bool:
-        """Whether the lock file is still the one this object created."""
-        if self.fd is None:
-            return False
-        try:
-            st = os.stat(self.path)
-        except FileNotFoundError:
-            return False
-        mine = os.fstat(self.fd)
-        return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
-
-    def holder(self) -> str:
-        """Describe the current holder of the lock file."""
-        seen = self._read()
-        return "nobody" if seen is None else _describe_holder(seen[0])
-
-    def release(self) -> None:
-        """Delete the lock file if it is still ours; close its descriptor."""
-        if self.fd is None or os.getpid() != self.owner_pid:
-            return
-        try:
-            if self.owned():
-                os.unlink(self.path)
-            else:
-                logger.warning(
-                    "the lock %s was taken over by %s; leaving it in place",
-                    self.path,
-                    self.holder(),
-                )
-        finally:
-            os.close(self.fd)
-            self.fd = None
 
 
 # ----------------------------------------------------------------------- the store
@@ -568,25 +343,26 @@ def _check_fingerprint(value: Any) -> str:
     return value
 
 
-def _check_path(path: Any) -> Path:
-    if not isinstance(path, str | os.PathLike):
-        raise InputError(
-            f"`path` must be a str or os.PathLike naming a local directory; got "
-            f"{type(path).__name__} {path!r}."
-        )
-    return Path(path)
+def _named(storage: Storage) -> Path | str:
+    """How a store is named: its directory (a Path) or its URL."""
+    return storage.root if isinstance(storage, LocalStorage) else storage.url
 
 
-def _read_root_attrs(path: Path) -> dict[str, Any]:
-    """Read and check the root attributes of the store at ``path``."""
-    meta = path / "zarr.json"
-    if not path.exists():
+def _lock_key(storage: Storage) -> str:
+    return LOCK_NAME if isinstance(storage, LocalStorage) else LEASE_NAME
+
+
+def _read_root_attrs(storage: Storage) -> dict[str, Any]:
+    """Read and check the root attributes of the store in ``storage``."""
+    path = _named(storage)
+    meta = f"{path}/zarr.json"
+    if not storage.exists():
         raise StoreFormatError(
             f"`path` must be an existing basis store; {path} does not exist. "
             "Create one with `BasisStore.create(path, n=..., inner_fingerprint=...)`."
         )
     try:
-        doc = json.loads(meta.read_bytes())
+        doc = json.loads(storage.get("zarr.json"))
     except FileNotFoundError:
         raise StoreFormatError(
             f"`path` must be a basis store (a zarr v3 group); {path} has no zarr.json. "
@@ -620,10 +396,20 @@ def _read_root_attrs(path: Path) -> dict[str, Any]:
     return attrs
 
 
-def _read_pointer(path: Path) -> dict[str, Any]:
-    pointer = path / POINTER_NAME
+def _read_pointer(storage: Storage) -> dict[str, Any]:
+    return _read_pointer_tagged(storage)[0]
+
+
+def _read_pointer_tagged(storage: Storage) -> tuple[dict[str, Any], str]:
+    """Return the pointer and its version tag (the ETag on an object store)."""
+    path = _named(storage)
+    pointer = f"{path}/{POINTER_NAME}"
     try:
-        doc = json.loads(pointer.read_bytes())
+        seen = storage.get_tagged(POINTER_NAME)
+        if seen is None:
+            raise FileNotFoundError(pointer)
+        raw, tag = seen
+        doc = json.loads(raw)
     except FileNotFoundError:
         raise StoreFormatError(
             f"`path` {path} is an incomplete basis store: it has no {POINTER_NAME} (its "
@@ -651,21 +437,20 @@ def _read_pointer(path: Path) -> dict[str, Any]:
             f"this version of streamsvd reads format version {FORMAT_VERSION}. Open it with "
             "the streamsvd release that wrote it."
         )
-    return doc
+    return doc, tag
 
 
-def _is_interrupted_creation(path: Path) -> bool:
-    """Whether ``path`` holds only what an interrupted :meth:`BasisStore.create` leaves."""
-    ours = {"zarr.json", GENERATIONS, LOCK_NAME}
-    for entry in path.iterdir():
-        name = entry.name
+def _is_interrupted_creation(storage: Storage) -> bool:
+    """Whether ``storage`` holds only what an interrupted :meth:`BasisStore.create` leaves."""
+    ours = {"zarr.json", GENERATIONS, LOCK_NAME, LEASE_NAME}
+    entries = storage.list()
+    for name in entries:
         if name in ours or name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
             continue
         return False
-    meta = path / "zarr.json"
-    if meta.exists():
+    if "zarr.json" in entries:
         try:
-            doc = json.loads(meta.read_bytes())
+            doc = json.loads(storage.get("zarr.json"))
         except (OSError, ValueError):
             return True
         attrs = doc.get("attributes") if isinstance(doc, dict) else None
@@ -674,16 +459,18 @@ def _is_interrupted_creation(path: Path) -> bool:
 
 
 class BasisStore:
-    """A versioned, crash-safe basis store in a local zarr v3 directory.
+    """A versioned, crash-safe basis store in a zarr v3 group (a directory or an object store).
 
     Open one with :func:`open_store` or create one with :meth:`BasisStore.create`; see
     the module docstring for the layout and the guarantees. A store opened for writing
-    holds the writer lock until :meth:`close` (also called on leaving a ``with`` block).
+    holds the writer lock (the lease, on an object store) until :meth:`close` (also
+    called on leaving a ``with`` block).
 
     Parameters
     ----------
-    path : str or os.PathLike
-        Directory of the store.
+    path : str, os.PathLike or Storage
+        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
+        :func:`streamsvd.storage.open_storage`.
     mode : {"r", "a"}
         ``"r"`` to read only (no lock taken), ``"a"`` to read and commit (takes the
         writer lock).
@@ -693,6 +480,9 @@ class BasisStore:
         Expected dtype of the stored arrays; checked against the store.
     inner_fingerprint : str, optional
         Expected inner-product fingerprint; checked against the store.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...).
 
     Raises
     ------
@@ -706,14 +496,16 @@ class BasisStore:
 
     def __init__(
         self,
-        path: str | os.PathLike[str],
+        path: str | os.PathLike[str] | Storage,
         mode: Literal["r", "a"] = "r",
         *,
         n: int | None = None,
         dtype: Any = None,
         inner_fingerprint: str | None = None,
+        storage_options: Mapping[str, Any] | None = None,
     ) -> None:
-        root = _check_path(path)
+        storage = open_storage(path, storage_options=storage_options)
+        root = _named(storage)
         if mode not in ("r", "a"):
             raise InputError(
                 f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
@@ -721,8 +513,8 @@ class BasisStore:
         expected_n = check_positive_int(n, "n", allow_none=True)
         expected_dtype = None if dtype is None else _check_dtype(dtype)
         expected_fp = None if inner_fingerprint is None else _check_fingerprint(inner_fingerprint)
-        attrs = _read_root_attrs(root)
-        _read_pointer(root)
+        attrs = _read_root_attrs(storage)
+        _read_pointer(storage)
         for key, want in (
             ("n", expected_n),
             ("dtype", expected_dtype),
@@ -736,11 +528,12 @@ class BasisStore:
                 )
         lock = None
         if mode == "a":
-            lock = _WriterLock(root / LOCK_NAME)
+            lock = storage.lock(_lock_key(storage))
             lock.acquire()
         try:
-            pointer = _read_pointer(root)
-            self._setup(root, mode, attrs, lock, pointer["generation"], pointer.get("previous"))
+            pointer, tag = _read_pointer_tagged(storage)
+            self._setup(storage, mode, attrs, lock, pointer["generation"], pointer.get("previous"),
+                        pointer_tag=tag)
             if lock is not None:
                 self._clean_leftovers()
         except BaseException:
@@ -750,14 +543,18 @@ class BasisStore:
 
     def _setup(
         self,
-        root: Path,
+        storage: Storage,
         mode: str,
         attrs: dict[str, Any],
-        lock: _WriterLock | None,
+        lock: Any,
         generation: int,
         previous: int | None,
+        *,
+        pointer_tag: str | None = None,
     ) -> None:
-        self._path = root
+        self._storage = storage
+        self._path = _named(storage)
+        self._pointer_tag = pointer_tag  # the pointer's version as this writer last saw it
         self._mode = mode
         self._root_attrs = dict(attrs)
         self._lock = lock
@@ -773,13 +570,14 @@ class BasisStore:
     @classmethod
     def create(
         cls,
-        path: str | os.PathLike[str],
+        path: str | os.PathLike[str] | Storage,
         *,
         n: int,
         dtype: Any = "float64",
         inner_fingerprint: str,
         attrs: Mapping[str, Any] | None = None,
         chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        storage_options: Mapping[str, Any] | None = None,
     ) -> BasisStore:
         """Create a new store at ``path`` and return it opened for writing.
 
@@ -788,9 +586,11 @@ class BasisStore:
 
         Parameters
         ----------
-        path : str or os.PathLike
-            A directory that does not exist yet or is empty. Leftovers of an
-            interrupted creation are replaced.
+        path : str, os.PathLike or Storage
+            A directory (or a ``file://`` URL) that does not exist yet or is empty, an
+            ``s3://`` URL under which nothing is stored yet, or a storage from
+            :func:`streamsvd.storage.open_storage`. Leftovers of an interrupted
+            creation are replaced.
         n : int
             Snapshot size (the number of rows of ``U``).
         dtype : {"float64", "float32"}
@@ -801,6 +601,9 @@ class BasisStore:
             JSON-able attributes of generation 0.
         chunk_bytes : int
             Target size of one uncompressed chunk; each chunk holds whole rows.
+        storage_options : dict, optional
+            Options of the fsspec file system of a URL (``s3://``: ``key``,
+            ``secret``, ``endpoint_url``, ...).
 
         Returns
         -------
@@ -815,26 +618,27 @@ class BasisStore:
         StoreLockedError
             Another process is creating or writing a store at ``path``.
         """
-        root = _check_path(path)
+        storage = open_storage(path, storage_options=storage_options)
+        root = _named(storage)
         n = _positive_int(n, "n")
         dtype_name = _check_dtype(dtype)
         fingerprint = _check_fingerprint(inner_fingerprint)
         chunk_bytes = _positive_int(chunk_bytes, "chunk_bytes")
         user_attrs = _normalise_attrs(attrs)
-        cls._check_creatable(root)
-        root.mkdir(parents=True, exist_ok=True)
-        lock = _WriterLock(root / LOCK_NAME)
+        cls._check_creatable(storage)
+        storage.prepare()
+        key = _lock_key(storage)
+        lock = storage.lock(key)
         lock.acquire()
         try:
-            cls._check_creatable(root)
-            for entry in root.iterdir():
-                if entry.name == LOCK_NAME:
+            cls._check_creatable(storage)
+            for entry in storage.list():
+                if entry == key:
                     continue
-                logger.warning("removing %s, left by an interrupted store creation", entry)
-                if entry.is_dir():
-                    _remove_tree(entry)
-                else:
-                    entry.unlink()
+                logger.warning(
+                    "removing %s/%s, left by an interrupted store creation", root, entry
+                )
+                storage.delete(entry)
             root_attrs = {
                 "format": FORMAT,
                 "format_version": FORMAT_VERSION,
@@ -845,7 +649,7 @@ class BasisStore:
                 "library_version": _library_version(),
                 "chunk_bytes": chunk_bytes,
             }
-            zstore = LocalStore(root)
+            zstore = storage.zarr_store(read_only=False)
             try:
                 group = zarr.create_group(
                     store=zstore, zarr_format=3, attributes=cast(Any, root_attrs)
@@ -854,7 +658,7 @@ class BasisStore:
             finally:
                 zstore.close()
             self = cls.__new__(cls)
-            self._setup(root, "a", root_attrs, lock, -1, None)
+            self._setup(storage, "a", root_attrs, lock, -1, None)
             self._write_generation(0, {}, [], user_attrs)
         except BaseException:
             lock.release()
@@ -863,18 +667,20 @@ class BasisStore:
         return self
 
     @staticmethod
-    def _check_creatable(root: Path) -> None:
-        if root.exists() and not root.is_dir():
+    def _check_creatable(storage: Storage) -> None:
+        root = _named(storage)
+        if storage.is_file():
             raise StoreError(
                 f"`path` must be a directory to create a store in; {root} is a file. "
                 "Choose another path."
             )
-        if (root / POINTER_NAME).exists():
+        entries = storage.list()
+        if POINTER_NAME in entries:
             raise StoreError(
                 f"`path` {root} already holds a basis store. Open it with "
                 "`open_store(path, mode='a')`, or delete it first to start afresh."
             )
-        if root.is_dir() and any(root.iterdir()) and not _is_interrupted_creation(root):
+        if entries and not _is_interrupted_creation(storage):
             raise StoreError(
                 f"`path` must be a new or empty directory to create a store in; {root} "
                 "holds other files. Choose another path."
@@ -883,8 +689,8 @@ class BasisStore:
     # --------------------------------------------------------------- properties
 
     @property
-    def path(self) -> Path:
-        """Directory of the store."""
+    def path(self) -> Path | str:
+        """Directory of the store (a Path), or its URL on an object store."""
         return self._path
 
     @property
@@ -951,7 +757,7 @@ class BasisStore:
         """
         self._check_open()
         for attempt in range(3):
-            pointer = _read_pointer(self._path)
+            pointer = _read_pointer(self._storage)
             current = pointer["generation"]
             retained = [current] + (
                 [pointer["previous"]] if isinstance(pointer.get("previous"), int) else []
@@ -967,7 +773,7 @@ class BasisStore:
                 state = self._load(wanted, digest)
             except StoreFormatError:
                 # A reader racing a writer may find its generation pruned: retry then.
-                moved = _read_pointer(self._path)["generation"] != current
+                moved = _read_pointer(self._storage)["generation"] != current
                 if moved and self._mode == "r" and attempt < 2:
                     continue
                 raise
@@ -977,14 +783,14 @@ class BasisStore:
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _load(self, k: int, attrs_digest: str | None) -> StoreState:
-        where = self._path / GENERATIONS / _gen_name(k)
+        where = f"{self._path}/{GENERATIONS}/{_gen_name(k)}"
         hint = (
             f" The previous generation is kept: read it with `store.read(generation="
             f"{self._previous})` and commit it again, or restore the store from a copy."
             if self._previous is not None and self._previous != k
             else " Restore the store from a copy."
         )
-        zstore = LocalStore(self._path, read_only=True)
+        zstore = self._storage.zarr_store(read_only=True)
         packs: dict[int, zarr.Array] = {}
 
         def open_pack(g: int) -> zarr.Array:
@@ -1159,9 +965,9 @@ class BasisStore:
         k = self._generation
         doc = self._docs.get(k)
         if doc is None:
-            doc = _read_generation_doc(self._path, k)
+            doc = _read_generation_doc(self._storage, k)
             digest_ok = doc is not None and (
-                _attrs_digest(doc) == _read_pointer(self._path)["attrs_sha256"]
+                _attrs_digest(doc) == _read_pointer(self._storage)["attrs_sha256"]
             )
             if doc is None or not digest_ok:
                 raise StoreFormatError(
@@ -1179,10 +985,11 @@ class BasisStore:
         pieces: list[Piece],
         user_attrs: dict[str, Any],
     ) -> None:
-        gdir = self._path / GENERATIONS / _gen_name(k)
-        if gdir.exists():
-            logger.warning("removing %s, left by an interrupted commit", gdir)
-            _remove_tree(gdir)
+        gkey = f"{GENERATIONS}/{_gen_name(k)}"
+        self._check_pointer_unchanged(k)
+        if _gen_name(k) in self._storage.list(GENERATIONS):
+            logger.warning("removing %s/%s, left by an interrupted commit", self._path, gkey)
+            self._storage.delete(gkey)
         data = pack(pieces, np.dtype(self.dtype))
         written: dict[str, int] = {}
         for name, info in records.items():
@@ -1204,28 +1011,29 @@ class BasisStore:
             "committed": doc["streamsvd"]["committed"],
         }
         switched = False
+        failures: tuple[type[BaseException], ...] = (OSError, *remote_errors())
         try:
-            zstore = LocalStore(self._path)
+            zstore = self._storage.zarr_store(read_only=False)
             try:
                 _write_pack(
                     zstore,
-                    f"{GENERATIONS}/{_gen_name(k)}",
+                    gkey,
                     data,
                     doc,
                     int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
                 )
             finally:
                 zstore.close()
-            _fsync_tree(gdir)
+            self._storage.flush(gkey)
             if self._lock is None or not self._lock.owned():
                 holder = self._lock.holder() if self._lock is not None else "nobody"
                 raise StoreLockedError(
                     f"`store` {self._path} lost its writer lock to {holder}; generation {k} "
                     "was not committed. Make sure a single writer opens the store."
                 )
-            _write_json_atomically(self._path / POINTER_NAME, pointer)
+            self._switch(pointer, k)
             switched = True
-        except OSError as exc:
+        except failures as exc:
             if isinstance(exc, StoreError):
                 raise
             raise StoreError(
@@ -1233,16 +1041,64 @@ class BasisStore:
                 f"generation {self._generation} is unchanged. Fix the cause and commit again."
             ) from exc
         finally:
-            if not switched:
-                _remove_tree(gdir)
+            if not switched and self._not_committed_by_another(k):
+                self._storage.delete(gkey)
         self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
         self._docs[k] = doc
         self._previous = previous
         self._generation = k
         self._written = written
-        _fsync_path(self._path, directory=True)
         self._prune()
         logger.debug("committed generation %d of %s (%s)", k, self._path, written)
+
+    def _pointer_changed(self, k: int) -> StoreLockedError:
+        return StoreLockedError(
+            f"`store` {self._path}: the pointer {POINTER_NAME} was changed by another "
+            f"writer ({self._lock.holder() if self._lock is not None else 'unknown'}) "
+            f"since this one last committed; generation {k} was not committed. Make "
+            "sure a single writer opens the store."
+        )
+
+    def _check_pointer_unchanged(self, k: int) -> None:
+        """On an object store, refuse to start a commit if another writer committed since.
+
+        Nothing is written or deleted then (generation ``k`` may be the other writer's).
+        """
+        if not self._storage.conditional or self._pointer_tag is None:
+            return
+        seen = self._storage.get_tagged(POINTER_NAME)
+        if seen is None or seen[1] != self._pointer_tag:
+            raise self._pointer_changed(k)
+
+    def _not_committed_by_another(self, k: int) -> bool:
+        """Whether generation ``k`` is not another writer's committed one (safe to delete)."""
+        if not self._storage.conditional:
+            return True
+        try:
+            return bool(_read_pointer(self._storage)["generation"] < k)
+        except StoreError:
+            return False
+
+    def _switch(self, pointer: dict[str, Any], k: int) -> None:
+        """Make ``pointer`` current: an atomic replace locally, a conditional PUT remotely.
+
+        On an object store the pointer is replaced only if it is still the version this
+        writer last wrote or read (``If-Match`` its ETag; ``If-None-Match`` at creation),
+        so a writer that lost its lease can never overwrite another writer's commit.
+        """
+        data = json.dumps(pointer, indent=2).encode()
+        storage = self._storage
+        if not storage.conditional:
+            storage.put(POINTER_NAME, data)
+            return
+        tag = (
+            storage.put_if_absent(POINTER_NAME, data)
+            if self._pointer_tag is None
+            else storage.put_if_match(POINTER_NAME, data, self._pointer_tag)
+        )
+        if tag is None:
+            raise self._pointer_changed(k)
+        self._pointer_tag = tag
 
     def _prune(self) -> None:
         """Delete every generation that neither the current nor the previous one uses."""
@@ -1250,7 +1106,7 @@ class BasisStore:
         for g in (self._generation, self._previous):
             if g is None:
                 continue
-            doc = self._docs.get(g) or _read_generation_doc(self._path, g)
+            doc = self._docs.get(g) or _read_generation_doc(self._storage, g)
             if doc is None:
                 # cannot tell which older packs it uses: delete only the newer leftovers
                 logger.warning(
@@ -1260,20 +1116,19 @@ class BasisStore:
                 keep.update(range(0, max(self._generation, self._previous or 0) + 1))
                 break
             keep.update(_sources(doc))
-        for entry in (self._path / GENERATIONS).iterdir():
-            m = _GEN_RE.match(entry.name)
-            if m and entry.is_dir() and int(m.group(1)) not in keep:
-                logger.debug("removing generation directory %s", entry)
-                _remove_tree(entry)
+        for entry in self._storage.list(GENERATIONS):
+            m = _GEN_RE.match(entry)
+            if m and int(m.group(1)) not in keep:
+                logger.debug("removing generation %s of %s", entry, self._path)
+                self._storage.delete(f"{GENERATIONS}/{entry}")
 
     def _clean_leftovers(self) -> None:
         """Delete what killed writers left: half-written generations, temporary files."""
         self._prune()
-        for entry in self._path.iterdir():
-            if entry.name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
-                logger.info("removing %s, left by an interrupted writer", entry)
-                with contextlib.suppress(FileNotFoundError):
-                    entry.unlink()
+        for entry in self._storage.list():
+            if entry.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
+                logger.info("removing %s/%s, left by an interrupted writer", self._path, entry)
+                self._storage.delete(entry)
 
     # --------------------------------------------------------------------- closing
 
@@ -1311,25 +1166,30 @@ class BasisStore:
 
 
 def open_store(
-    path: str | os.PathLike[str],
+    path: str | os.PathLike[str] | Storage,
     mode: Literal["r", "a"] = "r",
     *,
     n: int | None = None,
     dtype: Any = None,
     inner_fingerprint: str | None = None,
+    storage_options: Mapping[str, Any] | None = None,
 ) -> BasisStore:
     """Open an existing basis store.
 
     Parameters
     ----------
-    path : str or os.PathLike
-        Directory of the store.
+    path : str, os.PathLike or Storage
+        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
+        :func:`streamsvd.storage.open_storage`.
     mode : {"r", "a"}
         ``"r"`` to read only (no lock is taken), ``"a"`` to read and commit (takes the
         writer lock; leftovers of interrupted commits are deleted).
     n, dtype, inner_fingerprint : optional
         Expected snapshot size, stored dtype and inner-product fingerprint; each one
         given is checked against the store.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...); the ``AWS_*`` environment variables apply too.
 
     Returns
     -------
@@ -1345,4 +1205,7 @@ def open_store(
     StoreLockedError
         ``mode="a"`` and another live writer holds the lock.
     """
-    return BasisStore(path, mode, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint)
+    return BasisStore(
+        path, mode, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+        storage_options=storage_options,
+    )

@@ -1,3 +1,4 @@
+import hashlib
 import os
 from pathlib import Path
 
@@ -30,3 +31,32 @@ def rbs480a_path():
             "collection (Harwell-Boeing) and place it in ../shared/data/"
         )
     return path
+
+
+@pytest.fixture(scope="session")
+def s3_server():
+    """A moto S3 server on localhost for the session (skipped without moto and s3fs)."""
+    pytest.importorskip("moto.server")
+    pytest.importorskip("s3fs")
+    from streamsvd.testing.s3server import start
+
+    server = start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def s3(s3_server, monkeypatch, request):
+    """A fresh bucket on the local S3 server; ``AWS_*`` set for this process and children.
+
+    Yields the bucket's URL prefix, ``s3://<bucket>``.
+    """
+    import s3fs
+
+    # the file-system instances fsspec caches are kept for the session: the endpoint is
+    # the same throughout, and dropping them would leave their aiohttp sessions unclosed
+    for key, value in s3_server.environment().items():
+        monkeypatch.setenv(key, value)
+    bucket = "t" + hashlib.sha256(request.node.nodeid.encode()).hexdigest()[:24]
+    s3fs.S3FileSystem().mkdir(bucket)
+    return f"s3://{bucket}"
