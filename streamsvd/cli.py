@@ -31,7 +31,7 @@ import time
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from . import __version__
 from .errors import (
@@ -44,6 +44,9 @@ from .errors import (
 )
 
 __all__ = ["CONVERGE", "main"]
+
+if TYPE_CHECKING:  # the storage module imports zarr: only for the annotations
+    from .storage import Storage
 
 logger = logging.getLogger(__name__)
 
@@ -632,7 +635,7 @@ def _source_record(args: Any) -> Any:
 
 
 @contextlib.contextmanager
-def _removed_on_failure(store: Path, *, new: bool) -> Iterator[None]:
+def _removed_on_failure(store: Storage, *, new: bool) -> Iterator[None]:
     """Remove STORE if this command created it and fails before committing a snapshot."""
     started = math.floor(time.time())
     try:
@@ -643,7 +646,7 @@ def _removed_on_failure(store: Path, *, new: bool) -> Iterator[None]:
         raise
 
 
-def _remove_new_store(store: Path, *, since: float) -> None:
+def _remove_new_store(store: Storage, *, since: float) -> None:
     """Delete STORE if it holds no snapshot, no writer has it and it was created since."""
     from .storage import open_storage
     from .store import open_store
@@ -703,7 +706,7 @@ def _final(args: Any) -> bool:
     return args.final_sweeps in (None, CONVERGE)
 
 
-def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any], *,
+def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
     from tqdm import tqdm
 
@@ -735,7 +738,7 @@ def _ingest_memory(args: Any, store: Path, block: int, options: dict[str, Any], 
             sc.close(finalize=False)
 
 
-def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[str, Any], *,
+def _ingest_dask(args: Any, mode: str, store: Storage, block: int, options: dict[str, Any], *,
                  resume: bool, record: Any) -> dict[str, Any]:
     from .parallel import ingest
 
@@ -759,7 +762,7 @@ def _ingest_dask(args: Any, mode: str, store: Path, block: int, options: dict[st
         raise
 
 
-def _locate_non_finite(args: Any, store: Path, block: int) -> None:
+def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
     """Re-read the source after the last commit; raise its error naming the bad entry.
 
     Every block before the store's recorded source offset was absorbed, so the first
@@ -779,7 +782,7 @@ def _locate_non_finite(args: Any, store: Path, block: int) -> None:
             pass  # Source checks every block it reads and raises NonFiniteError
 
 
-def _check_store_kind(store: Path, *, tall: bool) -> None:
+def _check_store_kind(store: Storage, *, tall: bool) -> None:
     """Raise a command-line error when STORE was written in the other mode."""
     from .store import open_store
 
