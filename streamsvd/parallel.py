@@ -40,6 +40,7 @@ from .errors import InputError, ShapeMismatchError, StoreMismatchError
 from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
 from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
 from .provenance import SourceRecord
+from .storage import open_storage
 from .store import open_store
 from .stream import StreamCompressor, summary_of
 
@@ -110,6 +111,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
 
 
 def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
+                    storage_options: dict[str, Any] | None = None,
                     ) -> StreamCompressor | TallCompressor:
     """Reopen the compressor of a store, in memory or tall, whichever wrote it.
 
@@ -117,14 +119,15 @@ def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: An
     ``discarded_energy``, ``history``, ``orthogonality_error()``, ``expansion``,
     ``source_offset``, ``source_record``, ``store_path`` and ``close()``. ``inner`` is
     needed only for a store that does not keep its inner product (see
-    :meth:`StreamCompressor.open`).
+    :meth:`StreamCompressor.open`); ``storage_options`` for a URL ``path`` that needs them.
     """
-    with open_store(path, "r") as st:
+    storage = open_storage(path, storage_options=storage_options)
+    with open_store(storage, "r") as st:
         kind = st.read().attrs.get("kind")
     if kind == KIND:
-        return TallCompressor.open(path, mode=mode, client=client, inner=inner)
+        return TallCompressor.open(storage, mode=mode, client=client, inner=inner)
     if kind == "streamsvd.StreamCompressor":
-        return StreamCompressor.open(path, mode=mode, inner=inner)
+        return StreamCompressor.open(storage, mode=mode, inner=inner)
     raise StoreMismatchError(
         f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
         "or TallCompressor store."
@@ -144,6 +147,7 @@ def tall_compress(
     chunk_rows: int | None = None,
     client: Any = None,
     progress: bool = False,
+    storage_options: dict[str, Any] | None = None,
     **options: Any,
 ) -> TallCompressor:
     """Stream every column of a source into a :class:`TallCompressor`, block by block.
@@ -171,6 +175,8 @@ def tall_compress(
         Run the row-chunk products on this cluster.
     progress : bool
         Show a progress bar over the columns (tqdm, on stderr).
+    storage_options : dict, optional
+        Options of the object store of a URL ``store``.
     **options
         :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
         ``rule``, ``sweeps``, ``reject_tol``, ``reorth_tol``,
@@ -194,7 +200,8 @@ def tall_compress(
                 f"`resume` needs `store` and no options but `inner` (the store's are used); "
                 f"got store={store!r} and options {sorted(options)}. Pass only the store."
             )
-        tc = TallCompressor.open(store, inner=inner, client=client)
+        tc = TallCompressor.open(store, inner=inner, client=client,
+                                 storage_options=storage_options)
         if tc.n != spec.n:
             tc.close(finalize=False)
             raise ShapeMismatchError(
@@ -203,7 +210,8 @@ def tall_compress(
             )
         tc.source_record = record
     else:
-        tc = TallCompressor(spec.n, store=store, chunk_rows=rows, client=client,
+        tc = TallCompressor(spec.n, store=store, storage_options=storage_options,
+                            chunk_rows=rows, client=client,
                             source_record=record, **options)
     try:
         bar = None

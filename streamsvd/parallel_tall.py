@@ -70,6 +70,9 @@ class TallCompressor(StreamCompressor):
     inner : None, array of weights or DiagonalInner
         Euclidean or diagonal weights (a matrix inner product couples the row chunks and
         is not offered out of core).
+    storage_options : dict, optional
+        Options of the object store of a URL ``store`` or ``workdir`` (``s3://``:
+        ``key``, ``secret``, ``endpoint_url``, ...).
     **options
         ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
         ``reject_tol``, ``reorth_tol``, ``right_vectors``, ``commit_every``: as for
@@ -94,6 +97,7 @@ class TallCompressor(StreamCompressor):
         chunk_rows: int | None = None,
         client: Any = None,
         inner: Any = None,
+        storage_options: dict[str, Any] | None = None,
         **options: Any,
     ) -> None:
         n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
@@ -115,12 +119,14 @@ class TallCompressor(StreamCompressor):
         self._cleanup: Any = None
         self._root: LocalStorage | ObjectStorage
         if store is not None:
-            self._root = store = open_storage(store, argument="store")
+            self._root = store = open_storage(store, storage_options=storage_options,
+                                              argument="store")
         elif workdir is None:
             self._root = LocalStorage(Path(tempfile.mkdtemp(prefix="streamsvd-tall-")))
             self._cleanup = weakref.finalize(self, shutil.rmtree, self._root.root, True)
         else:
-            self._root = open_storage(workdir, argument="workdir")
+            self._root = open_storage(workdir, storage_options=storage_options,
+                                      argument="workdir")
             self._root.prepare()
         self._commits: tuple[set[str], set[str]] = (set(), set())
         super().__init__(n, inner=ip, store=store, **options)
@@ -138,7 +144,8 @@ class TallCompressor(StreamCompressor):
     # --------------------------------------------------------------- persistence
     @classmethod
     def open(
-        cls, path: Any, *, inner: Any = None, mode: str = "a", client: Any = None
+        cls, path: Any, *, inner: Any = None, mode: str = "a", client: Any = None,
+        storage_options: dict[str, Any] | None = None,
     ) -> TallCompressor:
         """Reopen a tall compressor from its store, exactly as at the last commit.
 
@@ -153,8 +160,11 @@ class TallCompressor(StreamCompressor):
             by an interrupted update); ``"r"`` reads only.
         client : distributed.Client, optional
             Cluster for the row-chunk products.
+        storage_options : dict, optional
+            Options of the object store of a URL ``path``.
         """
-        return cls._open(path, inner=inner, mode=mode, backend={"client": client})
+        return cls._open(path, inner=inner, mode=mode, backend={"client": client},
+                         storage_options=storage_options)
 
     @classmethod
     def _reopen(

@@ -349,9 +349,10 @@ def tree_compress(
     leaf_columns: int | None = None,
     dataset: str | None = None,
     client: Any = None,
-    store: str | os.PathLike[str] | None = None,
+    store: Any = None,
     resume: bool = False,
     progress: bool = False,
+    storage_options: dict[str, Any] | None = None,
     **options: Any,
 ) -> StreamCompressor:
     """Compress the columns of a source on dask: leaves on workers, merged in a tree.
@@ -387,6 +388,8 @@ def tree_compress(
         used; ``inner``, if passed, is checked against the store's).
     progress : bool
         Show dask's progress bar.
+    storage_options : dict, optional
+        Options of the object store of a URL ``store``.
     **options
         Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
         ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
@@ -426,7 +429,8 @@ def tree_compress(
     record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
                              description=spec.description)
     target: StreamCompressor | None = None
-    path = None if store is None else open_storage(store, argument="store")
+    path = (None if store is None else
+            open_storage(store, storage_options=storage_options, argument="store"))
     if resume:
         if path is None:
             raise InputError(

@@ -47,6 +47,7 @@ from .inner import InnerProduct, as_inner, check_same_inner, inner_arrays, inner
 from .provenance import SourceRecord
 from .rotations import RULES
 from .rows import RowFactor
+from .storage import open_storage
 from .store import BasisStore, open_store
 from .update import (
     Plan,
@@ -125,8 +126,9 @@ class StreamCompressor:
         and the small core ``R`` (``V^T V = R^T R``) are kept, as IncrementalPCA keeps no
         per-sample coefficients: :attr:`expansion` and :meth:`add` are then unavailable,
         and nothing held grows with the number of snapshots.
-    store : str or path-like, optional
-        Create a zarr basis store there (see :mod:`streamsvd.store`) and commit the state
+    store : str, path-like or storage, optional
+        Create a zarr basis store there (a local path, or a URL such as
+        ``s3://bucket/basis.zarr``: see :mod:`streamsvd.store`) and commit the state
         to it every ``commit_every`` updates; a commit writes only what changed since the
         previous one (new basis columns, new rows of ``V0`` and of the history, the small
         state; :mod:`streamsvd.commits`). An existing store is continued with
@@ -139,6 +141,9 @@ class StreamCompressor:
         every commit as :attr:`source_record` (the command line refuses to resume a
         store from another source). It may be replaced before a commit, when a resumed
         stream reads a source that gained columns.
+    storage_options : dict, optional
+        Options of the object store of a URL ``store``, as for
+        :func:`streamsvd.open_storage`.
 
     The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
@@ -186,6 +191,7 @@ class StreamCompressor:
         store: Any = None,
         commit_every: int = 1,
         source_record: SourceRecord | None = None,
+        storage_options: dict[str, Any] | None = None,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.inner: InnerProduct = as_inner(inner, self.n)
@@ -234,7 +240,7 @@ class StreamCompressor:
         if store is not None:
             self._store = BasisStore.create(
                 store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
-                attrs=self._attrs(None),
+                attrs=self._attrs(None), storage_options=storage_options,
             )
             try:
                 self._commit(None, self.source_offset)
@@ -260,7 +266,10 @@ class StreamCompressor:
 
     # ------------------------------------------------------------------ persistence
     @classmethod
-    def open(cls, path: Any, *, inner: Any = None, mode: str = "a") -> StreamCompressor:
+    def open(
+        cls, path: Any, *, inner: Any = None, mode: str = "a",
+        storage_options: dict[str, Any] | None = None,
+    ) -> StreamCompressor:
         """Reopen a compressor from its store, exactly as it was at the last commit.
 
         Parameters
@@ -273,13 +282,19 @@ class StreamCompressor:
             stores kept it, with another inner product than the Euclidean one, needs it.
         mode : {"a", "r"}
             ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
+        storage_options : dict, optional
+            Options of the object store of a URL ``path`` (``s3://``: ``key``,
+            ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
         """
-        return cls._open(path, inner=inner, mode=mode, backend={})
+        return cls._open(path, inner=inner, mode=mode, backend={},
+                         storage_options=storage_options)
 
     @classmethod
-    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any]) -> Any:
+    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any],
+              storage_options: dict[str, Any] | None = None) -> Any:
         """Open a store and restore the compressor it holds (``backend``: for ``_reopen``)."""
         mode = check_choice(mode, "mode", ("a", "r"))
+        path = open_storage(path, storage_options=storage_options)
         st = open_store(path, mode)  # type: ignore[arg-type]
         try:
             state = st.read()

@@ -318,6 +318,35 @@ def test_cli_storage_option_reaches_the_file_system(s3, rng, tmp_path, capsys, m
     assert "must be KEY=VALUE" in capsys.readouterr().err
 
 
+def test_python_api_takes_storage_options(s3, rng, monkeypatch):
+    """`storage_options=` reaches the file system from every facade of the library."""
+    from streamsvd.parallel import TallCompressor, open_compressor, tree_compress
+
+    A = _problem(rng, m=40)
+    endpoint = os.environ.pop("AWS_ENDPOINT_URL")
+    monkeypatch.delenv("AWS_ENDPOINT_URL", raising=False)
+    options = {"endpoint_url": endpoint}
+    with StreamCompressor(A.shape[0], max_rank=6, store=f"{s3}/m.zarr",
+                          storage_options=options) as sc:
+        sc.absorb(A)
+    with StreamCompressor.open(f"{s3}/m.zarr", mode="r", storage_options=options) as back:
+        np.testing.assert_array_equal(back.expansion.U, sc.expansion.U)
+    with TallCompressor(A.shape[0], chunk_rows=32, max_rank=6, store=f"{s3}/t.zarr",
+                        storage_options=options) as tc:
+        tc.absorb(A)
+    with TallCompressor.open(f"{s3}/t.zarr", mode="r", storage_options=options) as back:
+        assert back.rank == 6 and back.finalized
+    with open_compressor(f"{s3}/t.zarr", storage_options=options) as back:
+        assert isinstance(back, TallCompressor) and back.n_seen == 40
+    tree = tree_compress(A, block=10, leaf_columns=20, max_rank=6, store=f"{s3}/r.zarr",
+                         storage_options=options)
+    tree.close()
+    with open_store(f"{s3}/r.zarr", "r", storage_options=options) as st:
+        assert st.read().attrs["n_seen"] == 40
+    with pytest.raises(InputError, match="`storage_options` only apply to object-store URLs"):
+        StreamCompressor(4, store="local.zarr", storage_options=options)
+
+
 def test_cli_missing_s3_source_is_a_clear_error(s3, capsys):
     assert main(["ingest", f"{s3}/nothing.zarr", f"{s3}/b.zarr"]) == 2
     err = capsys.readouterr().err
