@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -57,14 +57,24 @@ class IterationState:
     cpu_time : float
         Process time of this iteration (s).
     basis : ndarray or None
-        Current space modes (n x p, read-only) for the separated methods.
+        Space modes of this iteration on the free dofs (nf x p, read-only) for the
+        separated methods; formed when first read (``O(nf w p)``, see
+        :mod:`contact.pgd`), so a callback that does not read it costs nothing.
     """
 
     iteration: int
     indicator: float
     basis_size: int
     cpu_time: float
-    basis: np.ndarray | None
+    modes: Callable[[], np.ndarray | None] = field(repr=False)
+
+    @property
+    def basis(self) -> np.ndarray | None:
+        """Space modes of this iteration (formed on the first read, then kept)."""
+        if "_basis" not in self.__dict__:
+            object.__setattr__(self, "_basis", self.modes())
+        out: np.ndarray | None = self.__dict__["_basis"]
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,9 +174,8 @@ class _FullField:
     def basis_size(self) -> int:
         return self.stage.problem.m
 
-    @property
-    def basis(self) -> None:
-        return None
+    def modes(self) -> Callable[[], None]:
+        return lambda: None
 
     def update(self, Z: np.ndarray) -> np.ndarray:
         self.y = self.stage.solve(self.stage.G @ Z)
@@ -322,7 +331,7 @@ def _solve(
         stop = False
         if callback is not None:
             stop = bool(callback(IterationState(it, eta, variant.basis_size, cpus[-1],
-                                                variant.basis)))
+                                                variant.modes())))
         if eta <= tol:
             converged = True
             break
