@@ -8,7 +8,8 @@
 ``--study scale`` solves the billet at the paper's size, refined in space (refine 2 and 4:
 about x3.5 and x12.8 dofs), in time (dt / 4: x4 instants) and in both (``large``: refine 8
 and dt / 4, a full space-time displacement field of 116 MB) with ``reference_solve`` and
-the three LATIN methods (stopped at indicator ``--level``). Every solve runs in a fresh
+the three LATIN methods, LATIN-PGD at each ``--trunc`` (stopped at indicator ``--level``).
+Every solve runs in a fresh
 process, which reports its CPU time, iterations, peak resident memory (``ru_maxrss``, with
 the resident memory before the solve), peak traced memory (tracemalloc, in a second
 untimed run in the same process) and the bytes of the displacement representation (full
@@ -52,7 +53,6 @@ QUICK = {
     "paper, dt x10": {"refine": 1, "dt": 5e-2},
     "refine 2, dt x10": {"refine": 2, "dt": 5e-2},
 }
-METHODS = ("latin", "latin-p3", "latin-pgd")
 
 
 def _bar(label, max_iter):
@@ -132,7 +132,12 @@ def measured(opts, method, kwargs, ref_path, level, max_iter, trace=True):
         return pool.apply(_solve, (opts, method, kwargs, ref_path, level, max_iter, trace))
 
 
-def scale_study(cases, level, trunc, max_iter, trace=True):
+def _pgd_key(truncs, trunc):
+    """``"latin-pgd"`` for the first truncation, ``"latin-pgd (trunc X)"`` for the others."""
+    return "latin-pgd" if trunc == truncs[0] else f"latin-pgd (trunc {trunc:g})"
+
+
+def scale_study(cases, level, truncs, max_iter, trace=True):
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, opts in cases.items():
@@ -145,11 +150,12 @@ def scale_study(cases, level, trunc, max_iter, trace=True):
             print(f"{name:>26s} reference : {ref['cpu_s']:8.2f} s CPU, peak RSS "
                   f"{ref['peak_rss_bytes'] / 1e6:7.1f} MB; optimal sizes (metric) "
                   f"{row['optimal_svd_size']}", flush=True)
-            for method in METHODS:
-                extra = {"trunc": trunc} if method == "latin-pgd" else {}
+            runs = [("latin", "latin", {}), ("latin-p3", "latin-p3", {})] + [
+                (_pgd_key(truncs, t), "latin-pgd", {"trunc": t}) for t in truncs]
+            for key, method, extra in runs:
                 r = measured(opts, method, extra, ref_path, level, max_iter, trace)
-                row[method] = r
-                print(f"{name:>26s} {method:>10s}: {r['cpu_s']:8.2f} s CPU, "
+                row[key] = r
+                print(f"{name:>26s} {key:>10s}: {r['cpu_s']:8.2f} s CPU, "
                       f"{r['iterations']:4d} it, basis {r['basis_size']}, "
                       f"{r['representation_bytes'] / 1e6:7.2f} MB (full {full / 1e6:7.2f} "
                       f"MB), peak RSS {r['peak_rss_bytes'] / 1e6:7.1f} MB, "
@@ -230,7 +236,7 @@ def plot_scale(rows, path):
     ax2.bar(x, [r["latin-p3"]["representation_bytes"] / 1e6 for r in rows], width,
             label="LATIN-P3 modes")
     ax2.bar(x + width, [r["latin-pgd"]["representation_bytes"] / 1e6 for r in rows], width,
-            label="LATIN-PGD modes")
+            label="LATIN-PGD modes (first truncation)")
     ax2.set_xticks(x, names, fontsize=7)
     ax2.set_ylabel("displacement representation (MB)")
     ax2.legend()
@@ -265,7 +271,8 @@ def main(argv=None):
     parser.add_argument("--no-trace", action="store_true",
                         help="scale study: skip the tracemalloc run (half the time)")
     parser.add_argument("--level", type=float, default=1e-4)
-    parser.add_argument("--trunc", type=float, default=1e-5)
+    parser.add_argument("--trunc", type=float, nargs="+", default=[1e-5, 1e-6],
+                        help="LATIN-PGD truncations (the first is the 'latin-pgd' entry)")
     parser.add_argument("--max-iter", type=int, default=600)
     parser.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     args = parser.parse_args(argv)
@@ -279,14 +286,14 @@ def main(argv=None):
         plot_k(result["k"], out / "k.png")
     if args.study in ("cost", "all"):
         opts = {"refine": 1, "dt": 5e-2} if args.quick else {"refine": 4, "dt": 5e-3}
-        result["cost"] = cost_study(opts, args.trunc, 60 if args.quick else 200)
+        result["cost"] = cost_study(opts, args.trunc[0], 60 if args.quick else 200)
         (out / "cost.json").write_text(json.dumps(result["cost"], indent=1))
         plot_cost(result["cost"], out / "cost.png")
     if args.study in ("scale", "all"):
         cases = QUICK if args.quick else CASES
         if args.only:
             cases = {k: v for k, v in cases.items() if any(o in k for o in args.only)}
-        rows = scale_study(cases, args.level, args.trunc, args.max_iter,
+        rows = scale_study(cases, args.level, list(args.trunc), args.max_iter,
                            trace=not args.no_trace)
         result["scale"] = rows
         (out / "scale.json").write_text(json.dumps(rows, indent=1))
