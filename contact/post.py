@@ -54,19 +54,21 @@ def svd_modes(Y: np.ndarray, *, inner: Any = None) -> SVDModes:
 
     With ``inner`` (an SPD matrix, dense or sparse, for instance
     :func:`contact.indicator_metric`), ``Y = sum_i s_i x_i t_i^T`` with ``x_i``
-    orthonormal in ``x^T M x`` and ``s`` the singular values in that norm: from the thin QR
-    ``Y = Q R``, the Cholesky factor ``L`` of ``Q^T M Q`` and the SVD of ``L^T R``
-    (``O(n m^2)``). The sign of each pair is chosen so that the largest entry of the
-    temporal mode is positive (as ``svd_flip`` of scikit-learn does with the right
-    vectors).
+    orthonormal in ``x^T M x`` and ``s`` the singular values in that norm. They come from
+    the Euclidean SVD ``Y = Q S T^T`` restricted to its numerical rank (so that every
+    ``x_i`` lies in the range of ``Y``, and vanishes where all of ``Y`` does), the Cholesky
+    factor ``L`` of ``Q^T M Q`` and the SVD of ``L^T S T^T`` (``O(n m^2)``). The sign of
+    each pair is chosen so that the largest entry of the temporal mode is positive (as
+    ``svd_flip`` of scikit-learn does with the right vectors).
     """
     Y = np.asarray(Y, dtype=float)
-    if inner is None:
-        X, s, Tt = np.linalg.svd(Y, full_matrices=False)
-    else:
-        Q, R = np.linalg.qr(Y)
+    X, s, Tt = np.linalg.svd(Y, full_matrices=False)
+    if inner is not None:
+        r = int(np.count_nonzero(s > max(Y.shape) * np.finfo(float).eps * s[0])) if (
+            s.size and s[0] > 0) else 0
+        Q = X[:, :r]
         Lm = np.linalg.cholesky(Q.T @ (inner @ Q))
-        Xs, s, Tt = np.linalg.svd(Lm.T @ R, full_matrices=False)
+        Xs, s, Tt = np.linalg.svd(Lm.T @ (s[:r, None] * Tt[:r]), full_matrices=False)
         X = Q @ sla.solve_triangular(Lm.T, Xs)
     T = Tt.T
     signs = np.sign(T[np.argmax(np.abs(T), axis=0), np.arange(T.shape[1])])

@@ -125,3 +125,18 @@ def test_package_exposes_the_study_lazily():
     assert callable(contact.billet_study)
     with pytest.raises(AttributeError):
         contact.not_there  # noqa: B018
+
+
+def test_subspace_bench_runs_on_a_small_size(tmp_path, monkeypatch, capsys):
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
+    mod = importlib.import_module("bench_contact_subspace")
+    result = mod.main(["--quick", "--out", str(tmp_path)])
+    assert (tmp_path / "subspace.png").stat().st_size > 5_000
+    assert json.loads((tmp_path / "subspace.json").read_text())["fixed"]
+    for row in result["fixed"]:
+        assert 0 < row["min_indicator"] <= row["last_indicator"]
+        assert row["truncated_reference"] > 0
+    for row in result["pgd"]:
+        assert row["optimal"]["tail_energy"] >= row["optimal"]["sigma_ratio"] > 0
+        assert row["min_indicator"] > 0
+    capsys.readouterr()
