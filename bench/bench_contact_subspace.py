@@ -14,7 +14,10 @@ Two measurements against the basis size ``p``:
   definitions: singular-value ratio and tail energy).
 
 The indicator of the reference correction *truncated* to ``p`` modes (no iteration) is
-recorded beside them. Writes ``subspace.json`` and ``subspace.png``.
+recorded beside them, with ``sigma_1 / D`` (``D`` the indicator's denominator at the
+reference), ``||y||_A / ||y||_{M_c}`` and the median norm (in ``M``) that LATIN-PGD's
+compressor discarded per update over the last 50, relative to ``D``. Writes
+``subspace.json`` and ``subspace.png``.
 """
 
 from __future__ import annotations
@@ -89,7 +92,18 @@ def main(argv=None):
     svd = contact.svd_modes(y, inner=M)
     free = stage.free
     sizes = [p for p in (10, 20, 35, 45, 52, 64, 74) if p <= svd.values.size]
-    result = {"problem": P.summary(), "iterations": iterations, "fixed": [], "pgd": []}
+    k = stage.k
+    Lc = np.concatenate([P.weights, P.weights])
+    D = float(np.sqrt(np.sum(Lc[:, None] * (k * (P.C @ R.u) ** 2 + R.lam**2 / k))))
+    A = stage.A
+    y_f = y[free]
+    norm_A = float(np.sqrt(np.sum(y_f * (A @ y_f))))
+    norm_c = float(np.sqrt(np.sum(2 * k * Lc[:, None] * (P.C @ y) ** 2)))
+    result = {"problem": P.summary(), "iterations": iterations, "fixed": [], "pgd": [],
+              "sigma_1_over_D": float(svd.values[0]) / D,
+              "energy_over_contact_norm": norm_A / norm_c}
+    print(f"sigma_1 / D = {result['sigma_1_over_D']:.3f}; ||y||_A / ||y||_Mc = "
+          f"{result['energy_over_contact_norm']:.3f}")
     print(f"{'p':>4s} {'truncated ref':>14s} {'LATIN on SVD modes: min':>24s} "
           f"{'last':>9s} {'forces':>9s}")
     for p in sizes:
@@ -101,17 +115,20 @@ def main(argv=None):
         print(f"{p:4d} {row['truncated_reference']:14.2e} {row['min_indicator']:24.2e} "
               f"{row['last_indicator']:9.2e} {row['error_lam']:9.1e}", flush=True)
     print(f"{'trunc':>6s} {'PGD: min indicator':>19s} {'median p':>9s} "
-          f"{'optimal (ratio, tail)':>22s} {'CPU s':>6s}")
+          f"{'optimal (ratio, tail)':>22s} {'cut / D':>8s} {'CPU s':>6s}")
     for trunc in (1e-4, 3e-5, 1e-5, 1e-6):
         c0 = time.process_time()
         L = contact.solve(P, "latin-pgd", tol=1e-7, max_iter=iterations, trunc=trunc)
         row = {"trunc": trunc, "min_indicator": float(L.indicator.min()),
                "median_basis_size": float(np.median(L.basis_size[-50:])),
                "optimal": svd.sizes(trunc), "cpu_s": time.process_time() - c0,
-               "iterations_to_1e-4": L.iterations_to(1e-4)}
+               "iterations_to_1e-4": L.iterations_to(1e-4),
+               "discarded_per_update_over_D": float(np.median(
+                   [h.discarded for h in L.info["compressor_history"][-50:]])) / D}
         result["pgd"].append(row)
         print(f"{trunc:6.0e} {row['min_indicator']:19.2e} {row['median_basis_size']:9.1f} "
-              f"{str(tuple(row['optimal'].values())):>22s} {row['cpu_s']:6.2f}", flush=True)
+              f"{str(tuple(row['optimal'].values())):>22s} "
+              f"{row['discarded_per_update_over_D']:8.1e} {row['cpu_s']:6.2f}", flush=True)
     (out / "subspace.json").write_text(json.dumps(result, indent=1))
     fig = Figure(figsize=(6, 4), layout="constrained")
     ax = fig.subplots()

@@ -35,14 +35,18 @@ semi-definite (it sees the contact dofs), so the modes are orthonormal in
 
 where the energy term only makes ``M`` definite: every iterate lies in the range of
 ``A^{-1} G`` (the responses to contact data), on which ``||y||_A`` and ``||y||_{M_c}`` are
-of the same order (0.76 of each other for the billet's correction), so ``beta A`` changes
-these norms by about 1e-6. In ``M`` the compressor's relative rule (cut the terms with
-``||v_i|| < trunc ||v_1||``) therefore changes the indicator by at most
-``trunc sqrt(q_cut) sigma_1 / D``, ``q_cut`` the number of terms cut and
-``sigma_1 = ||v_1||_M``; ``sigma_1 / D`` is 0.21 for the billet, so a truncation at
-``trunc`` changes the indicator by a fraction of ``trunc``. In the Euclidean norm of
-``y`` the cut modes were small but concentrated at the contact nodes, which the
-indicator weighs.
+of the same order (``||y||_A = 0.76 ||y||_{M_c}`` for the billet's correction,
+``bench/bench_contact_subspace.py``), so ``beta A`` changes these norms by about 1e-6.
+
+In ``M`` the compressor's relative rule (cut the terms with ``||v_i|| < trunc ||v_1||``)
+changes the indicator by at most ``trunc sqrt(q_cut) sigma_1 / D``, ``q_cut`` the number
+of terms cut and ``sigma_1 = ||v_1||_M``; ``sigma_1 / D`` is 0.21 for the billet (same
+script), so a truncation at ``trunc`` changes the indicator by a fraction of ``trunc``.
+That is the change per iteration. LATIN on a basis of ``p`` modes levels off at an
+indicator set by the basis, far above the indicator of the reference truncated to the
+same modes; reaching an indicator ``eta`` takes a truncation of about ``eta / 10`` on the
+billet (see ``contact/README.md``). In the Euclidean norm of ``y``, the modes cut were
+small but concentrated at the contact nodes, which the indicator weighs.
 
 Cost of an iteration
 --------------------
