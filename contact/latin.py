@@ -8,8 +8,9 @@
   displacement field (one back-substitution per instant and iteration);
 * ``"latin-p3"`` -- P3: the displacement correction is a sum of orthonormal space modes
   times time functions (:mod:`contact.pgd`);
-* ``"latin-pgd"`` -- P3 where every iteration's new modes are added to a
-  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation.
+* ``"latin-pgd"`` -- P3 where every iteration's change is added to a
+  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation in
+  the indicator's metric.
 
 Each iteration ``i``: local stage ``s_hat_i`` from ``s_{i-1}`` (direction E+), global stage
 ``s_i`` from ``s_hat_i`` (direction E-), indicator ``eta_i`` between ``s_i`` and
@@ -242,7 +243,10 @@ def solve(
     trunc : float
         ``"latin-pgd"`` only: after each sweep the compressor drops the terms with
         ``||v_i|| < trunc * ||v_1||`` (``||v_1||`` the largest amplitude; the paper's
-        threshold ``eps`` of Algorithm 3 made relative), see :mod:`contact.pgd`.
+        threshold ``eps`` of Algorithm 3 made relative), the space modes being
+        orthonormal in the indicator metric (:func:`contact.indicator_metric`), see
+        :mod:`contact.pgd`. On the billet, reaching an indicator ``eta`` takes about
+        ``trunc = eta / 10`` (``contact/README.md``).
     enrich_ratio : float
         Separated methods: a new space-time pair is computed when the time-function update
         leaves a residual ``||R|| > enrich_ratio * ||R_before||``, ``R_before`` the
