@@ -18,8 +18,12 @@ correction are computed in the indicator metric (:func:`contact.indicator_metric
 definitions (singular-value ratio and tail energy).
 ``--study cost`` records the CPU time of every iteration of LATIN-P3 and LATIN-PGD
 against the basis size ``p`` (refine 4), with the nf-sized vectors each iteration touched.
+``--study breakdown`` profiles 150 iterations of each method on the large scene and
+reports the CPU time per iteration of each phase (local stage, solves, time functions,
+residual norms, new pair, compressor update, ...).
 ``--study k`` runs LATIN with multiples of the default search direction.
-Writes ``scale.json``/``scale.png``, ``cost.json``/``cost.png`` and ``k.json``/``k.png``;
+Writes ``scale.json``/``scale.png``, ``cost.json``/``cost.png``, ``breakdown.json`` and
+``k.json``/``k.png``;
 a tqdm bar per solve on stderr.
 """
 
@@ -187,6 +191,53 @@ def cost_study(opts, trunc, max_iter):
     return out
 
 
+# functions whose cumulated time makes the breakdown (module suffix, function name)
+PHASES = {
+    "local stage": ("contact/local.py", "local_stage"),
+    "full-field solve (LATIN)": ("contact/latin.py", "update"),
+    "time functions": ("contact/pgd.py", "_time_functions"),
+    "residual norms": ("contact/pgd.py", "_residual_norm"),
+    "new pair (fixed point, CGS2 against U)": ("contact/pgd.py", "_new_pair"),
+    "new column of W (CGS2, projections)": ("contact/pgd.py", "_coordinates"),
+    "compaction of W": ("contact/pgd.py", "_compact"),
+    "StreamCompressor.add": ("streamsvd/stream.py", "add"),
+    "StreamCompressor.expansion": ("streamsvd/stream.py", "expansion"),
+    "projections on U": ("contact/pgd.py", "_project"),
+    "indicator": ("contact/globalstage.py", "indicator"),
+}
+
+
+def breakdown_study(opts, trunc, iterations):
+    """Where the CPU time of an iteration goes (cProfile, cumulated time per phase)."""
+    import cProfile
+    import pstats
+
+    P = contact.billet(**opts)
+    out = {"problem": P.summary(), "trunc": trunc, "iterations": iterations}
+    for method, extra in (("latin", {}), ("latin-p3", {}), ("latin-pgd", {"trunc": trunc})):
+        contact.solve(P, method, max_iter=3, **extra)  # compiles the numba kernels
+        prof = cProfile.Profile()
+        prof.enable()
+        r = contact.solve(P, method, tol=1e-12, max_iter=iterations, **extra)
+        prof.disable()
+        stats = pstats.Stats(prof).stats
+        phases = {}
+        for name, (suffix, func) in PHASES.items():
+            t = sum(v[3] for (file, _, fn), v in stats.items()
+                    if file.endswith(suffix) and fn == func)
+            if t > 0:
+                phases[name] = t / r.iterations
+        total = float(np.sum(r.cpu_time)) / r.iterations
+        phases["other"] = max(total - sum(phases.values()), 0.0)
+        out[method] = {"cpu_per_iteration_s": total, "phases_s": phases,
+                       "basis_size": int(r.basis_size[-1])}
+        print(f"{method}: {1e3 * total:.1f} ms per iteration (CPU, profiled), basis "
+              f"{r.basis_size[-1]}")
+        for name, t in phases.items():
+            print(f"  {name:>40s}: {1e3 * t:8.2f} ms")
+    return out
+
+
 def plot_cost(result, path):
     fig = Figure(figsize=(10, 4), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
@@ -265,7 +316,8 @@ def plot_k(result, path):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/contact")
-    parser.add_argument("--study", choices=["scale", "cost", "k", "all"], default="all")
+    parser.add_argument("--study", choices=["scale", "cost", "breakdown", "k", "all"],
+                        default="all")
     parser.add_argument("--only", nargs="*", default=None,
                         help="scale study: run the cases whose name contains one of these")
     parser.add_argument("--no-trace", action="store_true",
@@ -289,6 +341,11 @@ def main(argv=None):
         result["cost"] = cost_study(opts, args.trunc[0], 60 if args.quick else 200)
         (out / "cost.json").write_text(json.dumps(result["cost"], indent=1))
         plot_cost(result["cost"], out / "cost.png")
+    if args.study in ("breakdown", "all"):
+        opts = ({"refine": 1, "dt": 5e-2} if args.quick else
+                {"refine": 8, "dt": 5e-3 / 4})
+        result["breakdown"] = breakdown_study(opts, args.trunc[-1], 10 if args.quick else 150)
+        (out / "breakdown.json").write_text(json.dumps(result["breakdown"], indent=1))
     if args.study in ("scale", "all"):
         cases = QUICK if args.quick else CASES
         if args.only:

@@ -116,6 +116,8 @@ def test_scale_bench_runs_on_small_sizes(tmp_path, monkeypatch, capsys):
     cost = result["cost"]
     for method in ("latin-p3", "latin-pgd"):
         assert len(cost[method]["cpu_s"]) == len(cost[method]["basis_size"]) > 0
+    phases = result["breakdown"]["latin-pgd"]["phases_s"]
+    assert phases["StreamCompressor.add"] > 0 and phases["local stage"] > 0
     its = [r["iterations"] for r in result["k"]["rows"]]
     assert len(its) == 3 and all(i > 0 for i in its)
     capsys.readouterr()
