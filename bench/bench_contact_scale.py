@@ -18,7 +18,7 @@ correction are computed in the indicator metric (:func:`contact.indicator_metric
 definitions (singular-value ratio and tail energy).
 ``--study cost`` records the CPU time of every iteration of LATIN-P3 and LATIN-PGD
 against the basis size ``p`` (refine 4), with the nf-sized vectors each iteration touched.
-``--study breakdown`` profiles 150 iterations of each method on the large scene and
+``--study breakdown`` profiles 60 iterations of each method on the large scene and
 reports the CPU time per iteration of each phase (local stage, solves, time functions,
 residual norms, new pair, compressor update, ...).
 ``--study k`` runs LATIN with multiples of the default search direction.
@@ -278,7 +278,7 @@ def plot_scale(rows, path):
     width = 0.2
     for i, key in enumerate(["reference", "latin", "latin-p3", "latin-pgd"]):
         ax1.bar(x + (i - 1.5) * width, [r[key]["cpu_s"] for r in rows], width, label=key)
-    ax1.set_xticks(x, names, fontsize=7)
+    ax1.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
     ax1.set_yscale("log")
     ax1.set_ylabel("CPU time (s)")
     ax1.legend()
@@ -288,13 +288,13 @@ def plot_scale(rows, path):
             label="LATIN-P3 modes")
     ax2.bar(x + width, [r["latin-pgd"]["representation_bytes"] / 1e6 for r in rows], width,
             label="LATIN-PGD modes (first truncation)")
-    ax2.set_xticks(x, names, fontsize=7)
+    ax2.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
     ax2.set_ylabel("displacement representation (MB)")
     ax2.legend()
     for i, key in enumerate(["reference", "latin", "latin-p3", "latin-pgd"]):
         ax3.bar(x + (i - 1.5) * width, [r[key]["peak_rss_bytes"] / 1e6 for r in rows], width,
                 label=key)
-    ax3.set_xticks(x, names, fontsize=7)
+    ax3.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
     ax3.set_ylabel("peak resident memory of the solve's process (MB)")
     ax3.legend()
     FigureCanvasAgg(fig)
@@ -344,7 +344,7 @@ def main(argv=None):
     if args.study in ("breakdown", "all"):
         opts = ({"refine": 1, "dt": 5e-2} if args.quick else
                 {"refine": 8, "dt": 5e-3 / 4})
-        result["breakdown"] = breakdown_study(opts, args.trunc[-1], 10 if args.quick else 150)
+        result["breakdown"] = breakdown_study(opts, args.trunc[-1], 10 if args.quick else 60)
         (out / "breakdown.json").write_text(json.dumps(result["breakdown"], indent=1))
     if args.study in ("scale", "all"):
         cases = QUICK if args.quick else CASES
