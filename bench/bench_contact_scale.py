@@ -1,29 +1,48 @@
-"""Scale study of the contact solvers, and the effect of the search direction k.
+"""Scale study of the contact solvers, cost per iteration, and the search direction k.
 
     python bench/bench_contact_scale.py --out bench/results/contact          # everything
-    python bench/bench_contact_scale.py --study k --out bench/results/contact
+    python bench/bench_contact_scale.py --study scale --only large --out bench/results/contact
+    python bench/bench_contact_scale.py --study cost --out bench/results/contact
     python bench/bench_contact_scale.py --quick --out /tmp/contact-bench  # small
 
 ``--study scale`` solves the billet at the paper's size, refined in space (refine 2 and 4:
-about x3.5 and x12.8 dofs) and in time (dt / 4: x4 instants) with ``reference_solve`` and the
-three LATIN methods (stopped at indicator ``--level``), and records CPU time, iterations,
-peak traced memory (tracemalloc, in a second untimed run) and the bytes of the
-displacement representation (full space-time field against separated modes).
+about x3.5 and x12.8 dofs), in time (dt / 4: x4 instants) and in both (``large``: refine 8
+and dt / 4, a full space-time displacement field of 116 MB) with ``reference_solve`` and
+the three LATIN methods, LATIN-PGD at each ``--trunc`` (stopped at indicator ``--level``).
+Every solve runs in a fresh
+process, which reports its CPU time, iterations, peak resident memory (``ru_maxrss``, with
+the resident memory before the solve), peak traced memory (tracemalloc, in a second
+untimed run in the same process) and the bytes of the displacement representation (full
+space-time field against separated modes). The optimal SVD sizes of the reference
+correction are computed in the indicator metric (:func:`contact.indicator_metric`), by both
+definitions (singular-value ratio and tail energy).
+``--study cost`` records the CPU time of every iteration of LATIN-P3 and LATIN-PGD
+against the basis size ``p`` (refine 4), with the nf-sized vectors each iteration touched.
+``--study breakdown`` profiles 60 iterations of each method on the large scene and
+reports the CPU time per iteration of each phase (local stage, solves, time functions,
+residual norms, new pair, compressor update, ...).
 ``--study k`` runs LATIN with multiples of the default search direction.
-Writes ``scale.json``/``scale.png`` and ``k.json``/``k.png``.
+Writes ``scale.json``/``scale.png``, ``cost.json``/``cost.png``, ``breakdown.json`` and
+``k.json``/``k.png``;
+a tqdm bar per solve on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import resource
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import psutil
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
 import contact
 
@@ -32,6 +51,7 @@ CASES = {
     "space x3.5 (refine 2)": {"refine": 2, "dt": 5e-3},
     "space x12.8 (refine 4)": {"refine": 4, "dt": 5e-3},
     "time x4": {"refine": 1, "dt": 5e-3 / 4},
+    "large (refine 8, time x4)": {"refine": 8, "dt": 5e-3 / 4},
 }
 QUICK = {
     "paper, dt x10": {"refine": 1, "dt": 5e-2},
@@ -39,48 +59,202 @@ QUICK = {
 }
 
 
-def measured(fn, *args, **kwargs):
-    """Run ``fn`` twice: timed, then under tracemalloc for the peak (tracing slows it)."""
+def _bar(label, max_iter):
+    bar = tqdm(total=max_iter, desc=label, leave=False, mininterval=1.0)
+
+    def callback(state):
+        bar.update(1)
+        bar.set_postfix(eta=f"{state.indicator:.1e}", p=state.basis_size, refresh=False)
+
+    return bar, callback
+
+
+def _solve(opts, method, kwargs, ref_path, level, max_iter, trace):
+    """One solve in this (fresh) process: the timed run, then a traced one."""
+    P = contact.billet(**opts)
+    rss_before = psutil.Process().memory_info().rss
+    label = f"{opts} {method}"
+    if method == "reference":
+        def run(callback=None):
+            return contact.reference_solve(P)
+    else:
+        def run(callback=None):
+            return contact.solve(P, method, tol=level, max_iter=max_iter, callback=callback,
+                                 **kwargs)
+    bar, cb = _bar(label, max_iter) if method != "reference" else (None, None)
     c0, t0 = time.process_time(), time.perf_counter()
-    out = fn(*args, **kwargs)
+    out = run(cb)
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
-    tracemalloc.start()
-    fn(*args, **kwargs)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return out, cpu, wall, peak
+    if bar is not None:
+        bar.close()
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    row = {"cpu_s": cpu, "wall_s": wall, "rss_before_bytes": rss_before,
+           "peak_rss_bytes": peak_rss}
+    if method == "reference":
+        np.save(ref_path, out.u)
+        np.save(ref_path.replace(".npy", "_lam.npy"), out.lam)
+        row["newton_iterations"] = int(out.newton_iterations.sum())
+        M = contact.indicator_metric(P)
+        y = out.u - contact.solve(P, max_iter=1).lift.to_dense()
+        svd = contact.svd_modes(y, inner=M)
+        row["optimal_svd_size"] = {f"{t:g}": svd.sizes(t) for t in (1e-4, 1e-5, 1e-6)}
+    else:
+        u_ref = np.load(ref_path)
+        lam_ref = np.load(ref_path.replace(".npy", "_lam.npy"))
+        u = out.displacement()
+        row.update({
+            "iterations": out.iterations, "converged": out.converged,
+            "iterations_to_level": out.iterations_to(level),
+            "cpu_to_level_s": out.cpu_time_to(level),
+            "setup_s": out.setup_time,
+            "basis_size": int(out.basis_size[-1]) if method != "latin" else None,
+            "representation_bytes": out.memory(),
+            "error_u": float(np.linalg.norm(u - u_ref) / np.linalg.norm(u_ref)),
+            "error_lam": float(np.linalg.norm(out.lam_hat - lam_ref)
+                               / np.linalg.norm(lam_ref)),
+            "cpu_per_iteration_s": float(np.median(out.cpu_time)),
+        })
+        for key in ("enrichments", "compactions", "direct_residuals"):
+            if key in out.info:
+                row[key] = int(out.info[key])
+        if "nf_columns" in out.info:
+            row["nf_columns_total"] = int(out.info["nf_columns"].sum())
+        del u, u_ref
+    del out
+    if trace:
+        tracemalloc.start()
+        run()
+        row["peak_traced_bytes"] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return row
 
 
-def scale_study(cases, level, trunc, max_iter):
+def measured(opts, method, kwargs, ref_path, level, max_iter, trace=True):
+    """Run :func:`_solve` in a fresh process (so that its peak RSS is its own)."""
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(1, maxtasksperchild=1) as pool:
+        return pool.apply(_solve, (opts, method, kwargs, ref_path, level, max_iter, trace))
+
+
+def _pgd_key(truncs, trunc):
+    """``"latin-pgd"`` for the first truncation, ``"latin-pgd (trunc X)"`` for the others."""
+    return "latin-pgd" if trunc == truncs[0] else f"latin-pgd (trunc {trunc:g})"
+
+
+def scale_study(cases, level, truncs, max_iter, trace=True):
     rows = []
-    for name, opts in cases.items():
-        P = contact.billet(**opts)
-        ref, cpu, wall, peak = measured(contact.reference_solve, P)
-        full = P.n * P.m * 8
-        row = {"case": name, **P.summary(), "full_field_bytes": full,
-               "reference": {"cpu_s": cpu, "wall_s": wall, "peak_bytes": peak,
-                             "newton_iterations": int(ref.newton_iterations.sum())}}
-        svd = contact.svd_modes(ref.u - contact.solve(P, max_iter=1).lift.to_dense())
-        row["optimal_svd_size"] = {f"{t:g}": svd.rank(t) for t in (1e-4, 1e-6)}
-        for method, extra in (("latin", {}), ("latin-p3", {}),
-                              ("latin-pgd", {"trunc": trunc})):
-            r, cpu, wall, peak = measured(contact.solve, P, method, tol=level,
-                                          max_iter=max_iter, **extra)
-            u = r.displacement()
-            row[method] = {
-                "cpu_s": cpu, "wall_s": wall, "peak_bytes": peak,
-                "iterations": r.iterations, "converged": r.converged,
-                "basis_size": int(r.basis_size[-1]) if method != "latin" else None,
-                "representation_bytes": r.memory(),
-                "error_u": float(np.linalg.norm(u - ref.u) / np.linalg.norm(ref.u)),
-            }
-            print(f"{name:>22s} {method:>10s}: {cpu:7.2f} s, {r.iterations:4d} it, "
-                  f"basis {row[method]['basis_size']}, {r.memory() / 1e6:6.2f} MB "
-                  f"(full {full / 1e6:6.2f} MB), err {row[method]['error_u']:.1e}",
-                  flush=True)
-        print(f"{name:>22s} reference : {row['reference']['cpu_s']:7.2f} s", flush=True)
-        rows.append(row)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, opts in cases.items():
+            P = contact.billet(**opts)
+            full = P.n * P.m * 8
+            ref_path = str(Path(tmp) / "u_ref.npy")
+            ref = measured(opts, "reference", {}, ref_path, level, max_iter, trace)
+            row = {"case": name, **P.summary(), "full_field_bytes": full,
+                   "optimal_svd_size": ref.pop("optimal_svd_size"), "reference": ref}
+            print(f"{name:>26s} reference : {ref['cpu_s']:8.2f} s CPU, peak RSS "
+                  f"{ref['peak_rss_bytes'] / 1e6:7.1f} MB; optimal sizes (metric) "
+                  f"{row['optimal_svd_size']}", flush=True)
+            runs = [("latin", "latin", {}), ("latin-p3", "latin-p3", {})] + [
+                (_pgd_key(truncs, t), "latin-pgd", {"trunc": t}) for t in truncs]
+            for key, method, extra in runs:
+                r = measured(opts, method, extra, ref_path, level, max_iter, trace)
+                row[key] = r
+                print(f"{name:>26s} {key:>10s}: {r['cpu_s']:8.2f} s CPU, "
+                      f"{r['iterations']:4d} it, basis {r['basis_size']}, "
+                      f"{r['representation_bytes'] / 1e6:7.2f} MB (full {full / 1e6:7.2f} "
+                      f"MB), peak RSS {r['peak_rss_bytes'] / 1e6:7.1f} MB, "
+                      f"err u {r['error_u']:.1e}, lam {r['error_lam']:.1e}", flush=True)
+            rows.append(row)
     return rows
+
+
+def cost_study(opts, trunc, max_iter):
+    """CPU time of each iteration against the basis size, for P3 and PGD."""
+    P = contact.billet(**opts)
+    out = {"problem": P.summary(), "trunc": trunc}
+    for method, extra in (("latin-p3", {}), ("latin-pgd", {"trunc": trunc})):
+        bar, cb = _bar(method, max_iter)
+        r = contact.solve(P, method, tol=1e-12, max_iter=max_iter, callback=cb, **extra)
+        bar.close()
+        p = r.basis_size
+        by_p = {}
+        for size in np.unique(p):
+            sel = p == size
+            by_p[int(size)] = {"cpu_s": float(np.median(r.cpu_time[sel])),
+                               "nf_columns": float(np.median(r.info["nf_columns"][sel])),
+                               "iterations": int(sel.sum())}
+        out[method] = {"basis_size": p.tolist(), "cpu_s": r.cpu_time.tolist(),
+                       "nf_columns": r.info["nf_columns"].tolist(), "by_basis_size": by_p}
+        print(f"{method}: basis size -> median CPU per iteration (ms), nf-sized vectors")
+        for size, v in list(by_p.items())[:: max(1, len(by_p) // 12)]:
+            print(f"  p = {size:4d}: {1e3 * v['cpu_s']:7.2f} ms, {v['nf_columns']:7.0f}")
+    return out
+
+
+# functions whose cumulated time makes the breakdown (module suffix, function name)
+PHASES = {
+    "local stage": ("contact/local.py", "local_stage"),
+    "full-field solve (LATIN)": ("contact/latin.py", "update"),
+    "time functions": ("contact/pgd.py", "_time_functions"),
+    "residual norms": ("contact/pgd.py", "_residual_norm"),
+    "new pair (fixed point, CGS2 against U)": ("contact/pgd.py", "_new_pair"),
+    "new column of W (CGS2, projections)": ("contact/pgd.py", "_coordinates"),
+    "compaction of W": ("contact/pgd.py", "_compact"),
+    "StreamCompressor.add": ("streamsvd/stream.py", "add"),
+    "StreamCompressor.expansion": ("streamsvd/stream.py", "expansion"),
+    "projections on U": ("contact/pgd.py", "_project"),
+    "indicator": ("contact/globalstage.py", "indicator"),
+}
+
+
+def breakdown_study(opts, trunc, iterations):
+    """Where the CPU time of an iteration goes (cProfile, cumulated time per phase)."""
+    import cProfile
+    import pstats
+
+    P = contact.billet(**opts)
+    out = {"problem": P.summary(), "trunc": trunc, "iterations": iterations}
+    for method, extra in (("latin", {}), ("latin-p3", {}), ("latin-pgd", {"trunc": trunc})):
+        contact.solve(P, method, max_iter=3, **extra)  # compiles the numba kernels
+        prof = cProfile.Profile()
+        prof.enable()
+        r = contact.solve(P, method, tol=1e-12, max_iter=iterations, **extra)
+        prof.disable()
+        stats = pstats.Stats(prof).stats
+        phases = {}
+        for name, (suffix, func) in PHASES.items():
+            t = sum(v[3] for (file, _, fn), v in stats.items()
+                    if file.endswith(suffix) and fn == func)
+            if t > 0:
+                phases[name] = t / r.iterations
+        total = float(np.sum(r.cpu_time)) / r.iterations
+        phases["other"] = max(total - sum(phases.values()), 0.0)
+        out[method] = {"cpu_per_iteration_s": total, "phases_s": phases,
+                       "basis_size": int(r.basis_size[-1])}
+        print(f"{method}: {1e3 * total:.1f} ms per iteration (CPU, profiled), basis "
+              f"{r.basis_size[-1]}")
+        for name, t in phases.items():
+            print(f"  {name:>40s}: {1e3 * t:8.2f} ms")
+    return out
+
+
+def plot_cost(result, path):
+    fig = Figure(figsize=(10, 4), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    for method in ("latin-p3", "latin-pgd"):
+        by_p = result[method]["by_basis_size"]
+        ps = np.array(sorted(by_p, key=int), dtype=int)
+        ax1.plot(ps, [1e3 * by_p[p]["cpu_s"] for p in ps], "o-", ms=3, label=method)
+        ax2.plot(ps, [by_p[p]["nf_columns"] for p in ps], "o-", ms=3, label=method)
+    ax1.set_xlabel("basis size p")
+    ax1.set_ylabel("CPU time per iteration (ms, median)")
+    ax2.set_xlabel("basis size p")
+    ax2.set_ylabel("nf-sized vectors touched per iteration (median)")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=120)
 
 
 def k_study(factors, tol, max_iter, dt=5e-3):
@@ -97,14 +271,14 @@ def k_study(factors, tol, max_iter, dt=5e-3):
 
 
 def plot_scale(rows, path):
-    fig = Figure(figsize=(11, 4), layout="constrained")
-    ax1, ax2 = fig.subplots(1, 2)
+    fig = Figure(figsize=(15, 4), layout="constrained")
+    ax1, ax2, ax3 = fig.subplots(1, 3)
     names = [r["case"] for r in rows]
     x = np.arange(len(rows))
     width = 0.2
     for i, key in enumerate(["reference", "latin", "latin-p3", "latin-pgd"]):
         ax1.bar(x + (i - 1.5) * width, [r[key]["cpu_s"] for r in rows], width, label=key)
-    ax1.set_xticks(x, names, fontsize=7)
+    ax1.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
     ax1.set_yscale("log")
     ax1.set_ylabel("CPU time (s)")
     ax1.legend()
@@ -113,10 +287,16 @@ def plot_scale(rows, path):
     ax2.bar(x, [r["latin-p3"]["representation_bytes"] / 1e6 for r in rows], width,
             label="LATIN-P3 modes")
     ax2.bar(x + width, [r["latin-pgd"]["representation_bytes"] / 1e6 for r in rows], width,
-            label="LATIN-PGD modes")
-    ax2.set_xticks(x, names, fontsize=7)
+            label="LATIN-PGD modes (first truncation)")
+    ax2.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
     ax2.set_ylabel("displacement representation (MB)")
     ax2.legend()
+    for i, key in enumerate(["reference", "latin", "latin-p3", "latin-pgd"]):
+        ax3.bar(x + (i - 1.5) * width, [r[key]["peak_rss_bytes"] / 1e6 for r in rows], width,
+                label=key)
+    ax3.set_xticks(x, names, fontsize=7, rotation=20, ha="right")
+    ax3.set_ylabel("peak resident memory of the solve's process (MB)")
+    ax3.legend()
     FigureCanvasAgg(fig)
     fig.savefig(path, dpi=120)
 
@@ -136,9 +316,15 @@ def plot_k(result, path):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/contact")
-    parser.add_argument("--study", choices=["scale", "k", "all"], default="all")
+    parser.add_argument("--study", choices=["scale", "cost", "breakdown", "k", "all"],
+                        default="all")
+    parser.add_argument("--only", nargs="*", default=None,
+                        help="scale study: run the cases whose name contains one of these")
+    parser.add_argument("--no-trace", action="store_true",
+                        help="scale study: skip the tracemalloc run (half the time)")
     parser.add_argument("--level", type=float, default=1e-4)
-    parser.add_argument("--trunc", type=float, default=1e-6)
+    parser.add_argument("--trunc", type=float, nargs="+", default=[1e-5, 1e-6],
+                        help="LATIN-PGD truncations (the first is the 'latin-pgd' entry)")
     parser.add_argument("--max-iter", type=int, default=600)
     parser.add_argument("--quick", action="store_true", help="small sizes (a smoke test)")
     args = parser.parse_args(argv)
@@ -150,9 +336,22 @@ def main(argv=None):
         result["k"] = k_study(factors, 1e-6, 5000, dt=5e-2 if args.quick else 5e-3)
         (out / "k.json").write_text(json.dumps(result["k"], indent=1))
         plot_k(result["k"], out / "k.png")
+    if args.study in ("cost", "all"):
+        opts = {"refine": 1, "dt": 5e-2} if args.quick else {"refine": 4, "dt": 5e-3}
+        result["cost"] = cost_study(opts, args.trunc[0], 60 if args.quick else 200)
+        (out / "cost.json").write_text(json.dumps(result["cost"], indent=1))
+        plot_cost(result["cost"], out / "cost.png")
+    if args.study in ("breakdown", "all"):
+        opts = ({"refine": 1, "dt": 5e-2} if args.quick else
+                {"refine": 8, "dt": 5e-3 / 4})
+        result["breakdown"] = breakdown_study(opts, args.trunc[-1], 10 if args.quick else 60)
+        (out / "breakdown.json").write_text(json.dumps(result["breakdown"], indent=1))
     if args.study in ("scale", "all"):
-        rows = scale_study(QUICK if args.quick else CASES, args.level, args.trunc,
-                           args.max_iter)
+        cases = QUICK if args.quick else CASES
+        if args.only:
+            cases = {k: v for k, v in cases.items() if any(o in k for o in args.only)}
+        rows = scale_study(cases, args.level, list(args.trunc), args.max_iter,
+                           trace=not args.no_trace)
         result["scale"] = rows
         (out / "scale.json").write_text(json.dumps(rows, indent=1))
         plot_scale(rows, out / "scale.png")

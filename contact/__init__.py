@@ -17,6 +17,7 @@ from .globalstage import default_search_direction, indicator
 from .latin import METHODS, IterationState, LatinResult, solve
 from .local import local_stage
 from .mesh import Mesh
+from .pgd import indicator_metric
 from .post import LawCheck, SVDModes, check_laws, mac, optimal_rank, svd_modes
 from .problem import Problem, billet, block
 from .reference import ReferenceResult, reference_solve
@@ -52,6 +53,7 @@ __all__ = [
     "check_laws",
     "default_search_direction",
     "indicator",
+    "indicator_metric",
     "local_stage",
     "mac",
     "optimal_rank",

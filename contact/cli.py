@@ -39,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--level", type=float, default=1e-4,
                    help="indicator level of the CPU-time comparison (1e-4)")
     b.add_argument("--trunc", type=float, default=1e-4,
-                   help="relative truncation of LATIN-PGD (1e-4)")
+                   help="relative truncation of LATIN-PGD, in the indicator's metric (1e-4)")
     b.add_argument("--fine-trunc", type=float, default=1e-6,
                    help="second LATIN-PGD run with this truncation; 0 to skip (1e-6)")
     b.add_argument("--max-iter", type=int, default=400, help="iterations per method (400)")

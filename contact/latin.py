@@ -8,8 +8,9 @@
   displacement field (one back-substitution per instant and iteration);
 * ``"latin-p3"`` -- P3: the displacement correction is a sum of orthonormal space modes
   times time functions (:mod:`contact.pgd`);
-* ``"latin-pgd"`` -- P3 where every iteration's new modes are added to a
-  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation.
+* ``"latin-pgd"`` -- P3 where every iteration's change is added to a
+  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation in
+  the indicator's metric.
 
 Each iteration ``i``: local stage ``s_hat_i`` from ``s_{i-1}`` (direction E+), global stage
 ``s_i`` from ``s_hat_i`` (direction E-), indicator ``eta_i`` between ``s_i`` and
@@ -22,7 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -57,14 +58,24 @@ class IterationState:
     cpu_time : float
         Process time of this iteration (s).
     basis : ndarray or None
-        Current space modes (n x p, read-only) for the separated methods.
+        Space modes of this iteration on the free dofs (nf x p, read-only) for the
+        separated methods; formed when first read (``O(nf w p)``, see
+        :mod:`contact.pgd`), so a callback that does not read it costs nothing.
     """
 
     iteration: int
     indicator: float
     basis_size: int
     cpu_time: float
-    basis: np.ndarray | None
+    modes: Callable[[], np.ndarray | None] = field(repr=False)
+
+    @property
+    def basis(self) -> np.ndarray | None:
+        """Space modes of this iteration (formed on the first read, then kept)."""
+        if "_basis" not in self.__dict__:
+            object.__setattr__(self, "_basis", self.modes())
+        out: np.ndarray | None = self.__dict__["_basis"]
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,9 +175,8 @@ class _FullField:
     def basis_size(self) -> int:
         return self.stage.problem.m
 
-    @property
-    def basis(self) -> None:
-        return None
+    def modes(self) -> Callable[[], None]:
+        return lambda: None
 
     def update(self, Z: np.ndarray) -> np.ndarray:
         self.y = self.stage.solve(self.stage.G @ Z)
@@ -233,7 +243,10 @@ def solve(
     trunc : float
         ``"latin-pgd"`` only: after each sweep the compressor drops the terms with
         ``||v_i|| < trunc * ||v_1||`` (``||v_1||`` the largest amplitude; the paper's
-        threshold ``eps`` of Algorithm 3 made relative), see :mod:`contact.pgd`.
+        threshold ``eps`` of Algorithm 3 made relative), the space modes being
+        orthonormal in the indicator metric (:func:`contact.indicator_metric`), see
+        :mod:`contact.pgd`. On the billet, reaching an indicator ``eta`` takes about
+        ``trunc = eta / 10`` (``contact/README.md``).
     enrich_ratio : float
         Separated methods: a new space-time pair is computed when the time-function update
         leaves a residual ``||R|| > enrich_ratio * ||R_before||``, ``R_before`` the
@@ -322,7 +335,7 @@ def _solve(
         stop = False
         if callback is not None:
             stop = bool(callback(IterationState(it, eta, variant.basis_size, cpus[-1],
-                                                variant.basis)))
+                                                variant.modes())))
         if eta <= tol:
             converged = True
             break

@@ -6,8 +6,10 @@ Nothing here plots; :mod:`contact.figures` does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 
 from .problem import Problem
 
@@ -36,14 +38,38 @@ class SVDModes:
         """Return ``#{i : s_i >= rtol * s_1}``, the optimal basis size at ``rtol``."""
         return optimal_rank(self.values, rtol)
 
+    def tail_rank(self, rtol: float) -> int:
+        """Return the smallest ``r`` with ``||Y - Y_r||_F <= rtol ||Y||_F`` (tail energy)."""
+        s2 = np.asarray(self.values, dtype=float) ** 2
+        tail = np.sqrt(np.append(np.cumsum(s2[::-1])[::-1], 0.0))  # tail[r] = ||Y - Y_r||
+        return int(np.argmax(tail <= rtol * tail[0])) if s2.size else 0
 
-def svd_modes(Y: np.ndarray) -> SVDModes:
-    """Return the SVD of ``Y`` (n x m) with deterministic signs.
+    def sizes(self, rtol: float) -> dict[str, int]:
+        """Return both optimal sizes at ``rtol``: ``{"sigma_ratio": ..., "tail_energy": ...}``."""
+        return {"sigma_ratio": self.rank(rtol), "tail_energy": self.tail_rank(rtol)}
 
-    The sign of each pair is chosen so that the largest entry of the temporal mode is
-    positive (as ``svd_flip`` of scikit-learn does with the right vectors).
+
+def svd_modes(Y: np.ndarray, *, inner: Any = None) -> SVDModes:
+    """Return the SVD of ``Y`` (n x m) with deterministic signs, in the norm of ``inner``.
+
+    With ``inner`` (an SPD matrix, dense or sparse, for instance
+    :func:`contact.indicator_metric`), ``Y = sum_i s_i x_i t_i^T`` with ``x_i``
+    orthonormal in ``x^T M x`` and ``s`` the singular values in that norm. They come from
+    the Euclidean SVD ``Y = Q S T^T`` restricted to its numerical rank (so that every
+    ``x_i`` lies in the range of ``Y``, and vanishes where all of ``Y`` does), the Cholesky
+    factor ``L`` of ``Q^T M Q`` and the SVD of ``L^T S T^T`` (``O(n m^2)``). The sign of
+    each pair is chosen so that the largest entry of the temporal mode is positive (as
+    ``svd_flip`` of scikit-learn does with the right vectors).
     """
-    X, s, Tt = np.linalg.svd(np.asarray(Y, dtype=float), full_matrices=False)
+    Y = np.asarray(Y, dtype=float)
+    X, s, Tt = np.linalg.svd(Y, full_matrices=False)
+    if inner is not None:
+        r = int(np.count_nonzero(s > max(Y.shape) * np.finfo(float).eps * s[0])) if (
+            s.size and s[0] > 0) else 0
+        Q = X[:, :r]
+        Lm = np.linalg.cholesky(Q.T @ (inner @ Q))
+        Xs, s, Tt = np.linalg.svd(Lm.T @ (s[:r, None] * Tt[:r]), full_matrices=False)
+        X = Q @ sla.solve_triangular(Lm.T, Xs)
     T = Tt.T
     signs = np.sign(T[np.argmax(np.abs(T), axis=0), np.arange(T.shape[1])])
     signs[signs == 0] = 1.0

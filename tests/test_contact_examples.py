@@ -1,3 +1,4 @@
+import importlib
 import json
 import logging
 import runpy
@@ -98,15 +99,25 @@ def test_cli_requires_a_command():
 
 def test_scale_bench_runs_on_small_sizes(tmp_path, monkeypatch, capsys):
     monkeypatch.syspath_prepend(str(ROOT / "bench"))
-    mod = runpy.run_path(str(ROOT / "bench" / "bench_contact_scale.py"))
-    result = mod["main"](["--quick", "--out", str(tmp_path), "--max-iter", "300"])
-    for name in ("scale", "k"):
+    # imported (not run_path) so that its solves can run in spawned processes
+    mod = importlib.import_module("bench_contact_scale")
+    result = mod.main(["--quick", "--out", str(tmp_path), "--max-iter", "300"])
+    for name in ("scale", "k", "cost"):
         assert (tmp_path / f"{name}.png").stat().st_size > 5_000
         assert json.loads((tmp_path / f"{name}.json").read_text())
     for row in result["scale"]:
         assert row["latin"]["converged"] and row["latin-p3"]["converged"]
         assert row["latin-pgd"]["representation_bytes"] < row["full_field_bytes"] * 1.05
-        assert row["reference"]["peak_bytes"] > 0
+        for key in ("reference", "latin", "latin-p3", "latin-pgd"):
+            assert row[key]["peak_traced_bytes"] > 0
+            assert row[key]["peak_rss_bytes"] >= row[key]["rss_before_bytes"] > 0
+        sizes = row["optimal_svd_size"]["0.0001"]
+        assert sizes["tail_energy"] >= sizes["sigma_ratio"] > 0
+    cost = result["cost"]
+    for method in ("latin-p3", "latin-pgd"):
+        assert len(cost[method]["cpu_s"]) == len(cost[method]["basis_size"]) > 0
+    phases = result["breakdown"]["latin-pgd"]["phases_s"]
+    assert phases["StreamCompressor.add"] > 0 and phases["local stage"] > 0
     its = [r["iterations"] for r in result["k"]["rows"]]
     assert len(its) == 3 and all(i > 0 for i in its)
     capsys.readouterr()
@@ -116,3 +127,18 @@ def test_package_exposes_the_study_lazily():
     assert callable(contact.billet_study)
     with pytest.raises(AttributeError):
         contact.not_there  # noqa: B018
+
+
+def test_subspace_bench_runs_on_a_small_size(tmp_path, monkeypatch, capsys):
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
+    mod = importlib.import_module("bench_contact_subspace")
+    result = mod.main(["--quick", "--out", str(tmp_path)])
+    assert (tmp_path / "subspace.png").stat().st_size > 5_000
+    assert json.loads((tmp_path / "subspace.json").read_text())["fixed"]
+    for row in result["fixed"]:
+        assert 0 < row["min_indicator"] <= row["last_indicator"]
+        assert row["truncated_reference"] > 0
+    for row in result["pgd"]:
+        assert row["optimal"]["tail_energy"] >= row["optimal"]["sigma_ratio"] > 0
+        assert row["min_indicator"] > 0
+    capsys.readouterr()

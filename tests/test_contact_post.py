@@ -52,3 +52,48 @@ def test_slip_tests_are_relative_to_the_admissible_tangential_traction():
     check = contact.check_laws(P, w, lam)
     assert check.slip_direction == pytest.approx(1.0)
     assert check.cone == 0.0 and check.stick_slip == 0.0
+
+
+def test_svd_in_a_metric_is_orthonormal_there_and_reconstructs():
+    rng = np.random.default_rng(0)
+    n, m, r = 30, 12, 8
+    Y = rng.standard_normal((n, r)) @ rng.standard_normal((r, m))
+    Y[:3] = 0.0  # rows where every column vanishes (prescribed dofs)
+    B = rng.standard_normal((n, n))
+    M = B @ B.T + n * np.eye(n)
+    svd = contact.svd_modes(Y, inner=M)
+    eps = np.finfo(float).eps
+    assert svd.values.size == r
+    X, T, s = svd.space, svd.time, svd.values
+    scale = np.linalg.norm(M, 2)
+    assert np.abs(X.T @ M @ X - np.eye(r)).max() < 100 * n * eps * np.linalg.cond(M)
+    assert np.abs(T.T @ T - np.eye(r)).max() < 100 * m * eps
+    assert np.linalg.norm((X * s) @ T.T - Y) < 100 * n * eps * np.linalg.norm(Y)
+    assert np.abs(X[:3]).max() < 100 * n * eps * np.abs(X).max()
+    # the singular values in M are those of the Cholesky factor times Y
+    Rm = np.linalg.cholesky(M).T
+    ref = np.linalg.svd(Rm @ Y, compute_uv=False)[:r]
+    assert np.allclose(s, ref, rtol=100 * n * eps * np.sqrt(scale), atol=0)
+
+
+def test_optimal_sizes_by_singular_value_ratio_and_by_tail_energy():
+    values = np.array([1.0, 0.5, 1e-2, 1e-3, 1e-3, 1e-5])
+    svd = contact.SVDModes(values, np.eye(6), np.eye(6))
+    assert svd.rank(1e-3) == 5  # s_i >= 1e-3 s_1
+    # ||Y - Y_r||_F <= rtol ||Y||_F with ||Y||_F = 1.118: the tail after 3 terms is
+    # 1.41e-3, after 4 terms 1.00e-3
+    assert svd.tail_rank(1e-3) == 4
+    assert svd.tail_rank(2e-3) == 3
+    assert svd.tail_rank(0.0) == 6
+    assert svd.sizes(1e-3) == {"sigma_ratio": 5, "tail_energy": 4}
+
+
+def test_indicator_metric_checks_its_arguments():
+    with pytest.raises(contact.SolverOptionError, match="`problem` must be a contact.Problem"):
+        contact.indicator_metric("billet")
+    P = contact.billet(dt=0.5)
+    with pytest.raises(contact.SolverOptionError, match="`k` must be a positive number"):
+        contact.indicator_metric(P, k=-1.0)
+    M = contact.indicator_metric(P)
+    assert M.shape == (P.n, P.n)
+    assert abs(M - M.T).max() <= 1e-15 * abs(M).max()
