@@ -15,8 +15,9 @@ three spectra:
 
 Each is saved as ``.npy`` and ingested by the command line, ``streamsvd.cli.main``,
 with its defaults (rule ``paper``, one sweep per update, ``--final-sweeps converge``)
-and ``--max-rank k --block 20``, in the three modes: in memory, ``--tall`` (zarr panels,
-threaded dask scheduler) and the tree (``--scheduler threads``, leaves of 10 blocks),
+and ``--max-rank k``, at ``--block`` 100 (the default) and 20, in the three modes: in
+memory, ``--tall`` (zarr panels, threaded dask scheduler) and the tree (``--scheduler
+threads``, leaves of 10 blocks),
 for each ``--oversampling`` in the list (10 is the default). One run per spectrum and mode
 adds ``--final-sweeps none`` (oversampling 10), and one has no ``--max-rank`` at all.
 
@@ -84,7 +85,7 @@ def run(source: Path, store: Path, options: list[str]) -> tuple[dict[str, np.nda
     """Ingest ``source`` into ``store`` with the CLI; return the exported factors, seconds."""
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()):
-        cli(["ingest", str(source), str(store), "--quiet", "--block", "20", *options])
+        cli(["ingest", str(source), str(store), "--quiet", *options])
     seconds = time.perf_counter() - t0
     out = store.with_suffix(".npz")
     with contextlib.redirect_stdout(io.StringIO()):
@@ -120,6 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--oversampling", default="0,10,20,40")
     ap.add_argument("--spectra", default="gap,log3,log8")
     ap.add_argument("--modes", default="memory,tall,tree")
+    ap.add_argument("--blocks", default="100,20",
+                    help="--block values (100 is the command line's default)")
     ap.add_argument("--quick", action="store_true", help="skip the extra runs")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -128,7 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     overs = [int(x) for x in args.oversampling.split(",")]
     rows: list[dict[str, Any]] = []
     spectra, modes = args.spectra.split(","), args.modes.split(",")
-    total = len(spectra) * len(modes) * (len(overs) + (0 if args.quick else 2))
+    blocks = [int(b) for b in args.blocks.split(",")]
+    total = len(spectra) * len(modes) * len(blocks) * (len(overs) + (0 if args.quick else 2))
     with tempfile.TemporaryDirectory(prefix="streamsvd-final-") as tmp, \
             tqdm(total=total, unit="run", file=sys.stderr) as bar:
         for name in spectra:
@@ -144,20 +148,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                 cases += [("os 10, final none",
                            ["--max-rank", str(args.k), "--final-sweeps", "none"]),
                           ("no max-rank", [])]
-            for mode in modes:
-                for label, options in cases:
-                    store = Path(tmp) / f"{name}-{mode}-{len(rows)}.zarr"
-                    e, seconds = run(source, store, [*_MODES[mode], *options])
-                    row = {"spectrum": name, "mode": mode, "case": label,
-                           "oversampling": _oversampling(options), "seconds": seconds,
-                           **measure(A, (U_ref, s_ref), args.k, e)}
-                    rows.append(row)
-                    bar.update()
+            for block in blocks:
+                for mode in modes:
+                    for label, options in cases:
+                        store = Path(tmp) / f"{name}-{mode}-{len(rows)}.zarr"
+                        e, seconds = run(source, store,
+                                         ["--block", str(block), *_MODES[mode], *options])
+                        row = {"spectrum": name, "block": block, "mode": mode, "case": label,
+                               "oversampling": _oversampling(options), "seconds": seconds,
+                               **measure(A, (U_ref, s_ref), args.k, e)}
+                        rows.append(row)
+                        bar.update()
     print_table([c for c, _ in _COLUMNS],
                 [[f.format(r[c]) for c, f in _COLUMNS] for r in rows],
-                title=f"n = {args.n}, m = {args.m}, k = {args.k}, block 20 (CLI defaults)")
+                title=f"n = {args.n}, m = {args.m}, k = {args.k} (CLI defaults)")
     write_json(out / "final_benchmark.json", {
-        "n": args.n, "m": args.m, "k": args.k, "block": 20, "rows": rows,
+        "n": args.n, "m": args.m, "k": args.k, "blocks": blocks, "rows": rows,
         "machine": machine_info(),
     })
     _figure(rows, args.k, out / "final_benchmark.png")
@@ -165,7 +171,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 _COLUMNS = (
-    ("spectrum", "{}"), ("mode", "{}"), ("case", "{}"), ("rank", "{}"),
+    ("spectrum", "{}"), ("block", "{}"), ("mode", "{}"), ("case", "{}"), ("rank", "{}"),
     ("err_over_opt", "{:.6f}"), ("sv_err", "{:.1e}"), ("kept_err_eps", "{:.1f}"),
     ("angle_deg", "{:.2e}"), ("seconds", "{:.2f}"),
 )
@@ -183,13 +189,16 @@ def _figure(rows: list[dict[str, Any]], k: int, path: Path) -> None:
     spectra = sorted({r["spectrum"] for r in rows}, key=[r["spectrum"] for r in rows].index)
     fig, axes = plt.subplots(1, len(spectra), figsize=(5 * len(spectra), 4), squeeze=False)
     for ax, name in zip(axes[0], spectra, strict=True):
-        for mode, style in (("memory", "ko-"), ("tall", "bs--"), ("tree", "r^-")):
-            pts = [(r["oversampling"], r["err_over_opt"] - 1) for r in rows
-                   if r["spectrum"] == name and r["mode"] == mode
-                   and r["case"].startswith("os") and "final" not in r["case"]]
-            if pts:
-                x, y = zip(*pts, strict=True)
-                ax.semilogy(x, np.maximum(y, 1e-16), style, label=mode)
+        blocks = sorted({r["block"] for r in rows}, reverse=True)
+        for block, fill in zip(blocks, ("full", "none"), strict=False):
+            for mode, style in (("memory", "ko-"), ("tall", "bs--"), ("tree", "r^-")):
+                pts = [(r["oversampling"], r["err_over_opt"] - 1) for r in rows
+                       if r["spectrum"] == name and r["mode"] == mode and r["block"] == block
+                       and r["case"].startswith("os") and "final" not in r["case"]]
+                if pts:
+                    x, y = zip(*pts, strict=True)
+                    ax.semilogy(x, np.maximum(y, 1e-16), style, fillstyle=fill,
+                                label=f"{mode}, block {block}")
         ax.axhline(1e-4, color="0.5", ls=":", label="target 1.0001")
         ax.set(xlabel="--oversampling (terms kept above k while streaming)",
                ylabel="||A - U V^T||_F / ||A - A_k||_F - 1",

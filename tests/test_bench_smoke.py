@@ -106,7 +106,8 @@ def test_final_benchmark_tiny(bench, tmp_path):
     """The final sweeps store the SVD of the expansion kept; oversampling helps."""
     mod = bench("final_benchmark")
     mod.main(["--out", str(tmp_path), "--n", "200", "--m", "60", "--k", "4",
-              "--oversampling", "0,10", "--spectra", "gap,log3", "--modes", "memory,tall"])
+              "--oversampling", "0,10", "--spectra", "gap,log3", "--modes", "memory,tall",
+              "--blocks", "20"])
     assert_drawn(tmp_path / "final_benchmark.png")
     rows = _read(tmp_path / "final_benchmark.json")["rows"]
     assert len(rows) == 2 * 2 * 4
