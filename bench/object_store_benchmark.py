@@ -46,7 +46,7 @@ if str(BENCH_DIR) not in sys.path:
     sys.path.insert(0, str(BENCH_DIR))
 
 from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
-from store_benchmark import _columns, _summary  # noqa: E402
+from store_benchmark import _columns, _summary, timed_commits  # noqa: E402
 
 from streamsvd import StreamCompressor  # noqa: E402
 from streamsvd.store import open_store  # noqa: E402
@@ -80,20 +80,9 @@ def run_one(location: Any, label: str, args: argparse.Namespace) -> dict[str, An
     create_seconds = time.perf_counter() - t0
     store = sc._store
     assert store is not None
-    commit_times: list[float] = []
-    real_commit = store.commit
-
-    def timed_commit(*a: Any, **kw: Any) -> int:
-        t = time.perf_counter()
-        try:
-            return real_commit(*a, **kw)
-        finally:
-            commit_times.append(time.perf_counter() - t)
-
-    store.commit = timed_commit  # type: ignore[method-assign]
-    for B in blocks:
-        sc.absorb(B)
-    store.commit = real_commit  # type: ignore[method-assign]  # the updates' commits only
+    with timed_commits(store) as commit_times:  # the updates' commits only
+        for B in blocks:
+            sc.absorb(B)
     sc.close()  # the final sweeps and their commit, not timed
     with StreamCompressor.open(location, mode="r") as closed:
         U = closed.expansion.U

@@ -38,6 +38,7 @@ Writes ``store_benchmark.json`` and ``store_benchmark.png`` to ``--out``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -45,7 +46,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,27 @@ from _common import machine_info, out_dir, print_table, pyplot, write_json  # no
 from streamsvd import StreamCompressor  # noqa: E402
 
 _LOAD_BLOCK = 500
+
+
+@contextlib.contextmanager
+def timed_commits(store: Any) -> Iterator[list[float]]:
+    """Time every ``store.commit`` while the block runs; yield the list of seconds."""
+    seconds: list[float] = []
+    real_commit = store.commit
+
+    def timed_commit(*a: Any, **kw: Any) -> int:
+        t = time.perf_counter()
+        try:
+            return real_commit(*a, **kw)
+        finally:
+            seconds.append(time.perf_counter() - t)
+
+    store.commit = timed_commit
+    try:
+        yield seconds
+    finally:
+        store.commit = real_commit
+
 
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -121,29 +143,19 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     save_seconds = time.perf_counter() - t0
     assert sc._store is not None
     store = sc._store
-    commit_times: list[float] = []
-    real_commit = store.commit
-
-    def timed_commit(*a: Any, **kw: Any) -> int:
-        t = time.perf_counter()
-        try:
-            return real_commit(*a, **kw)
-        finally:
-            commit_times.append(time.perf_counter() - t)
-
-    store.commit = timed_commit  # type: ignore[method-assign]
     blocks = [_columns(Q1, s, args.block, rng) for _ in range(args.updates)]
     with_store, in_memory, written = [], [], []
-    for B in blocks:
-        t = time.perf_counter()
-        sc.absorb(B)
-        with_store.append(time.perf_counter() - t)
-        # a store of the previous layout (format version 1) does not count: NaN
-        counts = getattr(store, "last_written", None)
-        written.append(math.nan if counts is None else 8 * sum(counts.values()))
-        t = time.perf_counter()
-        memory.absorb(B)
-        in_memory.append(time.perf_counter() - t)
+    with timed_commits(store) as commit_times:
+        for B in blocks:
+            t = time.perf_counter()
+            sc.absorb(B)
+            with_store.append(time.perf_counter() - t)
+            # a store of the previous layout (format version 1) does not count: NaN
+            counts = getattr(store, "last_written", None)
+            written.append(math.nan if counts is None else 8 * sum(counts.values()))
+            t = time.perf_counter()
+            memory.absorb(B)
+            in_memory.append(time.perf_counter() - t)
     same = bool(np.array_equal(sc.expansion.U, memory.expansion.U))
     rows = sc._state.rows
     assert rows is not None
