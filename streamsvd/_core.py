@@ -141,6 +141,16 @@ class Truncation:
             keep = min(keep, self.max_rank)
         return keep
 
+    def cap_binds(self, amps: np.ndarray) -> bool:
+        """Whether ``max_rank`` cuts terms that the thresholds would keep.
+
+        ``amps`` holds the amplitudes, in any order.
+        """
+        if self.max_rank is None or amps.size <= self.max_rank:
+            return False
+        unbounded = Truncation(self.eps, self.rtol)
+        return unbounded.keep_count(np.sort(amps)[::-1]) > self.max_rank
+
 
 @dataclass(frozen=True)
 class CoreStep:
@@ -184,6 +194,12 @@ def core_step(
 ) -> CoreStep:
     """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
 
+    When ``truncation.max_rank`` would cut terms that its thresholds keep
+    (:meth:`Truncation.cap_binds`) and the sweeps have not converged, Jacobi sweeps go on
+    until none rotates: the cut by the cap is then the optimal (Eckart-Young) cut of the
+    expansion. The thresholds ``eps`` and ``rtol`` act after ``sweeps`` sweeps, as in
+    Algorithm 3.
+
     Parameters
     ----------
     K : ndarray, shape (k, p)
@@ -206,13 +222,25 @@ def core_step(
     done = 0
     max_cos = 0.0
     limit = sweeps if sweeps is not None else _MAX_SWEEPS
-    while done < limit and p > 1:
+    converged = p <= 1
+    while done < limit and not converged:
         s = sweep_core(Rt, Qt, order, p, rule=rule, eps=0.0, tol=math.sqrt(m) * _EPS)
         done += 1
         max_cos = s.max_cosine
-        if s.rotations == 0:
-            break
+        converged = s.rotations == 0
     amps_scaled = safe_column_norms(Rt.T)
+    if not converged and truncation.cap_binds(np.ldexp(amps_scaled, e)):
+        # a cut by the rank cap is made on the converged core, so that it is the optimal
+        # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
+        # would drop energy of the leading directions for good
+        while done < _MAX_SWEEPS:
+            s = sweep_core(Rt, Qt, order, p, rule="jacobi", eps=0.0,
+                           tol=math.sqrt(m) * _EPS)
+            done += 1
+            max_cos = s.max_cosine
+            if s.rotations == 0:
+                break
+        amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
     keep = truncation.keep_count(amps[order])

@@ -106,8 +106,10 @@ class StreamCompressor:
         Keep this many terms in the end (the ones of largest amplitude). While streaming,
         ``max_rank + oversampling`` terms are kept, and :meth:`finalize` (called by
         :meth:`close`) cuts to ``max_rank`` once the core is converged: a cap applied at
-        every update compounds its errors, the oversampled stream does not (measured in
-        ``bench/README.md``, "The SVD by default").
+        every update compounds its errors, the oversampled stream much less (measured in
+        ``bench/README.md``, "The SVD by default"). An update whose cut by the cap would
+        drop terms that the thresholds keep first sweeps its core to convergence (Jacobi
+        rule), so that the cut is the optimal one of the current expansion.
     oversampling : int
         Extra terms kept while streaming with ``max_rank`` (default 10; 0 truncates to
         ``max_rank`` at every update, as IncrementalPCA does). Ignored without
