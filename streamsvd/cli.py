@@ -332,33 +332,36 @@ def _parser() -> argparse.ArgumentParser:
                      "source's row chunks, else 16384)")
     _add_storage_option(ing)
 
-    info = sub.add_parser("info", help="summarise a store",
-                          description="Summarise a basis store: sizes, rank, options, "
-                          "error bound, orthogonality and the leading amplitudes.")
-    info.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
-    info.add_argument("--json", action="store_true",
-                      help="print the summary as JSON (default: off, a text report)")
-
-    exp = sub.add_parser("export", help="write U, V and the amplitudes to .npz or .h5",
-                         description="Write U, V, the amplitudes ||v_i|| and the error "
-                         "bound of a basis store to a .npz or HDF5 file.")
-    exp.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
-    exp.add_argument("out", metavar="OUT",
-                     help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
-
-    plot = sub.add_parser("plot", help="amplitudes, energy and orthogonality as PNG",
-                          description="Plot the amplitudes, the cumulative energy and the "
-                          "orthogonality history of a basis store.")
-    plot.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
-    plot.add_argument("out", metavar="OUT",
-                      help="output image, .png (or .pdf, .svg); overwritten if it exists")
-    for reader in (info, exp, plot):
-        reader.add_argument("--inner", metavar="FILE",
+    def reader(name: str, *, help: str, description: str) -> argparse.ArgumentParser:
+        """Add a command that reads STORE (its first argument)."""
+        parser = sub.add_parser(name, help=help, description=description)
+        parser.add_argument("store", metavar="STORE",
+                            help="basis store written by `streamsvd ingest`")
+        parser.add_argument("--inner", metavar="FILE",
                             help="the inner product STORE was written with, for a store "
                             f"that does not keep it (written before stores kept it): "
                             f"{_INNER_HELP}; checked against STORE (default: the one STORE "
                             "keeps, else Euclidean)")
-        _add_storage_option(reader)
+        _add_storage_option(parser)
+        return parser
+
+    info = reader("info", help="summarise a store",
+                  description="Summarise a basis store: sizes, rank, options, error bound, "
+                  "orthogonality and the leading amplitudes.")
+    info.add_argument("--json", action="store_true",
+                      help="print the summary as JSON (default: off, a text report)")
+
+    exp = reader("export", help="write U, V and the amplitudes to .npz or .h5",
+                 description="Write U, V, the amplitudes ||v_i|| and the error bound of a "
+                 "basis store to a .npz or HDF5 file.")
+    exp.add_argument("out", metavar="OUT",
+                     help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
+
+    plot = reader("plot", help="amplitudes, energy and orthogonality as PNG",
+                  description="Plot the amplitudes, the cumulative energy and the "
+                  "orthogonality history of a basis store.")
+    plot.add_argument("out", metavar="OUT",
+                      help="output image, .png (or .pdf, .svg); overwritten if it exists")
     return ap
 
 
