@@ -1010,7 +1010,6 @@ class BasisStore:
             "attrs_sha256": _attrs_digest(doc),
             "committed": doc["streamsvd"]["committed"],
         }
-        switched = False
         failures: tuple[type[BaseException], ...] = (OSError, *remote_errors())
         try:
             zstore = self._storage.zarr_store(read_only=False)
@@ -1032,17 +1031,34 @@ class BasisStore:
                     "was not committed. Make sure a single writer opens the store."
                 )
             self._switch(pointer, k)
-            switched = True
-        except failures as exc:
-            if isinstance(exc, StoreError):
+        except BaseException as exc:
+            if not self._pointer_is(pointer):
+                if self._not_named(k):
+                    self._storage.delete(gkey)
+                if isinstance(exc, failures) and not isinstance(exc, StoreError):
+                    raise StoreError(
+                        f"`store` {self._path}: writing generation {k} failed ({exc}); the "
+                        f"current generation {self._generation} is unchanged. Fix the cause "
+                        "and commit again."
+                    ) from exc
                 raise
-            raise StoreError(
-                f"`store` {self._path}: writing generation {k} failed ({exc}); the current "
-                f"generation {self._generation} is unchanged. Fix the cause and commit again."
-            ) from exc
-        finally:
-            if not switched and self._not_committed_by_another(k):
-                self._storage.delete(gkey)
+            # The pointer names this commit: the switch took effect and only what follows
+            # it (the directory's fsync, the reply) failed or was interrupted. The commit
+            # stands and is never undone; an interrupt still propagates once it is recorded.
+            logger.warning(
+                "generation %d of %s was committed; the step after its pointer switch "
+                "failed (%s)", k, self._path, type(exc).__name__,
+            )
+            self._adopt(k, doc, previous, written)
+            if not isinstance(exc, failures):
+                raise
+            return
+        self._adopt(k, doc, previous, written)
+
+    def _adopt(
+        self, k: int, doc: dict[str, Any], previous: int | None, written: dict[str, int]
+    ) -> None:
+        """Record generation ``k``, which the pointer now names, as this writer's current one."""
         self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
         self._docs[k] = doc
         self._previous = previous
@@ -1050,6 +1066,37 @@ class BasisStore:
         self._written = written
         self._prune()
         logger.debug("committed generation %d of %s (%s)", k, self._path, written)
+
+    def _pointer_is(self, pointer: dict[str, Any]) -> bool:
+        """Whether the stored pointer is ``pointer`` (then its version tag is recorded).
+
+        Asked after a commit failed or was interrupted, to tell whether its switch took
+        effect; a pointer that cannot be read counts as not switched.
+        """
+        try:
+            seen = self._storage.get_tagged(POINTER_NAME)
+            if seen is None or json.loads(seen[0]) != pointer:
+                return False
+        except (OSError, ValueError, *remote_errors()):
+            return False
+        if self._storage.conditional:
+            self._pointer_tag = seen[1]
+        return True
+
+    def _not_named(self, k: int) -> bool:
+        """Whether no pointer can name generation ``k`` (so deleting it loses nothing).
+
+        True when the store has no pointer yet (its creation) or a readable pointer names
+        an older generation; a pointer that cannot be read keeps ``k``.
+        """
+        try:
+            seen = self._storage.get_tagged(POINTER_NAME)
+            if seen is None:
+                return True
+            named = json.loads(seen[0]).get("generation")
+        except (OSError, ValueError, AttributeError, *remote_errors()):
+            return False
+        return isinstance(named, int) and named < k
 
     def _pointer_changed(self, k: int) -> StoreLockedError:
         return StoreLockedError(
@@ -1069,15 +1116,6 @@ class BasisStore:
         seen = self._storage.get_tagged(POINTER_NAME)
         if seen is None or seen[1] != self._pointer_tag:
             raise self._pointer_changed(k)
-
-    def _not_committed_by_another(self, k: int) -> bool:
-        """Whether generation ``k`` is not another writer's committed one (safe to delete)."""
-        if not self._storage.conditional:
-            return True
-        try:
-            return bool(_read_pointer(self._storage)["generation"] < k)
-        except StoreError:
-            return False
 
     def _switch(self, pointer: dict[str, Any], k: int) -> None:
         """Make ``pointer`` current: an atomic replace locally, a conditional PUT remotely.

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from _store_writer import CHUNK_BYTES, CREATE_ATTRS, N, expected_generation
 
+import streamsvd.storage as storage_mod
 import streamsvd.store as store_mod
 from streamsvd.errors import (
     InputError,
@@ -594,6 +595,35 @@ def test_failing_pointer_switch_leaves_the_previous_state_intact(store, rng, mon
     monkeypatch.undo()
     assert tree_bytes(store.path) == before
     assert_state_equal(store.read(), arrays, {"k": 1})
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, OSError])
+def test_failure_after_the_pointer_switch_keeps_the_commit(store, rng, monkeypatch, failure):
+    """Ctrl-C (or a disk error) in the directory fsync that follows the pointer's rename."""
+    store.commit(factors(rng), {"k": 1})
+    arrays = factors(rng)
+    real_fsync = storage_mod._fsync_path
+
+    def interrupted(path, *, directory=False):
+        real_fsync(path, directory=directory)
+        if directory and (Path(path) / "current.json").exists():
+            pointer = json.loads((Path(path) / "current.json").read_text())
+            if pointer["generation"] == 2:
+                raise failure("interrupted after the switch")
+
+    monkeypatch.setattr(storage_mod, "_fsync_path", interrupted)
+    if failure is KeyboardInterrupt:
+        with pytest.raises(KeyboardInterrupt):
+            store.commit(arrays, {"k": 2})
+    else:
+        assert store.commit(arrays, {"k": 2}) == 2
+    monkeypatch.undo()
+    assert store.generation == 2
+    assert_state_equal(store.read(), arrays, {"k": 2})
+    with open_store(store.path, "r") as reader:
+        assert reader.generation == 2
+        assert_state_equal(reader.read(), arrays, {"k": 2})
+    assert store.commit(factors(rng), {"k": 3}) == 3
 
 
 def test_leftovers_of_a_killed_writer_are_cleaned_by_the_next_writer(store_path, rng):
