@@ -23,9 +23,11 @@ from .rotations import sweep_core
 __all__ = [
     "HISTORY_FIELDS",
     "CoreStep",
+    "ERROR_MEASURES",
     "Truncation",
     "UpdateRecord",
     "core_step",
+    "error_budget",
     "history_array",
     "r_factor",
     "record_from_row",
@@ -122,14 +124,27 @@ class Truncation:
 
     A term is kept when ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` and it is among
     the ``max_rank`` largest; terms of amplitude exactly zero carry nothing and are dropped.
+
+    With a ``target`` error, the fewest terms are kept whose error bound stays within
+    ``share`` of the budget (:func:`error_budget`): the smallest terms are cut while
+    ``hypot(spent, ||cut||)`` fits, ``spent`` being the bound before this cut. The cut is
+    made on the converged core, so its terms are orthogonal to the kept ones and the bound
+    grows by the Pythagorean rule.
     """
 
     eps: float = 0.0
     rtol: float | None = None
     max_rank: int | None = None
+    target: float | None = None
+    measure: str = "relative"
+    share: float = 1.0
 
-    def keep_count(self, amps_sorted: np.ndarray) -> int:
-        """Return how many leading terms are kept (amplitudes sorted decreasingly)."""
+    def keep_count(self, amps_sorted: np.ndarray, *, spent: float = 0.0, m: int = 0) -> int:
+        """Return how many leading terms are kept (amplitudes sorted decreasingly).
+
+        ``spent`` is the error bound before this cut and ``m`` the number of snapshots
+        (for a ``target``).
+        """
         if amps_sorted.size == 0:
             return 0
         thresh = self.eps
@@ -137,19 +152,62 @@ class Truncation:
             thresh = max(thresh, self.rtol * float(amps_sorted[0]))
         keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
         keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
+        if self.target is not None:
+            keep = min(keep, self._within_budget(amps_sorted, spent, m))
         if self.max_rank is not None:
             keep = min(keep, self.max_rank)
         return keep
 
-    def cap_binds(self, amps: np.ndarray) -> bool:
-        """Whether ``max_rank`` cuts terms that the thresholds would keep.
+    def _within_budget(self, amps_sorted: np.ndarray, spent: float, m: int) -> int:
+        """Return the fewest leading terms whose cut keeps the bound within the share."""
+        assert self.target is not None
+        e = pow2_exponent(np.append(amps_sorted, spent))
+        a = np.ldexp(amps_sorted, -e)
+        b = math.ldexp(spent, -e)
+        # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
+        tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
+        bound = np.sqrt(b * b + tail)
+        if self.measure == "relative":
+            # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
+            # bound <= s eps ||A||, whatever the discarded part
+            se = self.share * self.target
+            fits = bound * (1.0 + se) <= se * np.sqrt(np.maximum(tail[0] - tail, 0.0))
+        else:
+            budget = self.share * math.ldexp(error_budget(self.target, self.measure, m), -e)
+            fits = bound <= budget
+        ok = np.flatnonzero(fits)
+        return int(ok[0]) if ok.size else amps_sorted.size
 
+    def needs_convergence(self, amps: np.ndarray, *, spent: float, m: int) -> bool:
+        """Whether a cut by ``max_rank`` or by the ``target`` would drop terms.
+
+        Such a cut is made on the converged core (the optimal cut of the expansion).
         ``amps`` holds the amplitudes, in any order.
         """
-        if self.max_rank is None or amps.size <= self.max_rank:
+        if self.max_rank is None and self.target is None:
             return False
+        amps_sorted = np.sort(amps)[::-1]
         unbounded = Truncation(self.eps, self.rtol)
-        return unbounded.keep_count(np.sort(amps)[::-1]) > self.max_rank
+        return self.keep_count(amps_sorted, spent=spent, m=m) < unbounded.keep_count(
+            amps_sorted
+        )
+
+
+def error_budget(target: float, measure: str, m: int, data_norm: float = 0.0) -> float:
+    """Return the bound on ``||A - U V^T||_F`` (in ``M``) that a target error allows.
+
+    ``"absolute"``: ``target``; ``"mean_l2"`` (pyMOR HAPOD's measure,
+    ``sqrt(sum_j ||a_j - P a_j||_M^2 / m)``): ``target sqrt(m)``; ``"relative"``:
+    ``target ||A||_F``, with ``data_norm`` standing for ``||A||_F``.
+    """
+    if measure == "absolute":
+        return target
+    if measure == "mean_l2":
+        return target * math.sqrt(m)
+    return target * data_norm
+
+
+ERROR_MEASURES = ("relative", "mean_l2", "absolute")
 
 
 @dataclass(frozen=True)
@@ -183,6 +241,19 @@ class CoreStep:
     coupling_root: float
 
 
+def _precondition(Rt: np.ndarray, Qt: np.ndarray) -> None:
+    """Rotate the terms onto the right singular vectors of the core, in place.
+
+    The core ``Rt^T`` (``k x p``) is decomposed by LAPACK (``O(k p^2)``); the terms
+    rotated by its right singular vectors are orthogonal to working accuracy relative to
+    the largest, so that the Jacobi sweeps that follow converge in one or two sweeps
+    (they restore the small terms' relative accuracy) instead of tens.
+    """
+    W = np.linalg.svd(Rt.T, full_matrices=True)[2]  # rows: right singular vectors
+    Rt[...] = W @ Rt
+    Qt[...] = W @ Qt
+
+
 def core_step(
     K: np.ndarray,
     *,
@@ -191,11 +262,13 @@ def core_step(
     m: int,
     truncation: Truncation,
     kind: str,
+    spent: float = 0.0,
 ) -> CoreStep:
     """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
 
     When ``truncation.max_rank`` would cut terms that its thresholds keep
-    (:meth:`Truncation.cap_binds`) and the sweeps have not converged, Jacobi sweeps go on
+    (:meth:`Truncation.needs_convergence`; or a ``target`` error would cut) and the
+    sweeps have not converged, Jacobi sweeps go on
     until none rotates: the cut by the cap is then the optimal (Eckart-Young) cut of the
     expansion. The thresholds ``eps`` and ``rtol`` act after ``sweeps`` sweeps, as in
     Algorithm 3.
@@ -223,16 +296,21 @@ def core_step(
     max_cos = 0.0
     limit = sweeps if sweeps is not None else _MAX_SWEEPS
     converged = p <= 1
+    if sweeps is None and not converged:
+        _precondition(Rt, Qt)
     while done < limit and not converged:
         s = sweep_core(Rt, Qt, order, p, rule=rule, eps=0.0, tol=math.sqrt(m) * _EPS)
         done += 1
         max_cos = s.max_cosine
         converged = s.rotations == 0
     amps_scaled = safe_column_norms(Rt.T)
-    if not converged and truncation.cap_binds(np.ldexp(amps_scaled, e)):
+    if not converged and truncation.needs_convergence(
+        np.ldexp(amps_scaled, e), spent=spent, m=m
+    ):
         # a cut by the rank cap is made on the converged core, so that it is the optimal
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
         # would drop energy of the leading directions for good
+        _precondition(Rt, Qt)
         while done < _MAX_SWEEPS:
             s = sweep_core(Rt, Qt, order, p, rule="jacobi", eps=0.0,
                            tol=math.sqrt(m) * _EPS)
@@ -243,7 +321,7 @@ def core_step(
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
-    keep = truncation.keep_count(amps[order])
+    keep = truncation.keep_count(amps[order], spent=spent, m=m)
     kept, cut = order[:keep], order[keep:]
     # norms and the coupling are formed on the scaled core and scaled back as roots, so
     # that amplitudes up to 1e300 neither overflow nor lose the bound

@@ -20,6 +20,7 @@ __all__ = [
     "check_finite",
     "check_nonnegative",
     "check_positive_int",
+    "check_target",
 ]
 
 
@@ -154,3 +155,38 @@ def check_positive_int(value: Any, name: str, *, allow_none: bool = False) -> in
         allowed = "an integer >= 1" + (" or None" if allow_none else "")
         raise InputError(f"`{name}` must be {allowed}; got {_describe(value)}.")
     return int(value)
+
+
+def check_target(
+    target_error: Any, error_measure: Any, streaming_share: Any, *, eps: float,
+    rtol: float | None,
+) -> tuple[float | None, str, float]:
+    """Validate the target-error options; return them normalised.
+
+    A target is a finite number > 0; it is not combined with ``eps`` or ``rtol``, whose
+    cuts could break it.
+    """
+    measure = check_choice(error_measure, "error_measure", ("relative", "mean_l2", "absolute"))
+    try:
+        share = float(streaming_share)
+    except (TypeError, ValueError):
+        share = float("nan")
+    if not 0.0 < share <= 1.0:
+        raise InputError(
+            f"`streaming_share` must be a number in (0, 1]; got {_describe(streaming_share)}."
+        )
+    if target_error is None:
+        return None, measure, share
+    target = check_nonnegative(target_error, "target_error")
+    if target == 0.0:
+        raise InputError(
+            "`target_error` must be > 0 (omit it to keep every term); got 0.0."
+        )
+    if eps > 0 or rtol is not None:
+        given = f"eps={eps!r}" if eps > 0 else f"rtol={rtol!r}"
+        raise InputError(
+            f"`target_error` and `{given.split('=')[0]}` cannot be combined: the cuts of "
+            f"`{given.split('=')[0]}` ({given}) could break the target {target!r}. Pass one "
+            "of them."
+        )
+    return target, measure, share

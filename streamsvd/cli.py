@@ -65,7 +65,8 @@ _FINAL_SWEEPS = (CONVERGE, "none")
 _STORE_OPTIONS = (
     ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"),
     ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
-    ("commit_every", "--commit-every"),
+    ("commit_every", "--commit-every"), ("target_error", "--target-error"),
+    ("error_measure", "--error-measure"), ("streaming_share", "--streaming-share"),
 )
 
 _INGEST_EPILOG = """\
@@ -140,6 +141,12 @@ def _nonnegative_float(text: str) -> float:
     if not math.isfinite(value) or value < 0:
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0; got {text!r}")
     return value
+
+
+def _threads(text: str) -> int | str:
+    if text == "all":
+        return text
+    return _positive_int(text)
 
 
 def _sweeps(text: str) -> int | str:
@@ -274,6 +281,16 @@ def _parser() -> argparse.ArgumentParser:
     tol.add_argument("--rtol", metavar="R", type=_nonnegative_float,
                      help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
                      "none; not with --eps)")
+    tol.add_argument("--target-error", metavar="T", type=_nonnegative_float,
+                     help="keep the fewest terms whose guaranteed error bound is at most T "
+                     "in --error-measure (default: none; not with --eps or --rtol)")
+    ing.add_argument("--error-measure", choices=("relative", "mean_l2", "absolute"),
+                     help="'relative': ||A - U V^T||_F <= T ||A||_F; 'mean_l2': "
+                     "sqrt(sum_j ||a_j - P a_j||^2 / m) <= T (pyMOR HAPOD's measure); "
+                     "'absolute': ||A - U V^T||_F <= T; norms in --inner (default: relative)")
+    ing.add_argument("--streaming-share", metavar="S", type=float,
+                     help="share of the --target-error budget spent while streaming, the "
+                     "rest by the final cut (default: 0.9)")
     ing.add_argument("--max-rank", metavar="K", type=_positive_int,
                      help="keep K terms in the end: K + --oversampling while streaming, "
                      "cut to K by the final sweeps (default: no limit)")
@@ -294,6 +311,9 @@ def _parser() -> argparse.ArgumentParser:
                      "(Jacobi rule) and cut by --eps/--rtol/--max-rank, so that STORE holds "
                      "the SVD of what was absorbed; 'none': keep the streamed expansion "
                      f"(default: {CONVERGE})")
+    ing.add_argument("--threads", metavar="N", type=_threads,
+                     help="BLAS threads of an update, or 'all' for the BLAS's own setting "
+                     "(default: 1, never much slower, and much faster on a busy machine)")
     ing.add_argument("--commit-every", metavar="C", type=_positive_int,
                      help="updates per commit to STORE, in memory and with --tall; the "
                      f"tree mode commits once (default: {_DEFAULT_COMMIT_EVERY})")
@@ -501,6 +521,16 @@ def _check_mode_options(args: Any, mode: str) -> None:
         )
     if args.chunk_rows is not None and mode != "tall":
         raise InputError("--chunk-rows applies to the tall mode only; add --tall, or drop it.")
+    if args.threads is not None and mode != "memory":
+        raise InputError(
+            "--threads applies to the in-memory mode; the dask modes give each task its "
+            "share of the cores. Drop --threads, or drop --scheduler/--tall."
+        )
+    if args.streaming_share is not None and args.target_error is None and not args.resume:
+        raise InputError(
+            "--streaming-share splits the budget of --target-error; add --target-error T, "
+            "or drop --streaming-share."
+        )
     if args.workers is not None and args.scheduler != "local":
         where = ("without --scheduler" if args.scheduler is None else
                  f"with --scheduler {args.scheduler}")
@@ -533,6 +563,9 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
         "sweeps": None if sweeps == CONVERGE else sweeps,
         "oversampling": (_DEFAULT_OVERSAMPLING if args.oversampling is None
                          else args.oversampling),
+        "target_error": args.target_error,
+        "error_measure": args.error_measure or "relative",
+        "streaming_share": 0.9 if args.streaming_share is None else args.streaming_share,
     }
     if mode != "tree":
         options["commit_every"] = args.commit_every or _DEFAULT_COMMIT_EVERY
@@ -721,6 +754,7 @@ def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any
             sc = StreamCompressor.open(store, **options)
         else:
             sc = StreamCompressor(src.n, store=store, source_record=record, **options)
+        sc.threads = {None: 1, "all": None}.get(args.threads, args.threads)
         try:
             if resume:
                 _check_resume(args, sc, record)
@@ -856,6 +890,10 @@ def _info(args: Any) -> int:
         else "not run: the expansion is as streamed (`streamsvd ingest --resume` without "
         "--final-sweeps none converges it)"))
     print(f"error bound   ||A - U V^T||_F <= {summary['error_bound']:.3e}")
+    if opts.get("target_error") is not None:
+        met = "met" if summary["target_met"] else "NOT met (--max-rank cuts more)"
+        print(f"target error  {opts['target_error']:.3e} ({opts['error_measure']}): bound "
+              f"{summary['error_in_measure']:.3e} in that measure, {met}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
     head = ", ".join(f"{a:.4g}" for a in summary["amplitudes_head"])
     print(f"amplitudes    {head}{', ...' if summary['rank'] > 10 else ''}")

@@ -34,7 +34,7 @@ import scipy.linalg.blas as blas
 import scipy.linalg.lapack
 
 from ._scaling import pow2_exponent
-from ._validation import as_float_array, check_nonnegative
+from ._validation import as_float_array, check_nonnegative, check_positive_int
 from .basis import BasisBackend, MemoryBasis
 from .errors import ShapeMismatchError
 from .expansion import Expansion
@@ -50,10 +50,18 @@ __all__ = [
 ]
 
 _EPS = np.finfo(np.float64).eps
-_MAX_PASSES = 4  # projections on the old basis: one, plus up to three while norms collapse
-_REITERATE = 0.5  # project again when a pass leaves less than this fraction of the norm
-_DELTA = 1.0 / 32.0  # a residual joins a CholeskyQR batch when its Schur pivot is >= _DELTA^2
-_COND_MAX = 1e4  # and the batch's factor stays this well conditioned (CholeskyQR2 is exact)
+# A residual whose Gram has its eigenvalues within _COND_SPLIT of the largest is
+# orthonormalised in one go (condition number at most 2^20, so that a second CholeskyQR
+# pass restores orthogonality to working accuracy); the smaller directions are measured
+# again on the vectors themselves and treated in a further round.
+_COND_SPLIT = 2.0**-40
+# one CholeskyQR pass leaves an orthogonality error of about eps * cond(S): below this
+# condition of the residual's Gram one pass is enough
+_ONE_PASS_COND = 16.0
+# a residual that kept more than this of its component along the basis (relative to its
+# own norm) is projected a second time; a smaller one is measured and kept in the basis
+# Gram, where the compressor's orthogonality check accounts for it
+_LOSS_MAX = 2.0**-26
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -62,15 +70,18 @@ def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
     return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
 
 
-def _gram(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
-    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product)."""
+def _gram(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:
+    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product).
+
+    ``MX`` is ``M X`` when the caller has it already.
+    """
     if inner.is_euclidean and X.shape[1] <= 8:  # too narrow for syrk to pay
         G = X.T @ X
         return 0.5 * (G + G.T)
     if inner.is_euclidean:
         H = blas.dsyrk(1.0, np.asfortranarray(X), trans=1)
         return np.triu(H) + np.triu(H, 1).T
-    G = X.T @ inner.apply(X)
+    G = X.T @ (inner.apply(X) if MX is None else MX)
     return 0.5 * (G + G.T)
 
 
@@ -81,62 +92,89 @@ def default_reject_tol(n: int) -> float:
 
 @dataclass(frozen=True)
 class BasisExtension:
-    """How a block ``X`` (``n x b``) decomposes on a basis ``Q`` extended by new directions.
+    """How a block ``X`` (``n x b``) decomposes on a basis ``Q G`` extended by new directions.
 
-    ``X = Q coeffs + Q_new R_new + Res``, where ``Q_new`` (``n x r``) sits in the basis
-    backend's workspace (accepted by the caller with ``basis.accept(r)``) and ``Res`` holds
-    the rejected residuals (zero in accepted columns), ``M``-orthogonal to ``Q`` and
-    ``Q_new`` to working accuracy.
+    ``X = Q G coeffs + Q_new R_new + Res``, where ``Q_new`` (``n x r``) sits in the basis
+    backend's workspace (accepted by the caller with ``basis.accept(r)``) and ``Res`` is
+    the rejected part, ``M``-orthogonal to ``Q_new``: ``Res = T F D`` with
+    ``D = diag(2^e)`` the columns' scalings, ``F = rejected_map`` and ``T`` (never
+    formed) of Gram ``T^T M T = rejected_gram``.
 
     Attributes
     ----------
     coeffs : ndarray, shape (q, b)
-        Coefficients on the existing basis.
+        Coefficients on the existing basis ``Q G``.
     R_new : ndarray, shape (r, b)
         Coefficients on the new directions.
     accepted : ndarray of bool, shape (b,)
-        Whether each column brought a new direction.
-    rejected_norms : ndarray, shape (b,)
-        ``||res_k||_M`` of each rejected residual, zero for accepted columns.
+        Whether each column brought a new direction (the rule of :func:`extend_basis`).
     rejected_gram : ndarray, shape (k, k)
-        ``Res_rej^T M Res_rej`` of the ``k`` rejected residuals, scaled by
-        ``2^-(e_i + e_j)`` with ``e = rejected_exponents`` (overflow-safe).
-    rejected_exponents : ndarray of int, shape (k,)
+    rejected_map : ndarray, shape (k, b)
+    exponents : ndarray of int, shape (b,)
+        The columns' power-of-two scalings ``e``.
     block_norm : float
         ``||X||_M`` (Frobenius in ``M``) of the block, overflow-safe.
+    cross : ndarray, shape (w, r)
+        ``(M Q)^T Q_new`` over every stored column: the new block of the basis Gram.
+    gram_new : ndarray, shape (r, r)
+        ``Q_new^T M Q_new``.
+    passes : int
+        Products of an ``n``-sized block with the stored basis (projections and
+        subtractions): what an update costs.
     """
 
     coeffs: np.ndarray
     R_new: np.ndarray
     accepted: np.ndarray
-    rejected_norms: np.ndarray
     rejected_gram: np.ndarray
-    rejected_exponents: np.ndarray
+    rejected_map: np.ndarray
+    exponents: np.ndarray
     block_norm: float
+    cross: np.ndarray
+    gram_new: np.ndarray
+    passes: int = 0
+
+    @classmethod
+    def empty(cls, q: int, w: int) -> BasisExtension:
+        """Return the extension by a block of no column."""
+        return cls(
+            coeffs=np.zeros((q, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
+            rejected_gram=np.zeros((0, 0)), rejected_map=np.zeros((0, 0)),
+            exponents=np.zeros(0, dtype=np.int64), block_norm=0.0, cross=np.zeros((w, 0)),
+            gram_new=np.zeros((0, 0)),
+        )
 
     @property
     def rank(self) -> int:
         """Number of new directions ``r``."""
         return int(self.R_new.shape[0])
 
-    def rejected_norm(self, F: np.ndarray | None = None) -> float:
-        """Return ``||Res_rej F^T||_F`` in the inner product ``M``, exactly and overflow-safe.
+    @property
+    def rejected(self) -> int:
+        """Number of columns that brought no new direction."""
+        return int(np.count_nonzero(~self.accepted))
 
-        ``F`` (``rows x k``) holds the right vectors of the rejected columns (``V_k`` of an
+    def rejected_norm(self, V: np.ndarray | None = None) -> float:
+        """Return ``||Res V^T||_F`` in the inner product ``M``, exactly and overflow-safe.
+
+        ``V`` (``rows x b``) holds the right vectors of the block's columns (``V_k`` of an
         increment, the core of an expansion); ``None`` stands for distinct columns of
-        their own (a block of snapshots), where the norm is ``sqrt(sum ||res_k||^2)``.
+        their own (a block of snapshots), where the norm is ``||Res||_F``.
         """
-        e = self.rejected_exponents
-        if e.size == 0:
+        F = self.rejected_map
+        if F.size == 0:
             return 0.0
-        if F is None:
-            return _scaled_norm(np.sqrt(np.maximum(np.diag(self.rejected_gram), 0.0)), e)
+        e = self.exponents
         shift = int(e.max())
-        Fs = np.ldexp(F, (e - shift)[np.newaxis, :])
-        top = pow2_exponent(Fs)
-        Fs = np.ldexp(Fs, -top)
-        energy = float(np.sum(self.rejected_gram * (Fs.T @ Fs)))
-        return math.ldexp(math.sqrt(max(energy, 0.0)), top + shift)
+        DF = np.ldexp(F, (e - shift)[np.newaxis, :]).T  # (b, k): D F^T, scaled
+        if V is not None:
+            ev = pow2_exponent(V)
+            DF = np.ldexp(V, -ev) @ DF
+            shift += ev
+        top = pow2_exponent(DF)
+        DF = np.ldexp(DF, -top)
+        energy = float(np.sum(self.rejected_gram * (DF.T @ DF)))
+        return math.ldexp(math.sqrt(max(energy, 0.0)), shift + top)
 
 
 def extend_basis(
@@ -147,24 +185,38 @@ def extend_basis(
     inner: InnerProduct,
     reject_tol: float,
     reference: np.ndarray | None = None,
+    H: np.ndarray | None = None,
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
 
-    1. Block CGS against the basis, column subsets projected again while a pass cancels
-       more than half of their norm (DGKS; Giraud et al. 2005: twice is enough).
-    2. The residual block by CholeskyQR2 in batches: the Gram of the residuals normalised
-       to unit ``M``-norm is factored in order, a column joining the batch only when its
-       Schur pivot is at least ``_DELTA^2`` and the batch's factor keeps
-       ``cond_1 <= _COND_MAX`` (LAPACK ``dtrcon``), so that two CholeskyQR passes give
-       orthonormality to working accuracy; the rounding left along the old basis is
-       amplified by at most that condition, which the orthogonality monitor of the
-       compressor measures. The other
-       columns are projected explicitly (CGS2) on the old basis and the batch, their
-       norms measured directly (never from a Gram of the data), and treated in the next
-       batch. A residual whose norm is ``<= reject_tol * reference_k`` is rejected, never
-       normalised.
-    3. The rejected residuals are projected on the new directions, so that they are
-       ``M``-orthogonal to every kept direction.
+    The columns are first scaled by exact powers of two (entries from the subnormal range
+    to 1e308 neither overflow nor underflow). Then:
+
+    1. **One projection** on the basis, ``Z = Y - Q G (G^T Q^T M Y)``, and one product
+       ``(M Q)^T Z`` over every stored column, which measures what the projection left
+       along the basis. It is subtracted (a second pass; Giraud et al. 2005: twice is
+       enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
+       is returned in ``cross``, the new block of the basis Gram, where the compressor's
+       orthogonality check (``Gu^T H Gu = I``, :mod:`streamsvd.update`) accounts for it.
+    2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
+       ``_COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
+       in place, twice when ``cond(S) > _ONE_PASS_COND`` (CholeskyQR2: orthonormal to
+       working accuracy for ``cond(Z) <= 2^20``). Otherwise (nearly collinear snapshots,
+       the common case of time steps) the well-conditioned top of the spectrum is
+       orthonormalised as ``Z W Lambda^(-1/2)`` and one CholeskyQR pass (SVQB,
+       Stathopoulos and Wu 2002), and the rest ``Z W_t`` is measured again on the
+       vectors, projected twice on the basis and on the directions found, and treated in
+       a further round (each round resolves six more decades of the spectrum). A
+       direction too small to bring any column to the rejection threshold (below
+       ``reject_tol * ref_k / (2 sqrt(b))`` in every column ``k``) is set aside as
+       rejected without a further round.
+    3. **The rejection rule, column by column**, on the small coefficients ``Rz`` of the
+       residual on its orthonormal directions: in column order, a column is accepted
+       when its residual after the directions of the columns accepted before it exceeds
+       ``reject_tol * ref_k`` (``ref_k`` its ``M``-norm, or ``reference``), so nothing
+       below the threshold is ever normalised. The rejected part is orthogonal to the
+       kept directions in those coordinates, and its energy (with that of the directions
+       set aside, from the Gram of the measured vectors) is exact.
 
     Parameters
     ----------
@@ -180,85 +232,126 @@ def extend_basis(
     reference : ndarray, shape (b,), optional
         The norm each column's residual is compared with; default the column's own
         ``M``-norm. Columns with a zero reference carry nothing and are rejected.
+    H : ndarray, shape (w, w), optional
+        ``Q^T M Q``, when the caller keeps it (saves measuring ``cross`` again after a
+        second projection).
     """
     n, b = X.shape
-    q = basis.width if G is None else G.shape[1]
-    peak = np.max(np.abs(X), axis=0) if n else np.zeros(b)
+    w = basis.width
+    q = w if G is None else G.shape[1]
+    peak = np.maximum(X.max(axis=0), -X.min(axis=0)) if n else np.zeros(b)
     exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
     Y, MY = basis.workspace(b)
-    np.multiply(X, np.ldexp(1.0, -exps), out=Y)  # exact: powers of two
-    nu = _m_norms(Y, inner)
-    current = nu.copy()
-    ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
+    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
+        np.multiply(X, np.ldexp(1.0, -exps), out=Y)
+    else:  # exact for any exponent, subnormal peaks included
+        np.ldexp(X, -exps[np.newaxis, :], out=Y)
     C = np.zeros((q, b))
-    if q:
-        _project_old(basis, G, Y, C, current, inner)
-    R_new = np.zeros((b, b))
-    rejected = np.zeros(b, dtype=bool)
-    order: list[np.ndarray] = []  # the accepted columns, batch after batch
-    batches: list[np.ndarray] = []  # their orthonormal directions
-    pending = np.arange(b)
-    while pending.size:
-        norms = current[pending] if pending.size == b else _m_norms(Y[:, pending], inner)
-        drop = (ref[pending] == 0.0) | (norms <= reject_tol * ref[pending])
-        rejected[pending[drop]] = True
-        pending, norms = pending[~drop], norms[~drop]
-        if not pending.size:
-            break
-        whole = pending.size == b
-        Yp = Y if whole else Y[:, pending]
-        Gz = _gram(Yp, inner) / np.outer(norms, norms)  # the Gram of the unit columns
-        take, Lz = _cholesky_batch(Gz)
-        cols = pending[take]
-        r0 = sum(o.size for o in order)
-        # the factor of the batch's own Gram is diag(norms) Lz: CholeskyQR's first pass
-        # reuses it (Cholesky commutes with a diagonal scaling)
-        first = norms[take][:, np.newaxis] * Lz
-        if whole and take.all():
-            # the common case, in place: the workspace becomes the new directions
-            Qb, Rb = _cholesky_qr2(Y, inner, in_place=True, first=first)
-        else:
-            Qb, Rb = _cholesky_qr2(Yp[:, take], inner, in_place=True, first=first)
-        R_new[r0 : r0 + cols.size, cols] = Rb
-        order.append(cols)
-        batches.append(Qb)
-        rest = pending[~take]
-        if rest.size:
-            _project_on_batches(basis, G, Y, C, R_new, rest, batches, order, inner)
-        pending = rest
-    r = sum(o.size for o in order)
-    in_place = len(batches) == 1 and np.shares_memory(batches[0], Y)
-    Qnew = batches[0] if in_place else (np.hstack(batches) if batches else np.zeros((n, 0)))
-    rej = np.flatnonzero(rejected)
-    if rej.size and r:
-        # make the rejected residuals orthogonal to every new direction (exact energies)
-        Yr = Y[:, rej]
-        c = inner.gram(Qnew, Yr)
-        Yr -= Qnew @ c
-        R_new[:r, rej] += c
-        Y[:, rej] = Yr
-    Yrej = Y[:, rej].copy()
-    Grej = _gram(Yrej, inner) if rej.size else np.zeros((0, 0))
-    rejected_norms = np.zeros(b)
-    rejected_norms[rej] = np.sqrt(np.maximum(np.diag(Grej), 0.0))
-    # the new directions go to the front of the workspace, in the accepted order
-    if not in_place:
-        Y[:, :r] = Qnew
-    if not inner.is_euclidean and r:
-        MY[:, :r] = inner.apply(Qnew)
-    perm = np.concatenate(order) if order else np.zeros(0, dtype=np.int64)
-    scale = np.ldexp(1.0, exps)
-    accepted = np.zeros(b, dtype=bool)
-    accepted[perm] = True
+    passes = 0
+    if w:
+        C += basis.project(Y, G)
+        basis.subtract(Y, G, C)
+        passes += 2
+    Z = Y
+    cross0 = basis.project(Z, None) if w else np.zeros((0, b))
+    passes += 1 if w else 0
+    MZ = _apply_into(Z, MY, inner)
+    S = _gram(Z, inner, MZ)
+    if w:
+        along = cross0 if G is None else G.T @ cross0
+        loss = np.sqrt(np.einsum("ij,ij->j", along, along))
+        if np.any(loss > _LOSS_MAX * np.sqrt(np.maximum(np.diag(S), 0.0))):
+            basis.subtract(Z, G, along)
+            C += along
+            passes += 1
+            if H is None:
+                cross0 = basis.project(Z, None)
+                passes += 1
+            else:
+                cross0 = cross0 - H @ (along if G is None else G @ along)
+            MZ = _apply_into(Z, MY, inner)
+            S = _gram(Z, inner, MZ)
+    # the columns' M-norms: the part along the (orthonormal) basis and the residual's
+    nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
+    ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
+    lam = np.linalg.eigvalsh(S)[::-1] if b else np.zeros(0)
+    well = b > 0 and lam[-1] > 0 and lam[-1] >= _COND_SPLIT * lam[0]
+    floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    if well:
+        # the common case: Z = Q_z L^T in place, Rz = L^T triangular
+        Rz, cross_z = _cholesky_qr_in_place(Z, MZ, S, lam, cross0, inner)
+        parts = [Z]
+    else:
+        parts, Rz, floor, more = _rounds(basis, G, Z, S, C, inner, reject_tol, ref)
+        passes += more
+        cross_z = np.zeros((w, 0))
+    accepted, Wacc = _column_rule(Rz, ref, reject_tol)
+    s, r = Rz.shape[0], Wacc.shape[1]
+    keep = None if r == s else Wacc
+    R_new = Rz if keep is None else Wacc.T @ Rz
+    maps, grams = [], []
+    if r < s:
+        # the rejected part in the directions' coordinates, orthogonal to the kept ones
+        maps.append(_complement(Wacc, s).T @ Rz)
+        grams.append(np.eye(s - r))
+    for T, MT, F in floor:
+        maps.append(F)
+        Gt = T.T @ MT
+        grams.append(0.5 * (Gt + Gt.T))
+    if well:
+        cross = cross_z if keep is None else cross_z @ keep
+        gram_new = np.eye(r)
+        if keep is not None:
+            _place(Z @ keep, Y, MY, inner, None if inner.is_euclidean else MZ @ keep)
+    else:
+        # the new directions (Q_z, or Q_z Wacc) written to the front of the workspace,
+        # which the residual no longer needs
+        Qn = Y[:, :r]
+        start = 0
+        for i, part in enumerate(parts):
+            width = part.shape[1]
+            if keep is None:
+                Qn[:, start : start + width] = part
+            elif i == 0:
+                np.matmul(part, keep[:width], out=Qn)
+            else:
+                Qn += part @ keep[start : start + width]
+            start += width
+        if not inner.is_euclidean:
+            MY[:, :r] = inner.apply(Qn)
+        cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
+        passes += 1 if w and r else 0
+        gram_new = _gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
     return BasisExtension(
-        coeffs=C * scale,
-        R_new=R_new[:r] * scale,
+        coeffs=np.ldexp(C, exps[np.newaxis, :]),
+        R_new=np.ldexp(R_new, exps[np.newaxis, :]),
         accepted=accepted,
-        rejected_norms=rejected_norms * scale,
-        rejected_gram=Grej,
-        rejected_exponents=exps[rej],
+        rejected_gram=scipy.linalg.block_diag(*grams) if grams else np.zeros((0, 0)),
+        rejected_map=np.vstack(maps) if maps else np.zeros((0, b)),
+        exponents=exps,
         block_norm=_scaled_norm(nu, exps),
+        cross=cross,
+        gram_new=gram_new,
+        passes=passes,
     )
+
+
+def _apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M Z`` written into ``MY`` (``Z`` itself for the Euclidean product)."""
+    if inner.is_euclidean:
+        return Z
+    MY[...] = inner.apply(Z)
+    return MY
+
+
+def _place(
+    Qn: np.ndarray, Y: np.ndarray, MY: np.ndarray, inner: InnerProduct, MQn: np.ndarray | None
+) -> None:
+    """Write the new directions (and their ``M`` image) to the front of the workspace."""
+    r = Qn.shape[1]
+    Y[:, :r] = Qn
+    if not inner.is_euclidean:
+        MY[:, :r] = inner.apply(Qn) if MQn is None else MQn
 
 
 def _scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
@@ -269,131 +362,168 @@ def _scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
     return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
 
 
-def _project_old(
-    basis: BasisBackend,
-    G: np.ndarray | None,
-    Y: np.ndarray,
-    C: np.ndarray,
-    norms: np.ndarray,
-    inner: InnerProduct,
-) -> None:
-    """Project ``Y`` on the basis, columns again while a pass cancels; update ``norms``.
-
-    ``norms`` holds the ``M``-norms of the columns on entry and on return.
-    """
-    active = np.arange(Y.shape[1])
-    before = norms[active]
-    for _ in range(_MAX_PASSES):
-        whole = active.size == Y.shape[1]
-        Ya = Y if whole else Y[:, active]
-        dC = basis.project(Ya, G)
-        basis.subtract(Ya, G, dC)
-        if not whole:
-            Y[:, active] = Ya
-        C[:, active] += dC
-        after = _m_norms(Ya, inner)
-        norms[active] = after
-        # one pass is enough unless it cancelled more than half of the norm (DGKS)
-        again = after < _REITERATE * before
-        active, before = active[again], after[again]
-        if not active.size:
-            return
+def _eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (decreasing) and eigenvectors of a small symmetric matrix."""
+    if S.shape[0] == 0:
+        return np.zeros(0), np.zeros((0, 0))
+    lam, W = np.linalg.eigh(S)
+    return lam[::-1].copy(), np.asfortranarray(W[:, ::-1])
 
 
-def _well_conditioned(L: np.ndarray) -> bool:
-    """Whether a lower-triangular factor has ``cond_1(L) <= _COND_MAX`` (LAPACK estimate)."""
-    rcond, _ = scipy.linalg.lapack.dtrcon(L, norm="1", uplo="L", diag="N")
-    return bool(rcond * _COND_MAX >= 1.0)
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Return ``A @ B`` as a new column-major array (for in-place triangular solves)."""
+    out = np.empty((A.shape[0], B.shape[1]), order="F")
+    np.matmul(A, B, out=out)
+    return out
 
 
-def _cholesky_batch(Gz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Columns (in order) of a unit-diagonal Gram that form a well-conditioned batch.
-
-    Returns the mask of the batch's columns and the Cholesky factor of their Gram.
-
-    A column joins when its Schur pivot is at least ``_DELTA^2`` and the factor of the
-    batch keeps ``cond_1(L) <= _COND_MAX`` (pivots alone do not bound the condition: the
-    growth can be exponential in the batch size), so that two CholeskyQR passes are
-    accurate to working precision (their error grows as ``eps cond^2``).
-    """
-    c = Gz.shape[0]
-    if c == 1:
-        return np.ones(1, dtype=bool), np.sqrt(np.maximum(Gz, 0.0))
-    try:
-        L = np.linalg.cholesky(Gz)
-        if float(np.min(np.diag(L))) >= _DELTA and _well_conditioned(L):
-            return np.ones(c, dtype=bool), L
-    except np.linalg.LinAlgError:
-        pass
-    take = np.zeros(c, dtype=bool)
-    L = np.zeros((c, c))
-    idx: list[int] = []
-    for k in range(c):
-        if idx:
-            lk = scipy.linalg.solve_triangular(L[np.ix_(idx, idx)], Gz[idx, k], lower=True)
-            piv = float(Gz[k, k] - lk @ lk)
-        else:
-            lk, piv = np.zeros(0), float(Gz[k, k])
-        if piv < _DELTA * _DELTA:
-            continue
-        L[k, idx] = lk
-        L[k, k] = math.sqrt(piv)
-        trial = idx + [k]
-        if len(trial) > 1 and not _well_conditioned(L[np.ix_(trial, trial)]):
-            L[k, :] = 0.0
-            continue
-        idx = trial
-        take[k] = True
-    return take, L[np.ix_(idx, idx)]
+def _right_solve(A: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """Return ``A L^{-T}``, in place when ``A`` is column-major (``L`` lower triangular)."""
+    if A.shape[0] == 0 or A.shape[1] == 0:
+        return A
+    out = blas.dtrsm(1.0, L, A, side=1, lower=1, trans_a=1, overwrite_b=1)
+    if not np.shares_memory(out, A):
+        A[...] = out
+    return A
 
 
-def _cholesky_qr2(
+def _cholesky_qr_in_place(
     Z: np.ndarray,
+    MZ: np.ndarray,
+    S: np.ndarray,
+    lam: np.ndarray,
+    cross: np.ndarray,
     inner: InnerProduct,
-    *,
-    in_place: bool = False,
-    first: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``Z = Q R`` by two CholeskyQR passes (``Z`` well conditioned).
+    """``Z = Q L^T`` in place (``Z`` becomes ``Q``, ``MZ`` its image); return ``L^T``, cross.
 
-    With ``in_place`` (and ``Z`` column-major) ``Q`` overwrites ``Z``; else it is new.
-    ``first`` is the Cholesky factor of ``Z^T M Z`` when the caller has it already.
+    ``S = Z^T M Z`` is positive definite with eigenvalues ``lam`` (decreasing). A second
+    pass (CholeskyQR2) is made when ``cond(S) > _ONE_PASS_COND``.
     """
-    Q = Z if in_place and Z.flags.f_contiguous else np.array(Z, order="F")
-    R = np.eye(Z.shape[1])
-    for k in range(2):
-        L = first if k == 0 and first is not None else np.linalg.cholesky(_gram(Q, inner))
-        out = blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
-        if not np.shares_memory(out, Q):
-            Q[...] = out
-        R = L.T @ R
-    return Q, R
+    L = np.linalg.cholesky(S)
+    _right_solve(Z, L)
+    cross = _right_solve(np.array(cross, order="F"), L)
+    R = L.T.copy()
+    if lam[0] > _ONE_PASS_COND * lam[-1]:
+        # M Z is applied again, not transformed: the triangular solve by an
+        # ill-conditioned L would leave M Z and Z inconsistent by eps cond(L)
+        L2 = np.linalg.cholesky(_gram(Z, inner, _apply_into(Z, MZ, inner)))
+        _right_solve(Z, L2)
+        cross = _right_solve(cross, L2)
+        R = L2.T @ R
+    _apply_into(Z, MZ, inner)
+    return R, cross
 
 
-def _project_on_batches(
+def _rounds(
     basis: BasisBackend,
     G: np.ndarray | None,
-    Y: np.ndarray,
+    Z: np.ndarray,
+    S: np.ndarray,
     C: np.ndarray,
-    R_new: np.ndarray,
-    rest: np.ndarray,
-    batches: list[np.ndarray],
-    order: list[np.ndarray],
     inner: InnerProduct,
-) -> None:
-    """CGS2 of the deferred columns on the old basis and the new directions together."""
-    Qn = np.hstack(batches)
-    r = Qn.shape[1]
-    Yr = Y[:, rest]
-    for _ in range(2):
-        c = inner.gram(Qn, Yr)
-        Yr -= Qn @ c
-        R_new[:r, rest] += c
-        if C.shape[0]:
-            dC = basis.project(Yr, G)
-            basis.subtract(Yr, G, dC)
-            C[:, rest] += dC
-    Y[:, rest] = Yr
+    reject_tol: float,
+    ref: np.ndarray,
+) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """Orthonormalise an ill-conditioned residual round by round (see :func:`extend_basis`).
+
+    Returns the orthonormal parts, the coefficients ``Rz`` of the residual on them, the
+    directions set aside below the floor ``(T, M T, F)`` and the passes made. ``C`` (the
+    coefficients on the basis) receives what the re-projections of later rounds find.
+    """
+    b = Z.shape[1]
+    parts: list[np.ndarray] = []
+    mparts: list[np.ndarray] = []
+    rows: list[np.ndarray] = []
+    floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    Zc, Sc, Fc = Z, S, np.eye(b)
+    passes = 0
+    # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
+    # below reject_tol * ref_k / (2 sqrt(b)) in every column it cannot change a decision
+    weight = np.where(ref > 0, 1.0 / np.where(ref > 0, ref, 1.0), 0.0)
+    floor_tol = reject_tol / (2.0 * math.sqrt(max(b, 1)))
+    while True:
+        if parts:
+            # the unresolved part is small next to the block: its rounding along the
+            # basis and the directions found is removed by one more projection on each
+            # (it carries at most 2 sqrt(b) / n of its norm there, so one pass is exact)
+            if basis.width:
+                P = basis.project(Zc, G)
+                basis.subtract(Zc, G, P)
+                C += P @ Fc
+                passes += 2
+            for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
+                c = MQp.T @ Zc
+                Zc -= Qp @ c
+                rows[i] += c @ Fc
+            Sc = _gram(Zc, inner)
+        lam, W = _eigh_desc(Sc)
+        if lam.size == 0 or lam[0] <= 0.0:
+            break
+        sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(W.T @ Fc) * weight, axis=1)
+        big = (lam >= _COND_SPLIT * lam[0]) & (sizes > floor_tol)
+        if big.any():
+            Qb = _mm(Zc, W[:, big] / np.sqrt(lam[big]))
+            L2 = np.linalg.cholesky(_gram(Qb, inner))
+            _right_solve(Qb, L2)
+            parts.append(Qb)
+            mparts.append(Qb if inner.is_euclidean else np.asfortranarray(inner.apply(Qb)))
+            rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * (W[:, big].T @ Fc)))
+        rest = ~big
+        if not rest.any():
+            break
+        Tt = _mm(Zc, W[:, rest])
+        MTt = Tt if inner.is_euclidean else np.asfortranarray(inner.apply(Tt))
+        Ft = W[:, rest].T @ Fc
+        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Tt, MTt), 0.0))
+        low = norms * np.max(np.abs(Ft) * weight, axis=1) <= floor_tol
+        if low.any():
+            floor.append((Tt[:, low], MTt[:, low], Ft[low]))
+        if low.all():
+            break
+        Zc, Fc = np.asfortranarray(Tt[:, ~low]), Ft[~low]
+    Rz = np.vstack(rows) if rows else np.zeros((0, b))
+    return parts, Rz, floor, passes
+
+
+def _column_rule(
+    Rz: np.ndarray, ref: np.ndarray, reject_tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Accept columns in order on their small coefficients ``Rz`` (``s x b``).
+
+    Returns the mask of the accepted columns and an orthonormal basis ``Wacc``
+    (``s x r``) of their span, column ``j`` the direction column ``j`` brought.
+    """
+    s, b = Rz.shape
+    thresh = reject_tol * ref
+    if s == b and b and np.all(ref > 0) and np.allclose(Rz, np.triu(Rz), rtol=0, atol=0):
+        d = np.abs(np.diag(Rz))
+        if np.all(d > thresh):  # triangular: the residual of column k is |R_kk|
+            return np.ones(b, dtype=bool), np.eye(s)
+    accepted = np.zeros(b, dtype=bool)
+    B = np.zeros((s, min(s, b)))
+    r = 0
+    for k in range(b):
+        if ref[k] <= 0 or r == s:
+            continue
+        v = Rz[:, k].copy()
+        for _ in range(2):
+            v -= B[:, :r] @ (B[:, :r].T @ v)
+        rho = float(np.linalg.norm(v))
+        if rho > thresh[k]:
+            B[:, r] = v / rho
+            accepted[k] = True
+            r += 1
+    return accepted, B[:, :r]
+
+
+def _complement(Wacc: np.ndarray, s: int) -> np.ndarray:
+    """Return an orthonormal basis of the orthogonal complement of ``Wacc`` in ``R^s``."""
+    r = Wacc.shape[1]
+    if r == 0:
+        return np.eye(s)
+    Qf = np.linalg.qr(Wacc, mode="complete")[0]
+    return Qf[:, r:]
 
 
 @dataclass(frozen=True)
@@ -465,10 +595,10 @@ def orthonormalize(
         if reject_tol is None
         else check_nonnegative(reject_tol, "reject_tol")
     )
+    block = int(check_positive_int(block, "block"))  # type: ignore[arg-type]
     basis = MemoryBasis(n, ip, capacity=min(p, n) + min(block, p))
     R = np.zeros((min(p, n), p))
     rejected: list[int] = []
-    energy = 0.0
     for start in range(0, p, block):
         stop = min(start + block, p)
         q = basis.width
@@ -477,13 +607,26 @@ def orthonormalize(
         R[:q, start:stop] = ext.coeffs
         R[q : q + r, start:stop] = ext.R_new
         basis.accept(r)
-        bad = np.flatnonzero(~ext.accepted)
-        rejected.extend(int(start + k) for k in bad)
-        energy += ext.rejected_norm(V[:, start + bad]) ** 2
+        rejected.extend(int(start + k) for k in np.flatnonzero(~ext.accepted))
     q = basis.width
     Uo = basis.Q.copy()
     Vo = V @ R[:q].T
+    # the discarded part is what the rejected columns keep outside the basis, whatever
+    # block rejected them: its energy is exact even where their residuals combine
+    rej = np.asarray(rejected, dtype=np.int64)
+    res = U[:, rej] - Uo @ R[:q, rej]
+    energy = _residual_norm(res, V[:, rej], ip) ** 2
     return GramSchmidtResult(Expansion(Uo, Vo, inner=ip), tuple(rejected), energy)
+
+
+def _residual_norm(res: np.ndarray, V: np.ndarray, inner: InnerProduct) -> float:
+    """``||res V^T||_F`` in ``M``, from the two Gram matrices, overflow-safe."""
+    if res.size == 0 or V.size == 0:
+        return 0.0
+    er, ev = pow2_exponent(res), pow2_exponent(V)
+    Rs, Vs = np.ldexp(res, -er), np.ldexp(V, -ev)
+    energy = float(np.sum(_gram(Rs, inner) * (Vs.T @ Vs)))
+    return math.ldexp(math.sqrt(max(energy, 0.0)), er + ev)
 
 
 def orthonormalize_literal(U: Any, V: Any, *, inner: Any = None) -> Expansion:

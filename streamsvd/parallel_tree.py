@@ -51,7 +51,7 @@ logger = logging.getLogger(__name__)
 
 COMPRESSOR_OPTIONS = (
     "inner", "eps", "rtol", "max_rank", "oversampling", "rule", "sweeps", "reject_tol",
-    "reorth_tol",
+    "reorth_tol", "target_error", "error_measure", "streaming_share",
 )
 """Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
 
@@ -315,7 +315,8 @@ def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
         "max_rank": probe.max_rank, "oversampling": probe.oversampling, "rule": probe.rule,
         "sweeps": probe.sweeps,
         "reject_tol": probe.reject_tol,
-        "reorth_tol": probe.reorth_tol,
+        "reorth_tol": probe.reorth_tol, "target_error": probe.target_error,
+        "error_measure": probe.error_measure, "streaming_share": probe.streaming_share,
     }
 
 
@@ -325,7 +326,8 @@ def options_of(sc: StreamCompressor) -> dict[str, Any]:
         "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
         "oversampling": sc.oversampling, "rule": sc.rule, "sweeps": sc.sweeps,
         "reject_tol": sc.reject_tol,
-        "reorth_tol": sc.reorth_tol,
+        "reorth_tol": sc.reorth_tol, "target_error": sc.target_error,
+        "error_measure": sc.error_measure, "streaming_share": sc.streaming_share,
     }
 
 

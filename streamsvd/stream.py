@@ -22,19 +22,23 @@ import copy
 import dataclasses
 import functools
 import logging
+import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from ._core import Truncation, UpdateRecord, r_factor, record_from_row
 from ._scaling import safe_column_norms
+from ._threads import blas_threads, check_threads
 from ._validation import (
     as_float_array,
     check_choice,
     check_nonnegative,
     check_nonnegative_int,
     check_positive_int,
+    check_target,
 )
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
@@ -69,13 +73,25 @@ KIND = "streamsvd.StreamCompressor"
 LAYOUT = 3  # version of the arrays a StreamCompressor commits (3: Q, V0, history appended)
 
 
+def _norm(x: np.ndarray) -> float:
+    """``||x||_2`` without overflow."""
+    top = float(np.max(np.abs(x))) if x.size else 0.0
+    if top == 0.0:
+        return 0.0
+    return top * float(np.linalg.norm(x / top))
+
+
 def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
     """Return the compressor options recorded in a store's attributes.
 
     Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
-    update: they continue so.
+    update: they continue so; stores written before ``target_error`` existed have none.
     """
-    return {"oversampling": 0, **attrs["options"]}
+    defaults = {
+        "oversampling": 0, "target_error": None, "error_measure": "relative",
+        "streaming_share": 0.9,
+    }
+    return {**defaults, **attrs["options"]}
 def _stored_inner(path: Any, state: Any) -> InnerProduct:
     """Return the inner product a store keeps; Euclidean when it keeps none."""
     stored = inner_from_arrays(state.arrays)
@@ -146,6 +162,27 @@ class StreamCompressor:
     storage_options : dict, optional
         Options of the object store of a URL ``store``, as for
         :func:`streamsvd.open_storage`.
+    target_error : float, optional
+        The error the result must meet, in ``error_measure``: the fewest terms are kept
+        whose guaranteed bound meets it. While streaming, each update cuts the smallest
+        terms of its converged core while the bound stays within ``streaming_share`` of
+        the budget (which grows with the snapshots seen: the stream's length need not be
+        known); :meth:`finalize` makes the optimal cut within the whole budget. Not
+        combined with ``eps`` or ``rtol``; ``max_rank`` still caps the rank (then the
+        target may be missed: :attr:`target_met` says so, and a warning is logged).
+    error_measure : {"relative", "mean_l2", "absolute"}
+        ``"relative"``: ``||A - U V^T||_F <= target_error ||A||_F`` (the energy
+        criterion); ``"mean_l2"``: ``sqrt(sum_j ||a_j - U V^T e_j||_M^2 / m) <=
+        target_error``, the measure of pyMOR's HAPOD; ``"absolute"``:
+        ``||A - U V^T||_F <= target_error``. Norms are those of ``M``.
+    streaming_share : float
+        The share of the budget the stream may spend (0 < share <= 1, default 0.9, as
+        HAPOD's ``omega``); the rest is left to the final optimal cut.
+    threads : int or None
+        BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).
+        One thread is never much slower than all cores and is much faster on a machine
+        where other work runs (measured in ``bench/README.md``, "BLAS threads"); it is
+        a setting of this process, not recorded in the store.
 
     The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
@@ -194,8 +231,13 @@ class StreamCompressor:
         commit_every: int = 1,
         source_record: SourceRecord | None = None,
         storage_options: dict[str, Any] | None = None,
+        threads: int | None = 1,
+        target_error: float | None = None,
+        error_measure: str = "relative",
+        streaming_share: float = 0.9,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
+        self.threads = check_threads(threads)
         self.inner: InnerProduct = as_inner(inner, self.n)
         if source_record is not None and not isinstance(source_record, SourceRecord):
             raise InputError(
@@ -209,6 +251,9 @@ class StreamCompressor:
         self.oversampling = check_nonnegative_int(oversampling, "oversampling")
         self.rule = check_choice(rule, "rule", RULES)
         self.sweeps = check_positive_int(sweeps, "sweeps", allow_none=True)
+        self.target_error, self.error_measure, self.streaming_share = check_target(
+            target_error, error_measure, streaming_share, eps=self.eps, rtol=self.rtol
+        )
         self.reject_tol = (
             default_reject_tol(self.n)
             if reject_tol is None
@@ -225,7 +270,10 @@ class StreamCompressor:
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._opts = StepOptions(
             inner=self.inner, rule=self.rule, sweeps=self.sweeps,
-            truncation=Truncation(self.eps, self.rtol, self.streaming_rank),
+            truncation=Truncation(
+                self.eps, self.rtol, self.streaming_rank, self.target_error,
+                self.error_measure, self.streaming_share,
+            ),
             reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
         )
         self._state = State(
@@ -358,7 +406,7 @@ class StreamCompressor:
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
         out = StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
-                               **self._options())
+                               threads=self.threads, **self._options())
         out._state = copy.deepcopy(self._state)
         out._history = list(self._history)
         out.source_offset = self.source_offset
@@ -438,7 +486,8 @@ class StreamCompressor:
             "oversampling": self.oversampling, "rule": self.rule, "sweeps": self.sweeps,
             "reject_tol": self.reject_tol,
             "reorth_tol": self.reorth_tol, "right_vectors": self.right_vectors,
-            "commit_every": self.commit_every,
+            "commit_every": self.commit_every, "target_error": self.target_error,
+            "error_measure": self.error_measure, "streaming_share": self.streaming_share,
         }
 
     def _attrs(self, plan: Plan | None) -> dict[str, Any]:
@@ -605,6 +654,30 @@ class StreamCompressor:
         return self._state.bound.bound
 
     @property
+    def error_in_measure(self) -> float:
+        """:attr:`error_bound` in the ``error_measure`` of the target (a guaranteed bound).
+
+        ``"absolute"``: the bound itself; ``"mean_l2"``: ``bound / sqrt(m)``;
+        ``"relative"``: ``bound / (||U V^T||_F - bound)``, which bounds
+        ``||A - U V^T|| / ||A||`` since ``||A|| >= ||U V^T|| - bound`` (``inf`` when the
+        bound is not below the expansion's norm).
+        """
+        b = self.error_bound
+        if self.error_measure == "absolute":
+            return b
+        if self.error_measure == "mean_l2":
+            return b / math.sqrt(self.n_seen) if self.n_seen else 0.0
+        norm = _norm(self.amplitudes)
+        return b / (norm - b) if norm > b else (0.0 if b == 0.0 else math.inf)
+
+    @property
+    def target_met(self) -> bool | None:
+        """Whether :attr:`error_in_measure` is within ``target_error`` (None without one)."""
+        if self.target_error is None:
+            return None
+        return self.error_in_measure <= self.target_error
+
+    @property
     def history(self) -> tuple[UpdateRecord, ...]:
         """One :class:`UpdateRecord` per update, oldest first."""
         return tuple(self._history)
@@ -638,7 +711,7 @@ class StreamCompressor:
         t0 = time.perf_counter()
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
-        return self._run(plan_absorb(self._state, B, self._opts, t0=t0), offset)
+        return self._run(lambda: plan_absorb(self._state, B, self._opts, t0=t0), offset)
 
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
         """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.
@@ -681,7 +754,9 @@ class StreamCompressor:
                 f"`U_k` must have at least one column (or pass `coefficients`); got shape "
                 f"{Uk.shape}."
             )
-        return self._run(plan_add(s, Uk, Vk, dV_int, self._opts, t0=t0), self.source_offset)
+        return self._run(
+            lambda: plan_add(s, Uk, Vk, dV_int, self._opts, t0=t0), self.source_offset
+        )
 
     def _internal_coefficients(self, dV: np.ndarray) -> np.ndarray:
         """Map coefficients on the exposed basis (sorted, signed) to the stored terms."""
@@ -730,11 +805,11 @@ class StreamCompressor:
         else:
             U_o, V_o, prior = np.array(other.U), np.array(other.V), Bound()
             m_o, R_o = V_o.shape[0], r_factor(V_o)
-        plan = plan_merge(
-            self._state, U_o, R_o, V_o, m_o, self._state.bound.combine(prior), self._opts,
-            t0=t0,
+        prior = self._state.bound.combine(prior)
+        return self._run(
+            lambda: plan_merge(self._state, U_o, R_o, V_o, m_o, prior, self._opts, t0=t0),
+            self.source_offset + m_o,
         )
-        return self._run(plan, self.source_offset + m_o)
 
     def finalize(self, *, rule: str = "jacobi", max_rank: int | None = None) -> UpdateRecord:
         """Converge the small core to the SVD of the current expansion, then truncate.
@@ -752,13 +827,28 @@ class StreamCompressor:
         cap = check_positive_int(max_rank, "max_rank", allow_none=True)
         opts = dataclasses.replace(
             self._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
-            truncation=Truncation(self.eps, self.rtol, self.max_rank if cap is None else cap),
+            truncation=Truncation(
+                self.eps, self.rtol, self.max_rank if cap is None else cap, self.target_error,
+                self.error_measure, 1.0,
+            ),
         )
-        return self._run(plan_finalize(self._state, opts, t0=t0), self.source_offset)
+        record = self._run(lambda: plan_finalize(self._state, opts, t0=t0), self.source_offset)
+        if self.target_met is False:
+            logger.warning(
+                "the target error %.3g (%s) is not met: the bound is %.3g in that measure "
+                "(max_rank=%s cuts more than the target allows)", self.target_error,
+                self.error_measure, self.error_in_measure, self.max_rank,
+            )
+        return record
 
     # ------------------------------------------------------------------ internals
-    def _run(self, plan: Plan, source_offset: int) -> UpdateRecord:
-        """Persist the planned state when a commit is due, then switch to it."""
+    def _run(self, make_plan: Callable[[], Plan], source_offset: int) -> UpdateRecord:
+        """Plan an update, persist it when a commit is due, then switch to it.
+
+        The plan runs with the BLAS limited to :attr:`threads` threads.
+        """
+        with blas_threads(self.threads):
+            plan = make_plan()
         # persist first, then switch the in-memory state: an exception anywhere before
         # or in the commit leaves both the memory and the store as they were
         self._history.append(plan.record)
@@ -786,6 +876,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "source_offset": sc.source_offset, "updates": len(sc.history),
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
+        "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
         "options": sc._options(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),

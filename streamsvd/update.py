@@ -138,7 +138,7 @@ def plan_absorb(
 ) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``)."""
     ext = extend_basis(
-        state.basis, state.Gu, X, inner=opts.inner, reject_tol=opts.reject_tol
+        state.basis, state.Gu, X, inner=opts.inner, reject_tol=opts.reject_tol, H=state.H
     )
     b = X.shape[1]
     k, p = state.R.shape
@@ -169,16 +169,15 @@ def plan_add(
     ref = _energy_reference(_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.Gu, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
-        reference=ref,
+        reference=ref, H=state.H,
     )
     V_old = state.rows.value() if state.rank else np.zeros((V_k.shape[0], 0))
     if dV is not None:
         V_old = V_old + dV
     V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
-    rej = ~ext.accepted
     return _plan(
         state, ext, r_factor(V_new), opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
-        t0=t0, V_full=V_new, d_rej=ext.rejected_norm(V_k[:, rej]), extra_root=0.0,
+        t0=t0, V_full=V_new, d_rej=ext.rejected_norm(V_k), extra_root=0.0,
         prior=state.bound, overlapping=True,
     )
 
@@ -204,7 +203,7 @@ def plan_merge(
     ref = _energy_reference(_m_norms(U_o, opts.inner), safe_column_norms(R_o))
     ext = extend_basis(
         state.basis, state.Gu, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
-        reference=ref,
+        reference=ref, H=state.H,
     )
     k, p = state.R.shape
     ko = R_o.shape[0]
@@ -216,10 +215,9 @@ def plan_merge(
     if state.rows is not None:
         assert V_o is not None
         new_rows = V_o @ np.hstack([ext.coeffs.T, ext.R_new.T])
-    rej = ~ext.accepted
     return _plan(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
-        new_rows=new_rows, d_rej=ext.rejected_norm(R_o[:, rej]), extra_root=0.0,
+        new_rows=new_rows, d_rej=ext.rejected_norm(R_o), extra_root=0.0,
         prior=prior,
     )
 
@@ -232,11 +230,7 @@ def plan_finalize(state: State, opts: StepOptions, *, t0: float) -> Plan:
     orthogonal to what is kept, so the bound grows by the Pythagorean rule).
     """
     p = state.rank
-    ext = BasisExtension(
-        coeffs=np.zeros((p, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
-        rejected_norms=np.zeros(0), rejected_gram=np.zeros((0, 0)),
-        rejected_exponents=np.zeros(0, dtype=np.int64), block_norm=0.0,
-    )
+    ext = BasisExtension.empty(p, state.basis.width)
     return _plan(
         state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
         new_rows=np.zeros((0, p)), d_rej=0.0, extra_root=0.0, prior=state.bound,
@@ -261,7 +255,8 @@ def _plan(
     overlapping: bool = False,
 ) -> Plan:
     step = core_step(
-        K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind
+        K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
+        spent=math.hypot(prior.bound, d_rej),
     )
     p, r = state.rank, ext.rank
     w = state.basis.width
@@ -281,7 +276,7 @@ def _plan(
         H = state.basis.compact_planned(Gu, r)
         Gu, waste = np.eye(p_new), 0.0
     else:
-        H = _extended_gram(state, r)
+        H = _extended_gram(state, ext)
         state.basis.stage_new(r)
     R = step.R
     L = None
@@ -331,25 +326,21 @@ def _record(
 ) -> UpdateRecord:
     return UpdateRecord(
         kind=kind, columns=columns, rank=rank, new_directions=ext.rank,
-        rejected=int(np.count_nonzero(~ext.accepted)), cut=step.cut, discarded=discarded,
+        rejected=ext.rejected, cut=step.cut, discarded=discarded,
         sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
         error_bound=bound.bound, seconds=time.perf_counter() - t0,
     )
 
 
 # ---------------------------------------------------------------------------- helpers
-def _extended_gram(state: State, r: int) -> np.ndarray:
-    """``H`` of ``[Q, Q_new]``: the cross block ``MQ^T Q_new`` and ``Q_new^T M Q_new``."""
-    w = state.basis.width
+def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
+    """``H`` of ``[Q, Q_new]`` from the blocks Gram-Schmidt measured (:class:`BasisExtension`)."""
+    w, r = state.basis.width, ext.rank
     H = np.zeros((w + r, w + r))
     H[:w, :w] = state.H
-    if r:
-        cross = state.basis.cross(r)
-        Qn, MQn = state.basis.planned_new(r)
-        H[:w, w:] = cross
-        H[w:, :w] = cross.T
-        G = MQn.T @ Qn
-        H[w:, w:] = 0.5 * (G + G.T)
+    H[:w, w:] = ext.cross
+    H[w:, :w] = ext.cross.T
+    H[w:, w:] = ext.gram_new
     return H
 
 
