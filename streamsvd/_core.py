@@ -28,6 +28,7 @@ __all__ = [
     "UpdateRecord",
     "core_step",
     "error_budget",
+    "newton_schulz",
     "history_array",
     "r_factor",
     "record_from_row",
@@ -241,6 +242,15 @@ class CoreStep:
     coupling_root: float
 
 
+def newton_schulz(T: np.ndarray) -> np.ndarray:
+    """Return ``T (3 I - T^T T) / 2``: one Newton-Schulz step towards orthonormal columns.
+
+    Accumulated rotations drift from orthogonality by about ``sqrt(rotations) eps``; one
+    step brings nearly orthonormal columns back to ``eps``.
+    """
+    return T @ (1.5 * np.eye(T.shape[1]) - 0.5 * (T.T @ T))
+
+
 def _precondition(Rt: np.ndarray, Qt: np.ndarray) -> None:
     """Rotate the terms onto the right singular vectors of the core, in place.
 
@@ -341,8 +351,7 @@ def core_step(
     # the accumulated rotations drift from orthogonality by about sqrt(rotations) * eps;
     # one Newton-Schulz step, T <- T (3 I - T^T T) / 2, brings them back to eps, so that
     # the orthogonality of U does not grow with the number of updates
-    T = Qt[kept].T
-    T = T @ (1.5 * np.eye(T.shape[1]) - 0.5 * (T.T @ T))
+    T = newton_schulz(Qt[kept].T)
     return CoreStep(
         T=T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
         cut=int(cut.size), cut_norm=cut_norm, coupling_root=coupling_root,

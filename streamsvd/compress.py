@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from ._core import newton_schulz
 from ._scaling import pow2_exponent, safe_column_norms
 from ._validation import check_choice, check_nonnegative, check_positive_int
 from .errors import InputError
@@ -169,9 +170,10 @@ def _finish(
     U: np.ndarray,
     V: np.ndarray,
     stats: list[SweepStats],
-    energy: float,
+    discarded: float,
     converged: bool,
 ) -> CompressResult:
+    """Sort, fix signs and pack the result; ``discarded`` is the norm of what was cut."""
     # the sweeps order terms by squared norms, which underflow below 1e-154 of the
     # largest amplitude; the final order uses overflow-safe norms
     perm = np.argsort(-safe_column_norms(V), kind="stable")
@@ -185,8 +187,8 @@ def _finish(
         indicator=np.array([s.indicator for s in stats]),
         max_cosine=np.array([s.max_cosine for s in stats]),
         rank=np.array([s.rank for s in stats], dtype=np.int64),
-        discarded_energy=energy,
-        error_bound=math.sqrt(energy),
+        discarded_energy=discarded * discarded,  # inf past 1e154, never an exception
+        error_bound=discarded,
         converged=converged,
     )
 
@@ -225,20 +227,20 @@ def _run_fast(
     q = p
     eps_s = math.ldexp(eps, -e)
     stats: list[SweepStats] = []
-    energy = 0.0
+    discarded = 0.0  # kept as a norm: amplitudes from 1e-300 to 1e300 stay representable
     converged = False
     while len(stats) < max_sweeps:
         s = sweep_core(Rt, Qt, order, q, rule=rule, eps=eps_s, tol=tol, nrm2=nrm2)
         q = s.rank
-        energy += math.ldexp(s.cut_energy, 2 * e)
+        discarded = math.hypot(discarded, math.ldexp(math.sqrt(s.cut_energy), e))
         stats.append(s)
         converged = s.rotations == 0
-        if _notify(callback, stats, energy) or converged:
+        if _notify(callback, stats, discarded * discarded) or converged:
             break
     sel = order[:q]
-    U_out = U @ Qt[sel].T
+    U_out = U @ newton_schulz(Qt[sel].T)
     V_out = np.ldexp(Qv @ Rt[sel].T, e)
-    return _finish(expansion, U_out, V_out, stats, energy, converged)
+    return _finish(expansion, U_out, V_out, stats, discarded, converged)
 
 
 def _run_literal(
@@ -262,4 +264,4 @@ def _run_literal(
         converged = s.rotations == 0
         if _notify(callback, stats, energy):
             break
-    return _finish(expansion, U, V, stats, energy, converged)
+    return _finish(expansion, U, V, stats, math.sqrt(energy), converged)

@@ -62,6 +62,8 @@ _ONE_PASS_COND = 16.0
 # own norm) is projected a second time; a smaller one is measured and kept in the basis
 # Gram, where the compressor's orthogonality check accounts for it
 _LOSS_MAX = 2.0**-26
+# a projection that leaves less than this share of a column's norm is made again (DGKS)
+_REPROJECT = 0.5
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -279,7 +281,8 @@ def extend_basis(
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     if well:
         # the common case: Z = Q_z L^T in place, Rz = L^T triangular
-        Rz, cross_z = _cholesky_qr_in_place(Z, MZ, S, lam, cross0, inner)
+        Rz, cross_z, more = _cholesky_qr_in_place(basis, Z, MZ, S, lam, cross0, inner)
+        passes += more
         parts = [Z]
     else:
         parts, Rz, floor, more = _rounds(basis, G, Z, S, C, inner, reject_tol, ref)
@@ -319,9 +322,18 @@ def extend_basis(
             start += width
         if not inner.is_euclidean:
             MY[:, :r] = inner.apply(Qn)
+        gram_new = _gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
+        if r and np.max(np.abs(gram_new - np.eye(r))) > _ONE_PASS_COND * r * _EPS:
+            # the rounds' directions are orthonormal to a few eps each; one CholeskyQR
+            # pass over all of them makes the block orthonormal as a whole
+            L = np.linalg.cholesky(gram_new)
+            _right_solve(Qn, L)
+            R_new = L.T @ R_new
+            if not inner.is_euclidean:
+                MY[:, :r] = inner.apply(Qn)
+            gram_new = np.eye(r)
         cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
         passes += 1 if w and r else 0
-        gram_new = _gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
     return BasisExtension(
         coeffs=np.ldexp(C, exps[np.newaxis, :]),
         R_new=np.ldexp(R_new, exps[np.newaxis, :]),
@@ -388,31 +400,36 @@ def _right_solve(A: np.ndarray, L: np.ndarray) -> np.ndarray:
 
 
 def _cholesky_qr_in_place(
+    basis: BasisBackend,
     Z: np.ndarray,
     MZ: np.ndarray,
     S: np.ndarray,
     lam: np.ndarray,
     cross: np.ndarray,
     inner: InnerProduct,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``Z = Q L^T`` in place (``Z`` becomes ``Q``, ``MZ`` its image); return ``L^T``, cross.
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """``Z = Q L^T`` in place (``Z`` becomes ``Q``, ``MZ`` its image).
 
-    ``S = Z^T M Z`` is positive definite with eigenvalues ``lam`` (decreasing). A second
-    pass (CholeskyQR2) is made when ``cond(S) > _ONE_PASS_COND``.
+    ``S = Z^T M Z`` is positive definite with eigenvalues ``lam`` (decreasing) and
+    ``cross = (M Q_basis)^T Z``. Returns ``L^T``, the cross block of the result and the
+    passes made over the basis. When ``cond(S) > _ONE_PASS_COND`` a second pass is made
+    (CholeskyQR2): the triangular solve by an ill-conditioned ``L`` errs by about
+    ``eps cond(L)`` in every direction, so the cross block is measured again on the
+    result of the first pass (one product with the basis) rather than transformed.
     """
     L = np.linalg.cholesky(S)
     _right_solve(Z, L)
-    cross = _right_solve(np.array(cross, order="F"), L)
     R = L.T.copy()
-    if lam[0] > _ONE_PASS_COND * lam[-1]:
-        # M Z is applied again, not transformed: the triangular solve by an
-        # ill-conditioned L would leave M Z and Z inconsistent by eps cond(L)
-        L2 = np.linalg.cholesky(_gram(Z, inner, _apply_into(Z, MZ, inner)))
-        _right_solve(Z, L2)
-        cross = _right_solve(cross, L2)
-        R = L2.T @ R
+    if lam[0] <= _ONE_PASS_COND * lam[-1]:
+        _apply_into(Z, MZ, inner)
+        return R, _right_solve(np.array(cross, order="F"), L), 0
+    # M Z is applied again, not transformed, for the same reason
+    L2 = np.linalg.cholesky(_gram(Z, inner, _apply_into(Z, MZ, inner)))
+    measured = basis.project(Z, None) if basis.width else np.zeros((0, Z.shape[1]))
+    _right_solve(Z, L2)
     _apply_into(Z, MZ, inner)
-    return R, cross
+    cross = _right_solve(np.array(measured, order="F"), L2)
+    return L2.T @ R, cross, 1 if basis.width else 0
 
 
 def _rounds(
@@ -439,29 +456,37 @@ def _rounds(
     Zc, Sc, Fc = Z, S, np.eye(b)
     passes = 0
     # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
-    # below reject_tol * ref_k / (2 sqrt(b)) in every column it cannot change a decision
+    # directions are set aside (smallest first) while, in every column k, what they add
+    # up to stays within reject_tol * ref_k / 2, so they cannot change a decision
     weight = np.where(ref > 0, 1.0 / np.where(ref > 0, ref, 1.0), 0.0)
-    floor_tol = reject_tol / (2.0 * math.sqrt(max(b, 1)))
+    half_tol = 0.5 * reject_tol
+    used = np.zeros(b)  # (what the directions set aside add to column k / ref_k)^2
     while True:
         if parts:
             # the unresolved part is small next to the block: its rounding along the
-            # basis and the directions found is removed by one more projection on each
-            # (it carries at most 2 sqrt(b) / n of its norm there, so one pass is exact)
-            if basis.width:
-                P = basis.project(Zc, G)
-                basis.subtract(Zc, G, P)
-                C += P @ Fc
-                passes += 2
-            for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
-                c = MQp.T @ Zc
-                Zc -= Qp @ c
-                rows[i] += c @ Fc
+            # basis and the directions found is projected out, a second time when the
+            # first pass cancelled more than half of a column (DGKS)
+            before = _m_norms(Zc, inner)
+            for _ in range(2):
+                if basis.width:
+                    P = basis.project(Zc, G)
+                    basis.subtract(Zc, G, P)
+                    C += P @ Fc
+                    passes += 2
+                for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
+                    c = MQp.T @ Zc
+                    Zc -= Qp @ c
+                    rows[i] += c @ Fc
+                after = _m_norms(Zc, inner)
+                if np.all(after >= _REPROJECT * before):
+                    break
+                before = after
             Sc = _gram(Zc, inner)
         lam, W = _eigh_desc(Sc)
         if lam.size == 0 or lam[0] <= 0.0:
             break
         sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(W.T @ Fc) * weight, axis=1)
-        big = (lam >= _COND_SPLIT * lam[0]) & (sizes > floor_tol)
+        big = (lam >= _COND_SPLIT * lam[0]) & (sizes > half_tol)
         if big.any():
             Qb = _mm(Zc, W[:, big] / np.sqrt(lam[big]))
             L2 = np.linalg.cholesky(_gram(Qb, inner))
@@ -476,7 +501,13 @@ def _rounds(
         MTt = Tt if inner.is_euclidean else np.asfortranarray(inner.apply(Tt))
         Ft = W[:, rest].T @ Fc
         norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Tt, MTt), 0.0))
-        low = norms * np.max(np.abs(Ft) * weight, axis=1) <= floor_tol
+        adds = (norms[:, np.newaxis] * np.abs(Ft) * weight) ** 2
+        order = np.argsort(np.max(adds, axis=1), kind="stable")
+        fits = np.max(used + np.cumsum(adds[order], axis=0), axis=1) <= half_tol**2
+        cut = int(np.argmin(fits)) if not fits.all() else fits.size
+        low = np.zeros(norms.size, dtype=bool)
+        low[order[:cut]] = True
+        used += adds[low].sum(axis=0)
         if low.any():
             floor.append((Tt[:, low], MTt[:, low], Ft[low]))
         if low.all():

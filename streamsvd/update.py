@@ -31,7 +31,7 @@ import numpy as np
 import scipy.linalg
 
 from ._core import CoreStep, Truncation, UpdateRecord, core_step, r_factor
-from ._scaling import safe_column_norms
+from ._scaling import pow2_exponent, safe_column_norms
 from .basis import BasisBackend
 from .bound import Bound
 from .gram_schmidt import BasisExtension, extend_basis
@@ -215,10 +215,13 @@ def plan_merge(
     if state.rows is not None:
         assert V_o is not None
         new_rows = V_o @ np.hstack([ext.coeffs.T, ext.R_new.T])
+    d_rej = ext.rejected_norm(R_o)
+    # the merged columns are new ones, as an absorbed block's: their rejected part meets
+    # later cuts only through their own data, of norm ||R_o|| (module bound.py)
     return _plan(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
-        new_rows=new_rows, d_rej=ext.rejected_norm(R_o), extra_root=0.0,
-        prior=prior,
+        new_rows=new_rows, d_rej=d_rej,
+        extra_root=math.sqrt(d_rej) * math.sqrt(_norm(R_o)), prior=prior,
     )
 
 
@@ -354,9 +357,19 @@ def _orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
 
 
 def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M``-norms of the columns, each scaled by a power of two first (no overflow)."""
     if inner.is_euclidean:
         return safe_column_norms(X)
-    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, inner.apply(X)), 0.0))
+    peak = np.max(np.abs(X), axis=0) if X.shape[0] else np.zeros(X.shape[1])
+    e = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
+    Y = np.ldexp(X, -e[np.newaxis, :])
+    return np.ldexp(np.sqrt(np.maximum(np.einsum("ij,ij->j", Y, inner.apply(Y)), 0.0)), e)
+
+
+def _norm(X: np.ndarray) -> float:
+    """Frobenius norm without overflow."""
+    e = pow2_exponent(X)
+    return math.ldexp(float(np.linalg.norm(np.ldexp(X, -e))), e)
 
 
 def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
