@@ -174,6 +174,7 @@ def generate(case: str, cache: Path, quick: bool) -> dict[str, Path]:
 # --------------------------------------------------------------------------- in the workers
 
 _DATA: dict[str, Any] = {}
+_LIMITS: dict[str, int | None] = {"threads": None}
 
 
 def _quiet_pymor() -> None:
@@ -188,7 +189,7 @@ def _init_worker(threads: int | None, contender: str) -> None:
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(limits=threads)
-    _DATA["limits"] = threads
+    _LIMITS["threads"] = threads
     rng = np.random.default_rng(1)
     X = rng.standard_normal((50, 12)) @ np.diag(np.logspace(0, -6, 12))
     M = sp.identity(50, format="csr")
@@ -271,7 +272,7 @@ def task_target(names: dict[str, str], contender: str, target: float,
         seconds = time.perf_counter() - t0
         Q = modes.to_numpy()
     out: dict[str, Any] = {"seconds": seconds, "modes": int(Q.shape[1]), "bound": bound,
-                           "load": os.getloadavg()[0], "threads": _DATA.get("limits")}
+                           "load": os.getloadavg()[0], "threads": _LIMITS["threads"]}
     if measure:
         out["error"] = float(np.sqrt(np.sum(_projection_error2(X, Q, M)) / m))
         G = Q.T @ (M @ Q)
@@ -351,8 +352,22 @@ class Workers:
         self._pools: dict[tuple[str, int | None], ProcessPoolExecutor] = {}
 
     def run(self, contender: str, threads: int | None, fn: Any, *args: Any) -> Any:
-        key = (contender, threads)
-        if key not in self._pools:
+        res = self._run(contender, threads, fn, *args)
+        print(f"  {contender} ({threads or 'default'} thread) {args[2:]}: "
+              f"{res['seconds']:.3f} s, load {res['load']:.1f}", flush=True)
+        return res
+
+    def _run(self, contender: str, threads: int | None, fn: Any, *args: Any) -> Any:
+        self.start([(contender, threads)])
+        return self._pools[(contender, threads)].submit(fn, *args).result()
+
+    def start(self, keys: list[tuple[str, int | None]]) -> None:
+        """Start the workers of ``keys`` not yet running, all at once (untimed)."""
+        started = []
+        for key in keys:
+            if key in self._pools:
+                continue
+            contender, threads = key
             env = {k: os.environ.get(k) for k in _THREAD_VARS}
             for k in _THREAD_VARS:
                 if threads is None:
@@ -363,14 +378,15 @@ class Workers:
                 self._pools[key] = ProcessPoolExecutor(
                     1, mp_context=get_context("spawn"), initializer=_init_worker,
                     initargs=(threads, contender))
-                self._pools[key].submit(int, 0).result()  # start it with this environment
+                started.append(self._pools[key].submit(int, 0))  # spawns it with this env
             finally:
                 for k, v in env.items():
                     if v is None:
                         os.environ.pop(k, None)
                     else:
                         os.environ[k] = v
-        return self._pools[key].submit(fn, *args).result()
+        for f in started:
+            f.result()
 
     def close(self) -> None:
         for pool in self._pools.values():
@@ -393,6 +409,7 @@ def run_target_case(case: str, names: dict[str, str], workers: Workers, targets:
                     repeat: int) -> dict[str, Any]:
     timed = ("inc_hapod", "dist_hapod", "streamsvd")
     runs: dict[str, list] = {f"{c}@{t:g}": [] for c in timed for t in targets}
+    workers.start([(c, 1) for c in (*timed, "pod")])
     load0 = os.getloadavg()
     for r in range(repeat):
         for t in targets:
@@ -407,6 +424,7 @@ def run_target_case(case: str, names: dict[str, str], workers: Workers, targets:
 def run_threads_row(names: dict[str, str], workers: Workers, target: float,
                     repeat: int) -> dict[str, Any]:
     runs: dict[str, list] = {"1": [], "default": []}
+    workers.start([("streamsvd", 1), ("streamsvd", None)])
     load0 = os.getloadavg()
     for r in range(repeat):
         for key, threads in (("1", 1), ("default", None)):
@@ -420,6 +438,7 @@ def run_cap_case(names: dict[str, str], workers: Workers, blocks: tuple, cap: in
                  repeat: int) -> dict[str, Any]:
     contenders = ("streamsvd", "inc_hapod", "brand", "brand_tuned")
     runs: dict[str, list] = {f"{c}@{b}": [] for c in contenders for b in blocks}
+    workers.start([(c, 1) for c in contenders])
     load0 = os.getloadavg()
     for r in range(repeat):
         for b in blocks:
@@ -438,17 +457,20 @@ def _plot(out: Path, data: dict[str, Any]) -> Path:
         series: dict[str, list] = {}
         for key, r in res.items():
             name, arg = key.split("@")
-            x = r.get("rel_error" if case == "synthetic" else "error")
+            x = r.get("error")
+            if case == "synthetic":  # the excess over the optimal rank-k error
+                x = r["err_opt"] - 1.0 if r.get("err_opt") is not None else None
             label = f"{name}, block {arg}" if case == "synthetic" else name
             series.setdefault(label, []).append((x, r["seconds"]))
-        for label, pts in sorted(series.items()):
-            pts = sorted(p for p in pts if p[0] is not None)
-            ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=label)
+        for i, (label, pts) in enumerate(sorted(series.items())):
+            pts = sorted(p for p in pts if p[0] is not None and p[0] > 0.0)
+            ax.loglog([p[0] for p in pts], [p[1] for p in pts], "os^vD<>p"[i % 8] + "-",
+                      label=label, alpha=0.8)
         if case != "synthetic":
             for t in data["targets"]:
                 ax.axvline(t, color="0.85", lw=0.8, zorder=0)
-        ax.set_xlabel("true relative Frobenius error" if case == "synthetic"
-                      else "true mean-l2 error (in M)")
+        ax.set_xlabel("err/opt - 1 (rank-k error over the optimal, minus 1)"
+                      if case == "synthetic" else "true mean-l2 error (in M)")
         ax.set_ylabel("time (s), median")
         load = data["cases"][case]["load_before"][0]
         ax.set_title(f"{case} (load {load:.1f})")
