@@ -101,7 +101,7 @@ def run_streamsvd(blocks: Any, opts: dict[str, Any]) -> tuple[np.ndarray, float]
     if target is not None and not new_api:
         left = target * math.sqrt(opts["m"]) - sc.error_bound
         tail = np.sqrt(np.cumsum((sc.amplitudes**2)[::-1])[::-1])  # tail[k] = ||a[k:]||
-        k = int(np.argmax(np.append(tail, 0.0) <= left))
+        k = int(np.argmax(np.append(tail, 0.0) <= max(left, 0.0)))  # all kept if none fits
         sc.finalize(max_rank=max(k, 1))
     return sc.left_vectors, sc.error_bound
 
