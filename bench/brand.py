@@ -126,17 +126,21 @@ class BrandSVD:
         return C
 
     def _core_svd(self, C: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
-        """SVD of ``[[diag(s), C], [0, R]]``; the kept rank and right factor."""
+        """SVD of ``[[diag(s), C], [0, R]]`` (``R`` is ``k x b``, ``k <= b``).
+
+        Returns the left factor (``(p + k) x min``), the kept rank and the right factor
+        (``(p + b) x r``).
+        """
         p, b = C.shape
-        w = p + b
-        K = self._K[:w, :w]
+        k = R.shape[0]
+        K = self._K[: p + k, : p + b]
         K[:] = 0.0
         K[np.arange(p), np.arange(p)] = self.s
         K[:p, p:] = C
         K[p:, p:] = R
         Uk, sk, Vkt = sla.svd(K, full_matrices=False, lapack_driver="gesdd",
                               check_finite=False)
-        r = min(self.rank, w)
+        r = min(self.rank, sk.size)
         self.discarded += float(np.sum(sk[r:] ** 2))
         self._s_next = sk[:r].copy()
         return Uk, r, Vkt[:r].T
@@ -159,17 +163,16 @@ class TunedBrandSVD(BrandSVD):
     """Brand's incremental SVD with the n-sized work at BLAS-3 speed (the tuned baseline).
 
     Differs from :class:`BrandSVD` in two places only: the residual is orthonormalised by
-    shifted CholeskyQR3 (three Gram matrices and triangular solves, all BLAS-3, instead of
-    Householder QR; the shift of the first pass makes it succeed on a rank-deficient
-    residual, the two plain passes restore orthogonality), and ``U`` lives with the new
-    directions in one buffer ``[U, Q]`` so that the rotation ``U <- [U, Q] Uk`` is a
-    single gemm.
+    three Gram passes, all BLAS-3 (:meth:`_orthonormalise`, instead of Householder QR),
+    and ``U`` lives with the new directions in one buffer ``[U, Q]`` so that the rotation
+    ``U <- [U, Q] Uk`` is a single gemm.
     """
 
     def __init__(self, n: int, *, rank: int, max_columns: int, max_block: int) -> None:
         super().__init__(n, rank=rank, max_columns=max_columns, max_block=max_block)
         w = self.rank + self.max_block
         self._W = [np.empty((self.n, w), order="F"), np.empty((self.n, w), order="F")]
+        self.dropped = 0  # null directions of the residuals dropped so far
 
     @property
     def U(self) -> np.ndarray:
@@ -179,22 +182,72 @@ class TunedBrandSVD(BrandSVD):
     def absorb(self, B: np.ndarray) -> None:
         """Absorb the columns of ``B`` (``n x b``, ``b <= max_block``)."""
         b = B.shape[1]
+        if b > self.max_block or self.m + b > self.max_columns or B.shape[0] != self.n:
+            raise ValueError(
+                f"`B` must be {self.n} x b with b <= {self.max_block} and at most "
+                f"{self.max_columns - self.m} more columns; got {B.shape}."
+            )
         p = self.p
         W = self._W[self._cur]
         X = W[:, p : p + b]
         X[:] = B
         C = self._project(W[:, :p], X)
-        R = np.eye(b)
-        for k in range(3):  # shifted CholeskyQR3 (Fukaya et al. 2020): robust, BLAS-3
-            G = sla.blas.dsyrk(1.0, X, trans=1)
-            G = np.triu(G) + np.triu(G, 1).T
-            if k == 0:  # the shift makes the first factorisation succeed on any residual
-                G[np.diag_indices(b)] += 11.0 * (self.n * b + b * (b + 1)) * _EPS * np.trace(G)
-            L = np.linalg.cholesky(G)
-            Y = sla.blas.dtrsm(1.0, L, X, side=1, lower=1, trans_a=1, overwrite_b=1)
-            if not np.shares_memory(Y, X):
-                X[:] = Y
-            R = L.T @ R
+        R = self._orthonormalise(X)  # the k new directions are now W[:, p : p + k]
+        k = R.shape[0]
         Uk, r, Vk = self._core_svd(C, R)
-        np.matmul(W[:, : p + b], Uk[:, :r], out=self._W[1 - self._cur][:, :r])  # one gemm
+        np.matmul(W[:, : p + k], Uk[:, :r], out=self._W[1 - self._cur][:, :r])  # one gemm
         self._finish(Vk, r, b)
+
+    def _orthonormalise(self, X: np.ndarray) -> np.ndarray:
+        """Orthonormalise the residual ``X`` (``n x b``) in place; return ``R`` (``k x b``).
+
+        On return ``X[:, :k]`` holds ``Q`` with ``X_in = Q R`` up to rounding and
+        ``||Q^T Q - I|| = O(eps)``, ``k <= b`` (``k < b`` when the residual is rank
+        deficient). Three Gram passes, each one ``syrk`` and one ``trsm`` or ``gemm``:
+
+        1. shifted CholeskyQR (Fukaya et al. 2020): ``G + s I = L L^T`` with
+           ``s = 11 (n b + b (b + 1)) eps tr(G)`` always factors, and ``Y = X L^{-T}``
+           has condition number ``O(sqrt(cond(X) / sqrt(s)))``, so singular values down to
+           ``~1e-12 ||X||`` survive the pass;
+        2. an eigen-decomposition of ``Y^T Y = W diag(lam) W^T`` (SVQB): the directions
+           with ``lam <= n eps max(lam)`` are the residual's numerical null space (the
+           Gram cannot tell them from rounding; where a cap or an earlier update left the
+           residual rank deficient, CholeskyQR would stop on them with "not positive
+           definite"). They are dropped, their energy ``||diag(lam_d)^{1/2} W_d^T L^T||_F^2``
+           is added to :attr:`discarded`, and ``Q2 = Y W_k diag(lam_k)^{-1/2}``;
+        3. CholeskyQR of ``Q2`` (well conditioned now) restores orthogonality to rounding.
+        """
+        n, b = X.shape
+        G = sla.blas.dsyrk(1.0, X, trans=1)
+        G = np.triu(G) + np.triu(G, 1).T
+        tr = float(np.trace(G))
+        if not tr > 0.0:  # a zero residual: no new direction
+            return np.zeros((0, b))
+        G[np.diag_indices(b)] += 11.0 * (n * b + b * (b + 1)) * _EPS * tr
+        L = np.linalg.cholesky(G)
+        Y = sla.blas.dtrsm(1.0, L, X, side=1, lower=1, trans_a=1, overwrite_b=1)
+        if not np.shares_memory(Y, X):
+            X[:] = Y
+        R = L.T
+        G = sla.blas.dsyrk(1.0, X, trans=1)
+        G = np.triu(G) + np.triu(G, 1).T
+        lam, Wg = np.linalg.eigh(G)
+        keep = lam > max(n, b) * _EPS * lam[-1]
+        if not keep.all():
+            Rd = np.sqrt(np.maximum(lam[~keep], 0.0))[:, None] * (Wg[:, ~keep].T @ R)
+            self.discarded += float(np.sum(Rd**2))
+            self.dropped += int(b - keep.sum())
+        lam, Wg = lam[keep][::-1], Wg[:, keep][:, ::-1]
+        k = lam.size
+        sq = np.sqrt(lam)
+        Q = X @ (Wg / sq)
+        X[:, :k] = Q
+        R = (sq[:, None] * Wg.T) @ R
+        Q = X[:, :k]
+        G = sla.blas.dsyrk(1.0, Q, trans=1)
+        G = np.triu(G) + np.triu(G, 1).T
+        L = np.linalg.cholesky(G)
+        Y = sla.blas.dtrsm(1.0, L, Q, side=1, lower=1, trans_a=1, overwrite_b=1)
+        if not np.shares_memory(Y, Q):
+            Q[:] = Y
+        return L.T @ R
