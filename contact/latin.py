@@ -32,7 +32,7 @@ from streamsvd import Expansion
 
 from ._threads import blas_threads as limit_blas_threads
 from .errors import SolverOptionError
-from .globalstage import GlobalStage, default_search_direction, indicator
+from .globalstage import GlobalStage, default_search_direction, indicator_parts
 from .local import local_stage
 from .problem import Problem
 
@@ -41,6 +41,8 @@ __all__ = ["METHODS", "IterationState", "LatinResult", "solve"]
 log = logging.getLogger(__name__)
 
 METHODS = ("latin", "latin-p3", "latin-pgd")
+# the default truncation of LATIN-PGD is tol / TRUNC_PER_TOL (see `solve`)
+TRUNC_PER_TOL = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,6 +188,25 @@ class _FullField:
         return {}
 
 
+def _check_pgd_options(block: int, power: int, enrich: str,
+                       enrich_tol: float | None) -> dict[str, Any]:
+    from .blockpgd import ENRICH_RULES, ENRICH_TOL
+
+    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+        raise SolverOptionError(f"`block` must be a positive integer; got {block!r}.")
+    if isinstance(power, bool) or not isinstance(power, (int, np.integer)) or power < 0:
+        raise SolverOptionError(f"`power` must be a non-negative integer; got {power!r}.")
+    if enrich not in ENRICH_RULES:
+        raise SolverOptionError(f"`enrich` must be one of {ENRICH_RULES}; got {enrich!r}.")
+    if enrich_tol is None:
+        enrich_tol = ENRICH_TOL[enrich]
+    elif not (isinstance(enrich_tol, (int, float)) and enrich_tol > 0):
+        raise SolverOptionError(
+            f"`enrich_tol` must be a positive number; got {enrich_tol!r}.")
+    return {"block": int(block), "power": int(power), "enrich": enrich,
+            "enrich_tol": float(enrich_tol)}
+
+
 def _check_options(
     problem: Problem, method: str, tol: float, max_iter: int, k: float | None
 ) -> tuple[str, float, int, float]:
@@ -215,9 +236,13 @@ def solve(
     max_iter: int = 2000,
     k: float | None = None,
     callback: Callable[[IterationState], Any] | None = None,
-    trunc: float = 1e-4,
+    trunc: float | None = None,
     enrich_ratio: float = 0.5,
     fixed_point: int = 4,
+    block: int = 32,
+    power: int = 1,
+    enrich: str = "departure",
+    enrich_tol: float | None = None,
     blas_threads: int | None = 1,
 ) -> LatinResult:
     """Solve a frictional contact problem with a LATIN variant.
@@ -266,15 +291,19 @@ def solve(
     method, tol, max_iter, k = _check_options(problem, method, tol, max_iter, k)
     if not (isinstance(enrich_ratio, (int, float)) and 0 < enrich_ratio <= 1):
         raise SolverOptionError(f"`enrich_ratio` must be in (0, 1]; got {enrich_ratio!r}.")
-    if not (isinstance(trunc, (int, float)) and 0 <= trunc < 1):
+    if trunc is not None and not (isinstance(trunc, (int, float)) and 0 <= trunc < 1):
         raise SolverOptionError(f"`trunc` must be in [0, 1); got {trunc!r}.")
     if isinstance(fixed_point, bool) or not isinstance(fixed_point, int) or fixed_point < 1:
         raise SolverOptionError(
             f"`fixed_point` must be a positive integer; got {fixed_point!r}."
         )
+    pgd = _check_pgd_options(block, power, enrich, enrich_tol)
+    pgd["adaptive"] = trunc is None
+    if trunc is None:
+        trunc = tol / TRUNC_PER_TOL
     with limit_blas_threads(blas_threads):
         return _solve(problem, method, tol, max_iter, k, callback, trunc, enrich_ratio,
-                      fixed_point)
+                      fixed_point, pgd)
 
 
 def _solve(
@@ -287,18 +316,23 @@ def _solve(
     trunc: float,
     enrich_ratio: float,
     fixed_point: int,
+    pgd: dict[str, Any],
 ) -> LatinResult:
     c0 = time.process_time()
     stage = GlobalStage(problem, k)
     variant: Any
     if method == "latin":
         variant = _FullField(stage)
+    elif method == "latin-pgd":
+        from .blockpgd import BlockPGD
+
+        variant = BlockPGD(stage, trunc=trunc, **pgd)
     else:
         from .pgd import SeparatedField
 
         variant = SeparatedField(
             stage,
-            compress=(method == "latin-pgd"),
+            compress=False,
             trunc=trunc,
             enrich_ratio=enrich_ratio,
             fixed_point=fixed_point,
@@ -324,7 +358,9 @@ def _solve(
         w_hat, lam_hat = local_stage(w, lam, k=k, gaps=P.gaps, mu=P.mu)
         w = variant.update(stage.rhs_data(w_hat, lam_hat))
         lam = stage.tractions(w, w_hat, lam_hat)
-        eta = indicator(w, lam, w_hat, lam_hat, Lc, k)
+        eta, den = indicator_parts(w, lam, w_hat, lam_hat, Lc, k)
+        if hasattr(variant, "record"):
+            variant.record(eta, den)
         cpus.append(time.process_time() - c0)
         walls.append(time.perf_counter() - t0)
         etas.append(eta)
