@@ -68,14 +68,6 @@ __all__ = ["BlockPGD", "ENRICH_RULES"]
 log = logging.getLogger(__name__)
 
 ENRICH_RULES = ("departure", "stall", "always")
-# adaptive truncation: an enrichment that keeps fewer than block // CHURN new directions
-# divides the truncation by TIGHTEN (not below _TRUNC_FLOOR)
-CHURN = 8
-TIGHTEN = 10.0
-RELAX = 2.0
-# the indicator stalls when eta_i > STALL eta_{i-1}
-STALL = 0.9
-_TRUNC_FLOOR = 1e-12
 # sketch columns of the "departure" rule (reused in the block)
 _RULE_COLUMNS = 4
 # default `enrich_tol` of each rule
@@ -92,10 +84,7 @@ class BlockPGD:
     ----------
     stage : GlobalStage
     trunc : float
-        Relative truncation of the compressor, in ``M`` (the first one when ``adaptive``).
-    adaptive : bool
-        Divide the truncation by ``TIGHTEN`` when an enrichment is undone by it (see
-        "The truncation" in the module docstring).
+        Relative truncation of the compressor, in ``M``.
     block : int
         Columns of the random sketch per enrichment (space modes added at most).
     power : int
@@ -109,13 +98,9 @@ class BlockPGD:
     """
 
     def __init__(self, stage: GlobalStage, *, trunc: float, block: int, power: int,
-                 enrich: str, enrich_tol: float, adaptive: bool = False,
-                 seed: int = 0) -> None:
+                 enrich: str, enrich_tol: float, seed: int = 0) -> None:
         self.stage = stage
         self.trunc = trunc
-        self.adaptive = adaptive
-        self.truncations = [trunc]
-        self._renew = False
         self.block = block
         self.power = power
         self.enrich = enrich
@@ -310,8 +295,6 @@ class BlockPGD:
                 X = Y if X is None else np.column_stack([X, Y])
             if self.compressor is None or self.W.shape[1] + self.block > self.cap:
                 self._restart(self.block)
-            elif self._renew:
-                self._renew_compressor()
             Cq = self._range(Z, V, X)
             if Cq.shape[1]:
                 self._enrich(Cq, Z)
@@ -345,38 +328,8 @@ class BlockPGD:
         self.Uc = np.array(e.U[: self.W.shape[1]])
         self.V_c = np.array(e.V)
         self._project()
-        kept = self.Uc.shape[1] - p
-        log.debug("enrichment %d: %d directions, basis %d -> %d (trunc %.1e)",
-                  self.enrichments, b, p, self.Uc.shape[1], self.trunc)
-        if self.adaptive and p and kept < max(1, b // CHURN):
-            self._undone(p, b)
-
-    def _undone(self, p: int, b: int) -> None:
-        """The truncation undid an enrichment: tighten it if the indicator stalls, else
-        enrich less eagerly."""
-        e = self._etas
-        stalled = len(e) >= 2 and e[-1] > STALL * e[-2]
-        if stalled and self.trunc > _TRUNC_FLOOR:
-            self.trunc /= TIGHTEN
-            self.truncations.append(self.trunc)
-            self._renew = True
-            log.info("latin-pgd: the truncation undid an enrichment (basis %d, %d new "
-                     "directions) and the indicator stalls (%.3f); truncation tightened "
-                     "to %.1e", p, b, e[-1] / e[-2], self.trunc)
-        elif not stalled:
-            self.enrich_tol *= RELAX
-            log.debug("latin-pgd: the truncation undid an enrichment while the indicator "
-                      "progresses; enrichment threshold raised to %.2g", self.enrich_tol)
-
-    def _renew_compressor(self) -> None:
-        """Continue with a new compressor at the current truncation, in the same ``W``."""
-        self._error_bound += float(self.compressor.error_bound)
-        self._discarded += float(self.compressor.discarded_energy)
-        self._updates.extend(self.compressor.history)
-        self.compressor = StreamCompressor(self.cap, rtol=self.trunc, sweeps=1,
-                                           rule="paper")
-        self.V_c = np.zeros((self.V.shape[0], 0))
-        self._renew = False
+        log.debug("enrichment %d: %d directions, basis %d -> %d", self.enrichments, b, p,
+                  self.Uc.shape[1])
 
     def _restart(self, b: int) -> None:
         """Compact ``W`` and continue with a new compressor with room for ``b`` more."""
@@ -390,7 +343,6 @@ class BlockPGD:
         self.compressor = StreamCompressor(self.cap, rtol=self.trunc, sweeps=1,
                                            rule="paper")
         self.V_c = np.zeros((self.V.shape[0], 0))
-        self._renew = False
 
     def finish(self) -> dict[str, Any]:
         """Return the counters and the final expansion (embedded in all dofs).
@@ -418,7 +370,6 @@ class BlockPGD:
             "pairs_added": self.pairs_added,
             "solves": self.solves,
             "compactions": self.compactions,
-            "truncations": tuple(self.truncations),
             "nf_columns": np.array(self.nf_columns, dtype=int),
         }
         if self.compressor is not None:

@@ -298,7 +298,6 @@ def solve(
             f"`fixed_point` must be a positive integer; got {fixed_point!r}."
         )
     pgd = _check_pgd_options(block, power, enrich, enrich_tol)
-    pgd["adaptive"] = trunc is None
     if trunc is None:
         trunc = tol / TRUNC_PER_TOL
     with limit_blas_threads(blas_threads):
