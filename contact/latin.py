@@ -240,7 +240,7 @@ def solve(
     enrich_ratio: float = 0.5,
     fixed_point: int = 4,
     block: int = 32,
-    power: int = 1,
+    power: int = 0,
     enrich: str = "departure",
     enrich_tol: float | None = None,
     blas_threads: int | None = 1,

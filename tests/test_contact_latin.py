@@ -142,7 +142,7 @@ def test_pgd_basis_fits_the_svd_while_p3_overshoots(billet_reference, metric_svd
     # (contact/README.md, "What a basis of p modes can reach"); blocks of 16 do not
     # move it enough either
     assert n_opt["sigma_ratio"] <= np.median(pgd.basis_size[-20:]) <= n_opt["tail_energy"]
-    assert not pgd.converged and pgd.indicator.min() > 1.2e-4
+    assert not pgd.converged and pgd.indicator.min() > 1.1e-4
     assert p3.basis_size[-1] > 1.5 * n_opt["sigma_ratio"]
     # the leading PGD modes are the leading SVD modes in the metric (MAC close to 1)
     M = contact.mac(pgd.correction.U[:, :5], opt.space[:, :5])
