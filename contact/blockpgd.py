@@ -11,35 +11,40 @@ With ``B = G Z`` the right-hand side of :mod:`contact.globalstage`, every iterat
    costs ``O(p nc m)``: nothing proportional to the number of free dofs ``nf``.
 2. **Enrichment** (only when the rule below asks for it): a *block* of space modes is
    added at once. The part of the full LATIN global stage that the basis misses is
-   ``E = A^{-1} B - U V^T = A^{-1} R`` (``R = B - A U V^T``). Its dominant left
-   vectors in the energy norm are found by a randomized range finder with ``power``
-   subspace iterations (Halko, Martinsson and Tropp, Algorithm 4.4):
-   ``Q = E Omega``, then ``power`` times ``Q <- E (E^T A Q)``, with ``Omega`` (m x b)
+   ``E = A^{-1} B - U V^T = A^{-1} R`` (``R = B - A U V^T``, the residual of eq. (15)).
+   Its dominant left vectors are found by a randomized range finder (Halko, Martinsson
+   and Tropp, Algorithm 4.3; 4.4 with ``power`` subspace iterations):
+   ``X = E Omega``, then ``power`` times ``X <- E (E^T A X)``, with ``Omega`` (m x b)
    Gaussian. ``E Omega`` costs ``b`` back-substitutions (``A^{-1} G (Z Omega)``) and a
-   product with ``U``; ``E^T A Q = R^T Q = Z^T G^T Q - V U^T A Q`` costs no solve. With
-   ``power >= 1`` the block converges to the dominant modes of the global-stage
-   correction (the block form of the PGD's alternating fixed point
-   ``u = A^{-1} R v``, ``v = R^T u``). The block is orthonormalised in ``M`` against
-   the basis (CGS2) and within itself (SVQB, twice), directions already in the basis
-   are dropped, and step 1 is redone on the enlarged basis.
+   product with ``U``; ``E^T A X = R^T X = Z^T G^T X - V U^T A X`` costs no solve. With
+   ``power >= 1`` the block tends to the dominant modes of the global-stage correction
+   in the energy norm (the block form of the PGD's alternating fixed point
+   ``u = A^{-1} R v``, ``v = R^T u``). The block is split (CGS2 in ``M``) into its
+   coordinates in ``W`` and a rest, whose ``M``-orthonormal basis (SVQB) extends ``W``;
+   the projection against ``U`` and the orthonormalisation of the block are then small
+   coordinate products, directions already in ``span U`` are dropped, and step 1 is
+   redone on the enlarged basis.
 3. **Compression**: at each enrichment the :class:`streamsvd.StreamCompressor` receives
    one ``add``: the change of the time functions since its last update as an in-basis
-   increment (``coefficients=``) and the new block as new columns. It runs its rotation
-   sweeps (Algorithm 3 of the paper, ``rule="paper"``) and truncates in ``M`` the terms
+   increment (``coefficients=``) and the new block as new columns. It runs one rotation
+   sweep (Algorithm 3 of the paper, ``rule="paper"``) and truncates in ``M`` the terms
    with ``||v_i|| < trunc ||v_1||``. Its expansion gives the new basis, and step 1 is
-   redone on it (the truncated ``V`` is not the Galerkin one).
+   redone on it (the truncated ``V`` is not the Galerkin one). At the end, the last
+   time functions are added as an in-basis increment and ``finalize`` converges the
+   core and cuts it at ``trunc``: the result is the SVD of the last iterate, truncated.
 
 The enrichment rule
 -------------------
 LATIN restricted to a fixed basis converges to a state set by the basis, so its
 indicator stops decreasing (``contact/README.md``, "What a basis of p modes can reach").
-``enrich="progress"`` (the default) adds a block when the indicator's progress slows
-down: at the first iteration, and when ``eta_{i-1} > stall * eta_{i-2}``. The other
-rules, measured in ``contact/README.md``: ``"always"`` (a block every iteration) and
-``"sketch"`` (a block when the sketch ``E Omega`` estimates that the reduced stage
-departs from the full one by more than ``stall`` times the last indicator: the
-departure ``d`` of the global state moves the indicator by ``||d||_{M_c} / D``, see
-:mod:`contact.pgd`).
+With ``enrich="departure"`` (the default) every iteration sketches ``E`` with 4 Gaussian
+columns (``E[||E omega||_M^2] = ||E||_M^2``): the reduced global state departs from the
+full one by ``d = C_f E``, which moves the indicator by at most ``||E||_{M_c} / D``
+(``D`` the indicator's denominator, see :mod:`contact.pgd`). A block is added when that
+estimate exceeds ``enrich_tol`` (0.03) times the last indicator; the sketch is then the
+first columns of the block. The other rules, measured in ``contact/README.md``:
+``"stall"`` (a block when ``eta_{i-1} > enrich_tol eta_{i-2}``, default 0.9) and
+``"always"`` (a block every iteration).
 
 Storage: the solver keeps its own ``M``-orthonormal columns ``W`` (nf x w) with the
 projections ``W^T A W``, ``G^T A W`` and ``C_f W``; the modes are ``U = W U_c`` and

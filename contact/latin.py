@@ -8,9 +8,11 @@
   displacement field (one back-substitution per instant and iteration);
 * ``"latin-p3"`` -- P3: the displacement correction is a sum of orthonormal space modes
   times time functions (:mod:`contact.pgd`);
-* ``"latin-pgd"`` -- P3 where every iteration's change is added to a
-  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation in
-  the indicator's metric.
+* ``"latin-pgd"`` -- P3 with block enrichment (:mod:`contact.blockpgd`): every iteration
+  updates all time functions on the basis; when the reduced stage departs from the full
+  one, a block of space modes from a randomized range finder is added and a
+  :class:`streamsvd.StreamCompressor` compresses the expansion (one rotation sweep,
+  truncation in the indicator's metric).
 
 Each iteration ``i``: local stage ``s_hat_i`` from ``s_{i-1}`` (direction E+), global stage
 ``s_i`` from ``s_hat_i`` (direction E-), indicator ``eta_i`` between ``s_i`` and
@@ -265,19 +267,32 @@ def solve(
     callback : callable, optional
         ``callback(state)`` with an :class:`IterationState` after every iteration;
         returning ``True`` stops the iteration.
-    trunc : float
-        ``"latin-pgd"`` only: after each sweep the compressor drops the terms with
+    trunc : float, optional
+        ``"latin-pgd"`` only: at every enrichment the compressor drops the terms with
         ``||v_i|| < trunc * ||v_1||`` (``||v_1||`` the largest amplitude; the paper's
         threshold ``eps`` of Algorithm 3 made relative), the space modes being
         orthonormal in the indicator metric (:func:`contact.indicator_metric`), see
-        :mod:`contact.pgd`. On the billet, reaching an indicator ``eta`` takes about
-        ``trunc = eta / 10`` (``contact/README.md``).
+        :mod:`contact.blockpgd`. Default ``tol / 10``: on the billet, reaching an
+        indicator ``eta`` takes about ``trunc = eta / 10`` (``contact/README.md``); finer
+        meshes need less (``1e-7`` for ``eta = 1e-4`` at refine 8).
     enrich_ratio : float
-        Separated methods: a new space-time pair is computed when the time-function update
+        ``"latin-p3"``: a new space-time pair is computed when the time-function update
         leaves a residual ``||R|| > enrich_ratio * ||R_before||``, ``R_before`` the
         residual of the previous iterate against the new right-hand side.
     fixed_point : int
-        Separated methods: alternating space/time iterations for a new pair.
+        ``"latin-p3"``: alternating space/time iterations for a new pair.
+    block : int
+        ``"latin-pgd"``: Gaussian columns of the randomized range finder, the most space
+        modes one enrichment adds.
+    power : int
+        ``"latin-pgd"``: subspace iterations of the range finder (0: plain sketch).
+    enrich : {"departure", "stall", "always"}
+        ``"latin-pgd"``: when to enrich. ``"departure"``: when a 4-column sketch
+        estimates that the reduced global stage departs from the full one by more than
+        ``enrich_tol`` (default 0.03) times the last indicator; ``"stall"``: when
+        ``eta_i > enrich_tol * eta_{i-1}`` (default 0.9); ``"always"``: every iteration.
+    enrich_tol : float, optional
+        ``"latin-pgd"``: threshold of the rule ``enrich``.
     blas_threads : int or None
         BLAS threads during the solve (None leaves the thread pool alone); the products
         are small, so one thread is the fastest on this problem size.
