@@ -220,14 +220,19 @@ def cost_study(opts, trunc, max_iter):
 PHASES = {
     "local stage": ("contact/local.py", "local_stage"),
     "full-field solve (LATIN)": ("contact/latin.py", "update"),
-    "time functions": ("contact/pgd.py", "_time_functions"),
-    "residual norms": ("contact/pgd.py", "_residual_norm"),
-    "new pair (fixed point, CGS2 against U)": ("contact/pgd.py", "_new_pair"),
-    "new column of W (CGS2, projections)": ("contact/pgd.py", "_coordinates"),
-    "compaction of W": ("contact/pgd.py", "_compact"),
+    "time functions (P3)": ("contact/pgd.py", "_time_functions"),
+    "residual norms (P3)": ("contact/pgd.py", "_residual_norm"),
+    "new pair (P3: fixed point, CGS2 against U)": ("contact/pgd.py", "_new_pair"),
+    "new column of W (P3: CGS2, projections)": ("contact/pgd.py", "_coordinates"),
+    "time functions (PGD)": ("contact/blockpgd.py", "_time_functions"),
+    "sketches E Omega (PGD: rule and block)": ("contact/blockpgd.py", "_sketch"),
+    "block into W (PGD: CGS2, SVQB, projections)": ("contact/blockpgd.py",
+                                                    "_block_coordinates"),
+    "compaction of W (PGD)": ("contact/blockpgd.py", "_compact"),
     "StreamCompressor.add": ("streamsvd/stream.py", "add"),
     "StreamCompressor.expansion": ("streamsvd/stream.py", "expansion"),
-    "projections on U": ("contact/pgd.py", "_project"),
+    "projections on U (P3)": ("contact/pgd.py", "_project"),
+    "projections on U (PGD)": ("contact/blockpgd.py", "_project"),
     "indicator": ("contact/globalstage.py", "indicator"),
 }
 
@@ -318,11 +323,16 @@ def plot_scale(rows, path):
     axes[1].set_ylabel("iterations to indicator 1e-4")
     axes[2].set_ylabel("space modes")
     axes[3].set_ylabel("peak resident memory of the process (MB)")
-    for ax in axes:
+    from matplotlib.ticker import LogFormatter, NullLocator
+
+    for i, ax in enumerate(axes):
         ax.set_xscale("log")
-        ax.set_yscale("log")
         ax.set_xticks(x, labels, fontsize=7, rotation=15)
-        ax.minorticks_off()
+        ax.xaxis.set_minor_locator(NullLocator())
+        if i < 3:  # CPU time, iterations and modes on log scales, minor ticks labelled
+            ax.set_yscale("log")
+            ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False,
+                                                      minor_thresholds=(2, 0.4)))
         ax.set_xlabel("scene (free and prescribed dofs x instants)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)

@@ -66,7 +66,7 @@ import scipy.linalg as sla
 from streamsvd import Expansion, StreamCompressor
 
 from .globalstage import GlobalStage
-from .pgd import _bordered, free_metric, full_metric
+from .pgd import free_metric, full_metric
 
 __all__ = ["BlockPGD", "ENRICH_RULES"]
 
@@ -94,10 +94,10 @@ class BlockPGD:
         Columns of the random sketch per enrichment (space modes added at most).
     power : int
         Subspace iterations of the range finder.
-    enrich : {"progress", "always", "sketch"}
+    enrich : {"departure", "stall", "always"}
         Enrichment rule.
-    stall : float
-        Threshold of the rule (a ratio of indicators).
+    enrich_tol : float
+        Threshold of the rule (a ratio of indicators; see the module docstring).
     seed : int
         Seed of the Gaussian sketches.
     """
@@ -121,6 +121,7 @@ class BlockPGD:
         self.Uc = np.zeros((0, 0))
         self.V = np.zeros((m, 0))
         self.compressor: Any = None
+        self.V_c = np.zeros((m, 0))  # the compressor's time functions
         self.cap = 0
         self.compactions = 0
         self.enrichments = 0
@@ -225,15 +226,15 @@ class BlockPGD:
         return out
 
     def _block_coordinates(self, X: np.ndarray) -> np.ndarray:
-        """Return the coordinates in ``W`` of an M-orthonormal basis of the part of
-        ``span X`` that is M-orthogonal to ``U = W Uc``, after extending ``W``.
+        """Return the ``W``-coordinates of an M-orthonormal basis of ``span X`` minus ``U``.
 
-        ``X`` is split (CGS2 in ``M``) into its coordinates ``C`` in ``W`` and a rest
-        ``R`` outside ``span W``; an M-orthonormal basis of ``span R`` (SVQB, twice) is
-        appended to ``W``. The projection against ``U`` and the orthonormalisation of the
-        block are then products of small coordinate matrices (on ``span W`` the
-        Euclidean product of the coordinates is ``M``). Directions of ``X`` within
-        ``_IN_BASIS`` of ``span U`` are dropped.
+        The basis spans the part of ``span X`` M-orthogonal to ``U = W Uc``, and ``W`` is
+        extended first as needed. ``X`` is split (CGS2 in ``M``) into its coordinates
+        ``C`` in ``W`` and a rest ``R`` outside ``span W``; an M-orthonormal basis of
+        ``span R`` (SVQB, twice) is appended to ``W``. The projection against ``U`` and
+        the orthonormalisation of the block are then products of small coordinate
+        matrices (on ``span W`` the Euclidean product of the coordinates is ``M``).
+        Directions of ``X`` within ``_IN_BASIS`` of ``span U`` are dropped.
         """
         M, W = self.M, self.W
         MX = M @ X
@@ -295,8 +296,8 @@ class BlockPGD:
         wanted, X = self._wants_block(Z, V)
         if wanted:
             more = self.block - (0 if X is None else X.shape[1])
-            if more > 0:
-                Y = self._sketch(Z, V, self.rng.standard_normal((Z.shape[1], more)))
+            if X is None or more > 0:
+                Y = self._sketch(Z, V, self.rng.standard_normal((Z.shape[1], max(more, 0))))
                 X = Y if X is None else np.column_stack([X, Y])
             if self.compressor is None or self.W.shape[1] + self.block > self.cap:
                 self._restart(self.block)

@@ -346,8 +346,6 @@ def _solve(
 
         variant = SeparatedField(
             stage,
-            compress=False,
-            trunc=trunc,
             enrich_ratio=enrich_ratio,
             fixed_point=fixed_point,
         )
