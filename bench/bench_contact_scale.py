@@ -392,7 +392,7 @@ def main(argv=None):
         if args.only:
             cases = {k: v for k, v in cases.items() if any(o in k for o in args.only)}
         rows = scale_study(cases, args.level, args.max_iter, trace=not args.no_trace,
-                           repeat=args.repeat)
+                           repeat=1 if args.quick else args.repeat)
         result["scale"] = rows
         (out / "scale.json").write_text(json.dumps(rows, indent=1))
         plot_scale(rows, out / "scale.png")
