@@ -47,7 +47,7 @@ def fixed_subspace_floor(P, modes, iterations):
     """Iterate LATIN with the separated global stage on ``modes`` (free dofs, M-orthonormal)."""
     k = contact.default_search_direction(P)
     stage = GlobalStage(P, k)
-    field = _FixedBasis(stage, compress=False, trunc=0.0, enrich_ratio=0.5, fixed_point=4)
+    field = _FixedBasis(stage, enrich_ratio=0.5, fixed_point=4)
     for j in range(modes.shape[1]):
         field._append(modes[:, j])
     field.Uc = np.eye(modes.shape[1])

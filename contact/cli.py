@@ -38,10 +38,11 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--tol", type=float, default=1e-6, help="stopping indicator (1e-6)")
     b.add_argument("--level", type=float, default=1e-4,
                    help="indicator level of the CPU-time comparison (1e-4)")
-    b.add_argument("--trunc", type=float, default=1e-4,
-                   help="relative truncation of LATIN-PGD, in the indicator's metric (1e-4)")
-    b.add_argument("--fine-trunc", type=float, default=1e-6,
-                   help="second LATIN-PGD run with this truncation; 0 to skip (1e-6)")
+    b.add_argument("--trunc", type=float, default=None,
+                   help="relative truncation of LATIN-PGD, in the indicator's metric "
+                        "(default: tol / 10, with which it reaches tol)")
+    b.add_argument("--fine-trunc", type=float, default=1e-5,
+                   help="second LATIN-PGD run with this truncation; 0 to skip (1e-5)")
     b.add_argument("--max-iter", type=int, default=400, help="iterations per method (400)")
     b.add_argument("--quiet", action="store_true",
                    help="only warnings on stderr (no progress messages, no progress bar) "
@@ -146,7 +147,7 @@ def _table(summary: dict[str, Any]) -> str:
     for the basis of the full-field method.
     """
     head = (f"{'method':<28s} {'iter':>5s} {'it@lvl':>6s} {'cpu@lvl(s)':>10s} "
-            f"{'basis':>5s} {'opt':>4s} {'mem(kB)':>8s} {'err u':>9s}")
+            f"{'basis':>5s} {'opt':>4s} {'mem(kB)':>8s} {'err u':>9s} {'err f':>9s}")
     lines = [head, "-" * len(head)]
     never, full = [], []
     for r in summary["table"]:
@@ -163,9 +164,15 @@ def _table(summary: dict[str, Any]) -> str:
             f"{'-' if cpu is None else f'{cpu:.3f}':>10s} "
             f"{'full' if basis is None else str(basis):>5s} "
             f"{r['optimal_svd_size']:>4d} {r['memory_bytes'] / 1e3:>8.1f} "
-            f"{r['error_u_vs_reference']:>9.2e}"
+            f"{r['error_u_vs_reference']:>9.2e} {r['error_lambda_vs_reference']:>9.2e}"
         )
     lines.append(f"full space-time field: {summary['full_field_bytes'] / 1e3:.1f} kB")
+    lines.append(f"iter: iterations run (to --tol {summary['tol']:g} or --max-iter); it@lvl, "
+                 f"cpu@lvl: to indicator {summary['level']:g} (process time, setup "
+                 "included); basis: final space modes; opt: optimal SVD size of the "
+                 "reference correction at the method's truncation (in the indicator "
+                 "metric); mem: displacement representation; err u, err f: relative "
+                 "errors of the displacements and contact forces against the reference")
     for method in never:
         lines.append(f"{method}: it@lvl 'never', cpu@lvl '-': the indicator did not reach "
                      f"the level {summary['level']:g} within the iterations run")

@@ -31,7 +31,9 @@ import scipy.sparse.linalg as spla
 from .errors import ProblemError
 from .problem import Problem
 
-__all__ = ["BandedCholesky", "GlobalStage", "default_search_direction", "indicator"]
+__all__ = [
+    "BandedCholesky", "GlobalStage", "default_search_direction", "indicator", "indicator_parts",
+]
 
 
 class BandedCholesky:
@@ -175,3 +177,20 @@ def indicator(
     num = np.sum(Lc * (k * (w - w_hat) ** 2 + (lam - lam_hat) ** 2 / k))
     den = np.sum(Lc * (k * (w + w_hat) ** 2 + (lam + lam_hat) ** 2 / k)) / 4.0
     return float(np.sqrt(num / den)) if den > 0 else float(np.sqrt(num))
+
+
+
+def indicator_parts(
+    w: np.ndarray, lam: np.ndarray, w_hat: np.ndarray, lam_hat: np.ndarray,
+    L: np.ndarray, k: float,
+) -> tuple[float, float]:
+    """Return the indicator ``eta`` of :func:`indicator` and its denominator ``D``.
+
+    ``D = ||(s + s_hat) / 2||_k``; LATIN-PGD's enrichment rule compares the departure of
+    its reduced global stage, ``||d||_{M_c} / D``, with ``eta``.
+    """
+    Lc = L[:, None]
+    num = np.sum(Lc * (k * (w - w_hat) ** 2 + (lam - lam_hat) ** 2 / k))
+    den = np.sum(Lc * (k * (w + w_hat) ** 2 + (lam + lam_hat) ** 2 / k)) / 4.0
+    eta = float(np.sqrt(num / den)) if den > 0 else float(np.sqrt(num))
+    return eta, float(np.sqrt(den))

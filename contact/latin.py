@@ -8,9 +8,11 @@
   displacement field (one back-substitution per instant and iteration);
 * ``"latin-p3"`` -- P3: the displacement correction is a sum of orthonormal space modes
   times time functions (:mod:`contact.pgd`);
-* ``"latin-pgd"`` -- P3 where every iteration's change is added to a
-  :class:`streamsvd.StreamCompressor`, which runs one rotation sweep with truncation in
-  the indicator's metric.
+* ``"latin-pgd"`` -- P3 with block enrichment (:mod:`contact.blockpgd`): every iteration
+  updates all time functions on the basis; when the reduced stage departs from the full
+  one, a block of space modes from a randomized range finder is added and a
+  :class:`streamsvd.StreamCompressor` compresses the expansion (one rotation sweep,
+  truncation in the indicator's metric).
 
 Each iteration ``i``: local stage ``s_hat_i`` from ``s_{i-1}`` (direction E+), global stage
 ``s_i`` from ``s_hat_i`` (direction E-), indicator ``eta_i`` between ``s_i`` and
@@ -32,7 +34,7 @@ from streamsvd import Expansion
 
 from ._threads import blas_threads as limit_blas_threads
 from .errors import SolverOptionError
-from .globalstage import GlobalStage, default_search_direction, indicator
+from .globalstage import GlobalStage, default_search_direction, indicator_parts
 from .local import local_stage
 from .problem import Problem
 
@@ -41,6 +43,8 @@ __all__ = ["METHODS", "IterationState", "LatinResult", "solve"]
 log = logging.getLogger(__name__)
 
 METHODS = ("latin", "latin-p3", "latin-pgd")
+# the default truncation of LATIN-PGD is tol / TRUNC_PER_TOL (see `solve`)
+TRUNC_PER_TOL = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,6 +190,25 @@ class _FullField:
         return {}
 
 
+def _check_pgd_options(block: int, power: int, enrich: str,
+                       enrich_tol: float | None) -> dict[str, Any]:
+    from .blockpgd import ENRICH_RULES, ENRICH_TOL
+
+    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+        raise SolverOptionError(f"`block` must be a positive integer; got {block!r}.")
+    if isinstance(power, bool) or not isinstance(power, (int, np.integer)) or power < 0:
+        raise SolverOptionError(f"`power` must be a non-negative integer; got {power!r}.")
+    if enrich not in ENRICH_RULES:
+        raise SolverOptionError(f"`enrich` must be one of {ENRICH_RULES}; got {enrich!r}.")
+    if enrich_tol is None:
+        enrich_tol = ENRICH_TOL[enrich]
+    elif not (isinstance(enrich_tol, (int, float)) and enrich_tol > 0):
+        raise SolverOptionError(
+            f"`enrich_tol` must be a positive number; got {enrich_tol!r}.")
+    return {"block": int(block), "power": int(power), "enrich": enrich,
+            "enrich_tol": float(enrich_tol)}
+
+
 def _check_options(
     problem: Problem, method: str, tol: float, max_iter: int, k: float | None
 ) -> tuple[str, float, int, float]:
@@ -215,9 +238,13 @@ def solve(
     max_iter: int = 2000,
     k: float | None = None,
     callback: Callable[[IterationState], Any] | None = None,
-    trunc: float = 1e-4,
+    trunc: float | None = None,
     enrich_ratio: float = 0.5,
     fixed_point: int = 4,
+    block: int = 32,
+    power: int = 0,
+    enrich: str = "departure",
+    enrich_tol: float | None = None,
     blas_threads: int | None = 1,
 ) -> LatinResult:
     """Solve a frictional contact problem with a LATIN variant.
@@ -240,19 +267,32 @@ def solve(
     callback : callable, optional
         ``callback(state)`` with an :class:`IterationState` after every iteration;
         returning ``True`` stops the iteration.
-    trunc : float
-        ``"latin-pgd"`` only: after each sweep the compressor drops the terms with
+    trunc : float, optional
+        ``"latin-pgd"`` only: at every enrichment the compressor drops the terms with
         ``||v_i|| < trunc * ||v_1||`` (``||v_1||`` the largest amplitude; the paper's
         threshold ``eps`` of Algorithm 3 made relative), the space modes being
         orthonormal in the indicator metric (:func:`contact.indicator_metric`), see
-        :mod:`contact.pgd`. On the billet, reaching an indicator ``eta`` takes about
-        ``trunc = eta / 10`` (``contact/README.md``).
+        :mod:`contact.blockpgd`. Default ``tol / 10``: on the billet, reaching an
+        indicator ``eta`` takes about ``trunc = eta / 10`` (``contact/README.md``); finer
+        meshes need less (``1e-7`` for ``eta = 1e-4`` at refine 8).
     enrich_ratio : float
-        Separated methods: a new space-time pair is computed when the time-function update
+        ``"latin-p3"``: a new space-time pair is computed when the time-function update
         leaves a residual ``||R|| > enrich_ratio * ||R_before||``, ``R_before`` the
         residual of the previous iterate against the new right-hand side.
     fixed_point : int
-        Separated methods: alternating space/time iterations for a new pair.
+        ``"latin-p3"``: alternating space/time iterations for a new pair.
+    block : int
+        ``"latin-pgd"``: Gaussian columns of the randomized range finder, the most space
+        modes one enrichment adds.
+    power : int
+        ``"latin-pgd"``: subspace iterations of the range finder (0: plain sketch).
+    enrich : {"departure", "stall", "always"}
+        ``"latin-pgd"``: when to enrich. ``"departure"``: when a 4-column sketch
+        estimates that the reduced global stage departs from the full one by more than
+        ``enrich_tol`` (default 0.03) times the last indicator; ``"stall"``: when
+        ``eta_i > enrich_tol * eta_{i-1}`` (default 0.9); ``"always"``: every iteration.
+    enrich_tol : float, optional
+        ``"latin-pgd"``: threshold of the rule ``enrich``.
     blas_threads : int or None
         BLAS threads during the solve (None leaves the thread pool alone); the products
         are small, so one thread is the fastest on this problem size.
@@ -266,15 +306,18 @@ def solve(
     method, tol, max_iter, k = _check_options(problem, method, tol, max_iter, k)
     if not (isinstance(enrich_ratio, (int, float)) and 0 < enrich_ratio <= 1):
         raise SolverOptionError(f"`enrich_ratio` must be in (0, 1]; got {enrich_ratio!r}.")
-    if not (isinstance(trunc, (int, float)) and 0 <= trunc < 1):
+    if trunc is not None and not (isinstance(trunc, (int, float)) and 0 <= trunc < 1):
         raise SolverOptionError(f"`trunc` must be in [0, 1); got {trunc!r}.")
     if isinstance(fixed_point, bool) or not isinstance(fixed_point, int) or fixed_point < 1:
         raise SolverOptionError(
             f"`fixed_point` must be a positive integer; got {fixed_point!r}."
         )
+    pgd = _check_pgd_options(block, power, enrich, enrich_tol)
+    if trunc is None:
+        trunc = tol / TRUNC_PER_TOL
     with limit_blas_threads(blas_threads):
         return _solve(problem, method, tol, max_iter, k, callback, trunc, enrich_ratio,
-                      fixed_point)
+                      fixed_point, pgd)
 
 
 def _solve(
@@ -287,19 +330,22 @@ def _solve(
     trunc: float,
     enrich_ratio: float,
     fixed_point: int,
+    pgd: dict[str, Any],
 ) -> LatinResult:
     c0 = time.process_time()
     stage = GlobalStage(problem, k)
     variant: Any
     if method == "latin":
         variant = _FullField(stage)
+    elif method == "latin-pgd":
+        from .blockpgd import BlockPGD
+
+        variant = BlockPGD(stage, trunc=trunc, **pgd)
     else:
         from .pgd import SeparatedField
 
         variant = SeparatedField(
             stage,
-            compress=(method == "latin-pgd"),
-            trunc=trunc,
             enrich_ratio=enrich_ratio,
             fixed_point=fixed_point,
         )
@@ -324,7 +370,9 @@ def _solve(
         w_hat, lam_hat = local_stage(w, lam, k=k, gaps=P.gaps, mu=P.mu)
         w = variant.update(stage.rhs_data(w_hat, lam_hat))
         lam = stage.tractions(w, w_hat, lam_hat)
-        eta = indicator(w, lam, w_hat, lam_hat, Lc, k)
+        eta, den = indicator_parts(w, lam, w_hat, lam_hat, Lc, k)
+        if hasattr(variant, "record"):
+            variant.record(eta, den)
         cpus.append(time.process_time() - c0)
         walls.append(time.perf_counter() - t0)
         etas.append(eta)

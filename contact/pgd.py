@@ -1,4 +1,4 @@
-r"""Space-time separated global stage (LATIN principle P3), with or without compression.
+r"""LATIN-P3's separated global stage, and the indicator metric shared with LATIN-PGD.
 
 The correction ``y = u - u_lift`` on the free dofs is kept as ``Y = U V^T``: ``U``
 (nf x p) space modes, orthonormal in the *indicator metric* ``M`` below, and ``V``
@@ -61,16 +61,9 @@ products and back-substitutions), its CGS2 against ``W`` (``O(nf w)``) and its
 projections. :attr:`SeparatedField.nf_columns` records, per iteration, how many nf-sized
 vectors went through a product (a product with an ``nf x j`` matrix counts ``j``).
 
-With compression (``"latin-pgd"``), the :class:`streamsvd.StreamCompressor` works in the
-coordinates of ``W`` (its snapshots have ``cap >= w`` entries; on ``span W`` the
-Euclidean inner product of the coordinates is ``M``): the change of the time functions
-``V[:, :p] - V_old`` is an in-basis increment (``add(..., coefficients=...)``,
-``O(m p^2)``), the new pair is the one column of the same ``add``; then one rotation sweep
-of Algorithm 3 (``rule="paper"``) and the truncation ``rtol=trunc``. The compressor's
-expansion gives the new ``U_c, V``. When ``W`` is full (``w = cap``) it is compacted,
-``W <- W U_c`` (``O(nf w p)``, once every ``cap - p`` new columns at least), and a new
-compressor continues from the current expansion; the error bounds and discarded
-energies of the successive compressors add up.
+``"latin-pgd"`` keeps the same representation but enriches it by blocks and compresses
+it with a :class:`streamsvd.StreamCompressor` (:mod:`contact.blockpgd`), which reuses the
+metric functions of this module.
 
 Residual norms are computed from the small matrices, or block of instants by block when
 cancellation requires it (the residual below ``1e-5 ||G Z||``; counted in
@@ -131,15 +124,11 @@ def free_metric(stage: GlobalStage) -> sp.csr_matrix:
 
 
 class SeparatedField:
-    """Separated global stage used by ``"latin-p3"`` and ``"latin-pgd"``.
+    """Separated global stage of ``"latin-p3"`` (one pair per enrichment, no truncation).
 
     Parameters
     ----------
     stage : GlobalStage
-    compress : bool
-        Feed every change through a :class:`streamsvd.StreamCompressor`.
-    trunc : float
-        Relative truncation threshold of the compressor (in the metric ``M``).
     enrich_ratio : float
         Residual reduction below which the preliminary step is enough.
     fixed_point : int
@@ -155,14 +144,10 @@ class SeparatedField:
         self,
         stage: GlobalStage,
         *,
-        compress: bool,
-        trunc: float,
         enrich_ratio: float,
         fixed_point: int,
     ) -> None:
         self.stage = stage
-        self.compress = compress
-        self.trunc = trunc
         self.enrich_ratio = enrich_ratio
         self.fixed_point = fixed_point
         nf, m = len(stage.free), stage.problem.m
@@ -177,16 +162,10 @@ class SeparatedField:
         # the modes U = W Uc and their time functions
         self.Uc = np.zeros((0, 0))
         self.V = np.zeros((m, 0))
-        self.compressor: Any = None
-        self.cap = 0
-        self.compactions = 0
         self.enrichments = 0
         self.direct_residuals = 0
         self.nf_columns: list[int] = []
         self._work = 0
-        self._error_bound = 0.0  # of the compressors already replaced
-        self._discarded = 0.0
-        self._updates: list[Any] = []
         self._project()
 
     # ------------------------------------------------------------------ helpers
@@ -237,18 +216,6 @@ class SeparatedField:
         self.WAAW = _bordered(self.WAAW, waaq)
         self.GtAW = np.column_stack([self.GtAW, s.G.T @ Aq])
         self.CW = np.column_stack([self.CW, s.Cf @ q])
-
-    def _compact(self) -> None:
-        """Replace ``W`` by ``U = W Uc`` (the directions cut by truncation are dropped)."""
-        Uc = self.Uc
-        self._work += self.W.shape[1]
-        self.W = self.W @ Uc
-        self.WAW = Uc.T @ self.WAW @ Uc
-        self.WAAW = Uc.T @ self.WAAW @ Uc
-        self.GtAW = self.GtAW @ Uc
-        self.CW = self.CW @ Uc
-        self.Uc = np.eye(Uc.shape[1])
-        self.compactions += 1
 
     def _time_functions(self, Z: np.ndarray) -> np.ndarray:
         if self.Uc.shape[1] == 0:
@@ -343,8 +310,6 @@ class SeparatedField:
             new = self._new_pair(Z, V)
         if new is not None:
             self.enrichments += 1
-            if self.compress and self.W.shape[1] >= self.cap:
-                self._restart()
             c = self._coordinates(new)
             Uc = np.zeros((self.W.shape[1], p + 1))
             Uc[: self.Uc.shape[0], :p] = self.Uc
@@ -352,44 +317,9 @@ class SeparatedField:
             self.Uc = Uc
             self._project()
             V = self._time_functions(Z)
-        if self.compress:
-            self._absorb(V[:, p:], V[:, :p] - V_old)
-        else:
-            self.V = V
+        self.V = V
         self.nf_columns.append(self._work)
         return self.CU @ self.V.T + self.stage.w_lift
-
-    def _restart(self) -> None:
-        """Compact ``W`` and continue with a new compressor of room ``2 p + 16``."""
-        import streamsvd
-
-        if self.compressor is not None:
-            self._error_bound += float(self.compressor.error_bound)
-            self._discarded += float(self.compressor.discarded_energy)
-            self._updates.extend(self.compressor.history)
-            self._compact()
-        p = self.Uc.shape[1]
-        self.cap = min(2 * p + 16, self.W.shape[0])
-        self.compressor = streamsvd.StreamCompressor(
-            self.cap, rtol=self.trunc, sweeps=1, rule="paper"
-        )
-
-    def _absorb(self, new_V: np.ndarray, dV: np.ndarray) -> None:
-        """One compressor update: the in-basis increment ``dV`` and the new pair, if any."""
-        if self.compressor is None:  # no mode yet
-            self.V = np.column_stack([self.V + dV, new_V])
-            return
-        p = dV.shape[1]
-        coords = np.zeros((self.cap, self.Uc.shape[1]))
-        coords[: self.Uc.shape[0]] = self.Uc
-        if self.compressor.rank == 0:  # the first update of this compressor
-            self.compressor.add(coords, np.column_stack([self.V + dV, new_V]))
-        else:
-            self.compressor.add(coords[:, p:], new_V, coefficients=dV)
-        e = self.compressor.expansion
-        self.Uc = np.array(e.U[: self.W.shape[1]])
-        self.V = np.array(e.V)
-        self._project()
 
     def finish(self) -> dict[str, Any]:
         """Return the counters and the final expansion (embedded in all dofs)."""
@@ -400,15 +330,9 @@ class SeparatedField:
         info: dict[str, Any] = {
             "expansion": Expansion(U, self.V, inner=full_metric(s, self.M)),
             "enrichments": self.enrichments,
-            "compactions": self.compactions,
             "direct_residuals": self.direct_residuals,
             "nf_columns": np.array(self.nf_columns, dtype=int),
         }
-        if self.compressor is not None:
-            info["error_bound"] = self._error_bound + float(self.compressor.error_bound)
-            info["discarded_energy"] = self._discarded + float(
-                self.compressor.discarded_energy)
-            info["compressor_history"] = tuple(self._updates) + self.compressor.history
         return info
 
 

@@ -92,70 +92,100 @@ def test_svd_sizes_in_the_metric_by_both_definitions(metric_svd):
     assert contact.svd_modes(y).sizes(1e-4) != sizes
 
 
-def test_latin_pgd_reaches_the_reference_solution_to_its_truncation(
-        billet_reference, metric_svd):
+def test_latin_pgd_reaches_the_reference_solution(billet_reference, metric_svd):
     P, R = billet_reference
     _, _, svd = metric_svd
-    trunc = 1e-5
-    L = contact.solve(P, "latin-pgd", tol=1e-4, max_iter=400, trunc=trunc)
+    # at eta = 1e-4, LATIN's own contact forces are 4e-3 from the reference; 2e-5 brings
+    # them within 1e-3 (contact/README.md)
+    L = contact.solve(P, "latin-pgd", tol=2e-5, max_iter=400)
     assert L.converged
-    assert rel(L.displacement(), R.u) < 1e-5
+    assert rel(L.displacement(), R.u) < 2e-4
     assert rel(L.lam_hat, R.lam) < 1e-3  # contact forces
     e = L.correction
     # the modes are orthonormal in the indicator metric
     assert e.orthogonality_error() < 1e-10
     assert np.all(e.U[P.dirichlet_dofs] == 0)
-    # the basis size follows the optimal SVD size in that metric at the same level
-    opt = svd.sizes(trunc)
-    assert abs(L.basis_size[-1] - opt["sigma_ratio"]) <= 0.1 * opt["sigma_ratio"]
-    assert abs(L.basis_size[-1] - opt["tail_energy"]) <= 0.1 * opt["tail_energy"]
+    # the final expansion is the SVD of the last iterate cut at the truncation (by
+    # default tol / 10): its size is the optimal one in the metric at that level, to 10%
+    assert e.rank <= 1.1 * svd.rank(2e-6)
+
+
+def test_latin_pgd_follows_latin_with_a_quasi_optimal_basis(billet_reference, metric_svd):
+    P, R = billet_reference
+    _, _, svd = metric_svd
+    latin = contact.solve(P, "latin", tol=1e-4)
+    pgd = contact.solve(P, "latin-pgd", tol=1e-4, max_iter=400)
+    assert pgd.converged
+    # the reduced global stage departs little from the full one: LATIN's iterations
+    assert pgd.iterations <= 1.15 * latin.iterations
+    # blocks of modes, a few enrichments (not one pair per iteration)
+    assert pgd.info["enrichments"] <= pgd.iterations / 4
+    assert pgd.info["pairs_added"] > pgd.info["enrichments"]
+    # at the same indicator, as close to the reference as LATIN
+    assert rel(pgd.lam_hat, R.lam) < 1.5 * rel(latin.lam_hat, R.lam)
+    # trunc = tol / 10 by default; the basis is the optimal size at that level (64
+    # exact SVD modes are needed to reach 1e-4, contact/README.md)
+    opt = svd.sizes(1e-5)
+    assert pgd.correction.rank <= 1.1 * opt["sigma_ratio"]
+    assert max(pgd.basis_size) <= 1.25 * opt["sigma_ratio"]  # before the final cut
+    assert pgd.info["error_bound"] > 0
 
 
 def test_pgd_basis_fits_the_svd_while_p3_overshoots(billet_reference, metric_svd):
     P, R = billet_reference
     _, _, opt = metric_svd
     p3 = contact.solve(P, "latin-p3", tol=1e-4, max_iter=400)
-    pgd = contact.solve(P, "latin-pgd", tol=1e-4, max_iter=150, trunc=1e-4)
-    n_opt = opt.rank(1e-4)
-    # at truncation 1e-4 the basis size oscillates by a term or two between iterations
-    # and the indicator levels off above 1e-4 (see contact/README.md): the claim is about
-    # the typical size, the median of the last 20 iterations
-    assert abs(np.median(pgd.basis_size[-20:]) - n_opt) <= max(2, 0.1 * n_opt)
-    assert p3.basis_size[-1] > 1.5 * n_opt
+    pgd = contact.solve(P, "latin-pgd", tol=1e-4, max_iter=120, trunc=1e-4, block=16)
+    n_opt = opt.sizes(1e-4)
+    # a fixed truncation at 1e-4 keeps the basis at the optimal size of that level, and
+    # the indicator levels off above 1e-4: no fixed basis of that size reaches it
+    # (contact/README.md, "What a basis of p modes can reach"); blocks of 16 do not
+    # move it enough either
+    assert n_opt["sigma_ratio"] <= np.median(pgd.basis_size[-20:]) <= n_opt["tail_energy"]
+    assert not pgd.converged and pgd.indicator.min() > 1.1e-4
+    assert p3.basis_size[-1] > 1.5 * n_opt["sigma_ratio"]
     # the leading PGD modes are the leading SVD modes in the metric (MAC close to 1)
     M = contact.mac(pgd.correction.U[:, :5], opt.space[:, :5])
     assert np.all(np.diag(M) > 0.9)
 
 
-@pytest.mark.parametrize(("method", "trunc"), [("latin-p3", 0.0), ("latin-pgd", 1e-6)])
-def test_an_iteration_touches_nf_sized_vectors_only_for_a_new_pair(method, trunc):
+def test_latin_p3_touches_nf_sized_vectors_only_for_a_new_pair():
     P = contact.billet(dt=0.02)
     fixed_point = 4
-    L = contact.solve(P, method, tol=1e-4, max_iter=300, trunc=trunc,
-                      fixed_point=fixed_point)
+    L = contact.solve(P, "latin-p3", tol=1e-4, max_iter=300, fixed_point=fixed_point)
     work = L.info["nf_columns"]
     assert work.shape == (L.iterations,)
     # the residual norms came from the small projections (no direct recomputation,
     # which only happens below 1e-5 of the right-hand side)
     assert L.info["direct_residuals"] == 0
-    # a new pair: the fixed point, CGS2 against W and the projections of one new column,
-    # each a bounded number of products with W (w <= 2 p + 16 columns for latin-pgd)
-    w_max = 2 * int(L.basis_size.max()) + 16 if method == "latin-pgd" else L.iterations
-    per_pair = (2 * fixed_point + 13) * w_max + 6 * fixed_point + 30
+    # a new pair: the fixed point, CGS2 against W and the projections of one new column
+    per_pair = (2 * fixed_point + 13) * L.iterations + 6 * fixed_point + 30
     assert np.all(work <= per_pair)
-    if method == "latin-p3":
-        # an iteration without a new pair only multiplies small projections
-        grew = np.diff(np.concatenate([[0], L.basis_size])) > 0
-        assert np.any(~grew)
-        assert np.all(work[~grew] == 0)
-    else:
-        # every compressor update is an in-basis increment plus at most one pair, except
-        # the first update of each compressor (one more after each compaction of W)
-        history = L.info["compressor_history"]
-        assert all(h.kind == "add" for h in history)
-        assert sum(h.columns > 1 for h in history) <= L.info["compactions"] + 1
-        assert sum(h.new_directions for h in history) <= L.info["enrichments"] + sum(
-            h.columns for h in history if h.columns > 1)
+    # an iteration without a new pair only multiplies small projections
+    grew = np.diff(np.concatenate([[0], L.basis_size])) > 0
+    assert np.any(~grew)
+    assert np.all(work[~grew] == 0)
+
+
+@pytest.mark.parametrize("enrich", ["departure", "stall"])
+def test_latin_pgd_touches_nf_sized_vectors_only_to_enrich(enrich):
+    P = contact.billet(dt=0.02)
+    L = contact.solve(P, "latin-pgd", tol=1e-4, max_iter=300, enrich=enrich, block=8)
+    assert L.converged
+    work = L.info["nf_columns"]
+    assert work.shape == (L.iterations,)
+    history = L.info["compressor_history"]
+    # one compressor update per enrichment, and one to finish (the last time functions
+    # in the basis, then the converged cut)
+    assert [h.kind for h in history[-2:]] == ["add", "finalize"]
+    assert all(h.kind == "add" for h in history[:-1])
+    assert len(history) == L.info["enrichments"] + 2
+    # between enrichments: no nf-sized product ("stall"), or the 4-column sketch of the
+    # departure rule (4 solves and their right-hand sides, one product with W, whose
+    # columns are at most 3 p / 2 + 2 block + 16)
+    assert L.info["enrichments"] < L.iterations / 2
+    limit = 0 if enrich == "stall" else 2 * 4 + 3 * int(L.basis_size.max()) // 2 + 32
+    assert np.sum(work > limit) <= L.info["enrichments"]
 
 
 def test_callback_receives_every_iteration_and_can_stop():
@@ -211,6 +241,10 @@ def test_max_iter_gives_an_unconverged_result():
         ({"enrich_ratio": 2.0}, r"`enrich_ratio` must be in \(0, 1\]"),
         ({"trunc": 1.0}, r"`trunc` must be in \[0, 1\)"),
         ({"fixed_point": 0}, "`fixed_point` must be a positive integer"),
+        ({"block": 0}, "`block` must be a positive integer"),
+        ({"power": -1}, "`power` must be a non-negative integer"),
+        ({"enrich": "often"}, "`enrich` must be one of"),
+        ({"enrich_tol": 0.0}, "`enrich_tol` must be a positive number"),
     ],
 )
 def test_solve_rejects_bad_options(kwargs, match):
