@@ -47,7 +47,6 @@ BLAS threads against one thread.
 from __future__ import annotations
 
 import argparse
-import inspect
 import math
 import os
 import statistics
@@ -67,7 +66,6 @@ from _common import REPO_ROOT, machine_info, out_dir, print_table, pyplot, write
 DEFAULT_CACHE = REPO_ROOT / "bench" / "data" / "hapod"
 TARGETS = (1e-2, 1e-3, 1e-4)
 OMEGA = 0.9
-STREAM_SHARE = 0.5  # streamsvd today: the absolute cut while streaming, as a fraction of eps
 
 
 # --------------------------------------------------------------------------- the streamsvd route
@@ -76,33 +74,21 @@ STREAM_SHARE = 0.5  # streamsvd today: the absolute cut while streaming, as a fr
 def run_streamsvd(blocks: Any, opts: dict[str, Any]) -> tuple[np.ndarray, float]:
     """Stream ``blocks`` through streamsvd; return the left vectors and the error bound.
 
-    ``opts``: ``n``, ``inner`` and either ``target`` (a mean-l2 error, with ``m`` the
-    number of snapshots) or ``max_rank``. With ``target_error`` in the signature of
-    :class:`streamsvd.StreamCompressor` it is used directly; otherwise the route of today:
-    a converged Jacobi core, an absolute cut at ``STREAM_SHARE * target`` while streaming
-    (at most ``m`` terms are cut, so the streamed error stays below ``STREAM_SHARE`` of the
-    budget ``target * sqrt(m)`` up to the coupling terms of the bound), ``finalize()``, then
-    the fewest terms whose tail fits in what the bound leaves of the budget.
+    ``opts``: ``n``, ``inner`` and either ``target`` (a mean-l2 error: the compressor's
+    ``target_error`` with ``error_measure="mean_l2"``) or ``max_rank``. The core is
+    converged at every update (Jacobi rule) and ``finalize()`` makes the last cut.
     """
     import streamsvd as ss
 
     kw: dict[str, Any] = {"inner": opts.get("inner"), "rule": "jacobi", "sweeps": None}
     target = opts.get("target")
-    new_api = "target_error" in inspect.signature(ss.StreamCompressor).parameters
     if target is None:
         sc = ss.StreamCompressor(opts["n"], max_rank=opts["max_rank"], **kw)
-    elif new_api:
-        sc = ss.StreamCompressor(opts["n"], target_error=target, error_measure="mean_l2", **kw)
     else:
-        sc = ss.StreamCompressor(opts["n"], eps=STREAM_SHARE * target, **kw)
+        sc = ss.StreamCompressor(opts["n"], target_error=target, error_measure="mean_l2", **kw)
     for block in blocks:
         sc.absorb(block)
     sc.finalize()
-    if target is not None and not new_api:
-        left = target * math.sqrt(opts["m"]) - sc.error_bound
-        tail = np.sqrt(np.cumsum((sc.amplitudes**2)[::-1])[::-1])  # tail[k] = ||a[k:]||
-        k = int(np.argmax(np.append(tail, 0.0) <= max(left, 0.0)))  # all kept if none fits
-        sc.finalize(max_rank=max(k, 1))
     return sc.left_vectors, sc.error_bound
 
 
@@ -534,7 +520,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     cases = [c for c in args.cases.split(",") if c]
     repeat = 1 if args.quick else args.repeat
     data: dict[str, Any] = {"machine": machine_info(), "targets": list(TARGETS),
-                            "omega": OMEGA, "stream_share": STREAM_SHARE, "repeat": repeat,
+                            "omega": OMEGA, "repeat": repeat,
                             "quick": args.quick, "cases": {}}
     try:
         import pymor
@@ -542,10 +528,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         data["pymor"] = pymor.__version__
     except ImportError as e:
         raise SystemExit("pyMOR is needed: pip install -e '.[bench]'") from e
-    import streamsvd as ss
-
-    data["streamsvd_target_error"] = "target_error" in inspect.signature(
-        ss.StreamCompressor).parameters
     workers = Workers()
     try:
         for case in cases:

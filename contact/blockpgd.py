@@ -66,7 +66,7 @@ import scipy.linalg as sla
 from streamsvd import Expansion, StreamCompressor
 
 from .globalstage import GlobalStage
-from .pgd import free_metric, full_metric
+from .pgd import free_metric, full_metric, mode_former
 
 __all__ = ["BlockPGD", "ENRICH_RULES"]
 
@@ -144,14 +144,7 @@ class BlockPGD:
 
     def modes(self) -> Callable[[], np.ndarray]:
         """Return a function forming this iteration's modes (``W``, ``Uc`` are replaced)."""
-        W, Uc = self.W, self.Uc
-
-        def form() -> np.ndarray:
-            b = W @ Uc
-            b.setflags(write=False)
-            return b
-
-        return form
+        return mode_former(self.W, self.Uc)
 
     def record(self, eta: float, den: float) -> None:
         """Receive the indicator of the iteration just run and its denominator ``D``."""

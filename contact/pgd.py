@@ -123,6 +123,21 @@ def free_metric(stage: GlobalStage) -> sp.csr_matrix:
     return sp.csr_matrix(contact_part + METRIC_BETA * stage.A)
 
 
+
+def mode_former(W: np.ndarray, Uc: np.ndarray) -> Callable[[], np.ndarray]:
+    """Return a function forming the modes ``W Uc`` (read-only) of one iteration.
+
+    The solvers replace ``W`` and ``Uc`` rather than modify them, so the function keeps
+    giving the modes of the iteration it was made in.
+    """
+
+    def form() -> np.ndarray:
+        b = W @ Uc
+        b.setflags(write=False)
+        return b
+
+    return form
+
 class SeparatedField:
     """Separated global stage of ``"latin-p3"`` (one pair per enrichment, no truncation).
 
@@ -185,14 +200,7 @@ class SeparatedField:
         ``W`` and ``Uc`` are replaced, never modified in place, so it keeps giving this
         iteration's modes.
         """
-        W, Uc = self.W, self.Uc
-
-        def form() -> np.ndarray:
-            b = W @ Uc
-            b.setflags(write=False)
-            return b
-
-        return form
+        return mode_former(self.W, self.Uc)
 
     def _project(self) -> None:
         """Projections of the modes ``U = W Uc`` (small products only)."""

@@ -377,8 +377,9 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("out", metavar="OUT",
                      help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
 
-    plot = reader("plot", help="amplitudes, energy and orthogonality as PNG",
-                  description="Plot the amplitudes, the cumulative energy and the "
+    plot = reader("plot", help="amplitudes, error bound against k, orthogonality as PNG",
+                  description="Plot the amplitudes, the error bound against the terms "
+                  "kept (log scale, with the target when there is one) and the "
                   "orthogonality history of a basis store.")
     plot.add_argument("out", metavar="OUT",
                       help="output image, .png (or .pdf, .svg); overwritten if it exists")
@@ -923,7 +924,7 @@ def _export(args: Any) -> int:
 
 
 def _figure(sc: Any, *, name: str) -> Any:
-    """Draw the amplitudes, cumulative energy and orthogonality history of a compressor.
+    """Draw the amplitudes, the error bound against k and the orthogonality history.
 
     Parameters
     ----------
@@ -953,12 +954,30 @@ def _figure(sc: Any, *, name: str) -> Any:
     ax[0].semilogy(terms, amps, "k.-", ms=4)
     ax[0].set(xlabel="term i", ylabel="amplitude ||v_i|| (units of the data)",
               title="amplitudes")
-    energy = np.cumsum(amps**2)
-    total = energy[-1] + sc.discarded_energy if energy.size else 1.0
-    ax[1].plot(terms, energy / total if total > 0 else energy, "b.-", ms=4)
-    ax[1].set(xlabel="terms kept", ylabel="kept energy / total energy",
-              title="cumulative energy (the total includes the cut energy)")
-    ax[1].set_ylim(0, 1.02)
+    # the bound after cutting to k terms (the terms are orthogonal at convergence):
+    # hypot(bound, ||amplitudes k+1 ...||), in the measure of the target
+    scale = float(amps.max()) if amps.size else 1.0
+    a = amps / scale if scale > 0 else amps
+    tail = np.sqrt(np.append(np.cumsum((a**2)[::-1])[::-1], 0.0))[1:] * scale
+    bound_k = np.hypot(sc.error_bound, tail)
+    measure = sc.error_measure if sc.target_error is not None else "relative"
+    if measure == "mean_l2":
+        shown, label = bound_k / np.sqrt(max(sc.n_seen, 1)), "bound on the mean l2 error"
+    elif measure == "absolute":
+        shown, label = bound_k, "bound on ||A - U_k V_k^T||_F"
+    else:
+        kept = np.sqrt(np.cumsum(a**2)) * scale
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shown = np.where(kept > bound_k, bound_k / (kept - bound_k), np.inf)
+        label = "bound on ||A - U_k V_k^T||_F / ||A||_F"
+    ax[1].semilogy(terms, np.maximum(shown, 1e-300), "b.-", ms=4, label="cut to k terms")
+    if sc.target_error is not None:
+        ax[1].axhline(sc.target_error, color="0.3", ls="--", lw=1,
+                      label=f"target {sc.target_error:.1e}")
+    ax[1].set(xlabel="terms kept k", ylabel=f"{label} (dimensionless)" if measure != "absolute"
+              else f"{label} (units of the data)", title="error bound against k")
+    if amps.size:
+        ax[1].legend(loc="best", fontsize="small")
     updates = np.arange(1, len(hist) + 1)
     orth = [max(h.orthogonality, 1e-18) for h in hist]
     ax[2].semilogy(updates, orth, "r.-", ms=8, label="after each update")

@@ -487,6 +487,9 @@ def _rounds(
             break
         sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(W.T @ Fc) * weight, axis=1)
         big = (lam >= _COND_SPLIT * lam[0]) & (sizes > half_tol)
+        # every round resolves at least its largest direction (the column rule rejects it
+        # if it is too small), so the rounds end
+        big[0] = True
         if big.any():
             Qb = _mm(Zc, W[:, big] / np.sqrt(lam[big]))
             L2 = np.linalg.cholesky(_gram(Qb, inner))

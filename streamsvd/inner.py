@@ -189,9 +189,19 @@ class MatrixInner:
             )
         self.matrix = mat
         self.n = mat.shape[0]
+        # a sparse matrix with nothing off its diagonal (a lumped mass matrix, cell
+        # volumes) is applied as weights: the product is exact, and column-major blocks
+        # are not copied to row-major as the sparse product needs
+        self._weights = (
+            diag.reshape(-1, 1)
+            if sp.issparse(mat) and mat.nnz == np.count_nonzero(diag)
+            else None
+        )
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Return ``M @ X``."""
+        if self._weights is not None:
+            return X * (self._weights if X.ndim == 2 else self._weights[:, 0])
         return np.asarray(self.matrix @ X)
 
     def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:

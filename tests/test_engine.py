@@ -173,7 +173,8 @@ def test_bound_stays_finite_for_amplitudes_up_to_1e300(rng):
 
 
 _OPS = st.lists(
-    st.tuples(st.sampled_from(["absorb", "absorb_near", "add", "add_coef", "merge"]),
+    st.tuples(st.sampled_from(["absorb", "absorb_near", "add", "add_coef", "merge",
+                               "merge_near"]),
               st.integers(1, 6), st.integers(0, 2**31 - 1)),
     min_size=1, max_size=8,
 )
@@ -181,7 +182,8 @@ _OPS = st.lists(
 
 @settings(max_examples=40, deadline=None)
 @given(ops=_OPS, weighted=st.booleans(), rule=st.sampled_from(["paper", "jacobi"]),
-       trunc=st.sampled_from([{"max_rank": 4}, {"rtol": 1e-2}, {"eps": 1e-1}, {}]),
+       trunc=st.sampled_from([{"max_rank": 4}, {"rtol": 1e-2}, {"eps": 1e-1}, {},
+                              {"target_error": 1e-2}]),
        reject_tol=st.sampled_from([None, 1e-6, 1e-3]))
 def test_error_bound_holds_after_every_operation(ops, weighted, rule, trunc, reject_tol):
     n = 40
@@ -212,9 +214,14 @@ def test_error_bound_holds_after_every_operation(ops, weighted, rule, trunc, rej
             else:
                 sc.add(Uk, Vk)
                 A = A + Uk @ Vk.T
-        elif op == "merge":
-            other = ss.StreamCompressor(n, inner=inner, rule=rule, sweeps=1, **trunc)
+        elif op in ("merge", "merge_near"):
+            other = ss.StreamCompressor(n, inner=inner, rule=rule, sweeps=1,
+                                        reject_tol=reject_tol, **trunc)
             B = r.standard_normal((n, 2)) @ r.standard_normal((2, k + 2))
+            if op == "merge_near" and sc.rank:  # the other's terms nearly in the basis:
+                # the merge rejects their residuals
+                Un = sc.left_vectors[:, :2]
+                B = Un @ r.standard_normal((Un.shape[1], k + 2)) + 1e-5 * B
             other.absorb(B[:, :2])
             other.absorb(B[:, 2:])
             state = (other.expansion.U.copy(), other.expansion.V.copy(), other.error_bound)
