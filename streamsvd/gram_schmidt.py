@@ -534,13 +534,22 @@ def _column_rule(
         d = np.abs(np.diag(Rz))
         if np.all(d > thresh):  # triangular: the residual of column k is |R_kk|
             return np.ones(b, dtype=bool), np.eye(s)
+    # each column's smallest coefficients, which together stay within half of its own
+    # threshold, are left out of the decision: they cannot change it, and the rounding
+    # they carry would otherwise tilt the span of the accepted columns (the kept
+    # directions and the rejected part are then taken from Rz itself, in full)
+    mags = Rz * Rz
+    order = np.argsort(mags, axis=0, kind="stable")
+    small = np.cumsum(np.take_along_axis(mags, order, axis=0), axis=0) <= (0.5 * thresh) ** 2
+    clean = Rz.copy()
+    np.put_along_axis(clean, order, np.where(small, 0.0, np.take_along_axis(Rz, order, 0)), 0)
     accepted = np.zeros(b, dtype=bool)
     B = np.zeros((s, min(s, b)))
     r = 0
     for k in range(b):
         if ref[k] <= 0 or r == s:
             continue
-        v = Rz[:, k].copy()
+        v = clean[:, k].copy()
         for _ in range(2):
             v -= B[:, :r] @ (B[:, :r].T @ v)
         rho = float(np.linalg.norm(v))

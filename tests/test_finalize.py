@@ -118,7 +118,10 @@ def test_oversampling_is_checked_and_old_stores_keep_their_cap():
         ss.StreamCompressor(5, max_rank=2, oversampling=2.5)
     assert ss.StreamCompressor(5, oversampling=3).streaming_rank is None
     # a store of this layout written before the option existed truncated every update
-    assert stored_options({"options": {"max_rank": 4}}) == {"oversampling": 0, "max_rank": 4}
+    # (and one written before target errors existed has none)
+    assert stored_options({"options": {"max_rank": 4}}) == {
+        "oversampling": 0, "max_rank": 4, "target_error": None, "error_measure": "relative",
+        "streaming_share": 0.9}
     assert stored_options({"options": {"max_rank": 4, "oversampling": 7}})["oversampling"] == 7
 
 
