@@ -1,0 +1,475 @@
+"""The store handle: :class:`BasisStore` and :func:`open_store`.
+
+A thin handle: it checks the root and the pointer on opening
+(:mod:`~streamsvd.store.format`), reads through :mod:`~streamsvd.store.reading`, plans
+what a commit writes (:mod:`streamsvd.segments`) and hands it to its
+:class:`~streamsvd.store.commit.Writer`, which owns the fence, the pointer switch and the
+collector.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import weakref
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import numpy as np
+
+from .._validation import check_positive_int
+from ..errors import InputError, StoreError, StoreFormatError, StoreMismatchError
+from ..segments import Appended, Piece, plan_appended, plan_whole
+from ..storage import Storage, open_storage
+from . import collector
+from .commit import Writer
+from .create import create_store
+from .format import (
+    DEFAULT_CHUNK_BYTES,
+    NAME_RE,
+    POINTER_NAME,
+    StoreState,
+    attrs_digest,
+    check_dtype,
+    check_fingerprint,
+    lock_key,
+    named,
+    normalise_attrs,
+    prepare_arrays,
+    read_generation_doc,
+    read_pointer,
+    read_root,
+)
+from .reading import load_generation, read_current
+
+logger = logging.getLogger("streamsvd.store")
+
+
+class BasisStore:
+    """A versioned, crash-safe basis store in a zarr v3 group (a directory or an object store).
+
+    Open one with :func:`open_store` or create one with :meth:`BasisStore.create`; see
+    :mod:`streamsvd.store` for the layout and the guarantees. A store opened for writing
+    holds the writer lock (the lease, on an object store) until :meth:`close` (also
+    called on leaving a ``with`` block).
+
+    Parameters
+    ----------
+    path : str, os.PathLike or Storage
+        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
+        :func:`streamsvd.storage.open_storage`.
+    mode : {"r", "a"}
+        ``"r"`` to read only (no lock taken), ``"a"`` to read and commit (takes the
+        writer lock).
+    n, dtype, inner_fingerprint : optional
+        Expected snapshot size, dtype and inner-product fingerprint; checked.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``, ...).
+
+    Raises
+    ------
+    StoreFormatError
+        ``path`` is not a basis store, is damaged, or has another format version.
+    StoreMismatchError
+        The store's ``n``, ``dtype`` or ``inner_fingerprint`` differs from the one passed.
+    StoreLockedError
+        ``mode="a"`` and another live writer holds the lock.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str] | Storage,
+        mode: Literal["r", "a"] = "r",
+        *,
+        n: int | None = None,
+        dtype: Any = None,
+        inner_fingerprint: str | None = None,
+        storage_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        storage = open_storage(path, storage_options=storage_options)
+        if mode not in ("r", "a"):
+            raise InputError(
+                f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
+            )
+        expected = {
+            "n": check_positive_int(n, "n", allow_none=True),
+            "dtype": None if dtype is None else check_dtype(dtype),
+            "inner_fingerprint": None if inner_fingerprint is None
+            else check_fingerprint(inner_fingerprint),
+        }
+        attrs, _pointer, _tag = read_root(storage)
+        for key, want in expected.items():
+            if want is not None and attrs[key] != want:
+                raise StoreMismatchError(
+                    f"`{key}` must match the store {named(storage)}: expected {want!r}, "
+                    f"found {attrs[key]!r}. Open the store that belongs to this problem, "
+                    "or create a new one."
+                )
+        lock = None
+        if mode == "a":
+            lock = storage.lock(lock_key(storage))
+            lock.acquire()
+        try:
+            attrs, pointer, tag = read_root(storage)  # as it is now that the lock is held
+            self._setup(storage, mode, attrs, lock, pointer["generation"],
+                        pointer.get("previous"), Writer(storage, lock, attrs, tag)
+                        if lock is not None else None)
+            if self._writer is not None:
+                collector.clean_leftovers(self._writer.fence, self._keep())
+        except BaseException:
+            if lock is not None:
+                lock.release()
+            raise
+
+    def _setup(self, storage: Storage, mode: str, attrs: dict[str, Any], lock: Any,
+               generation: int, previous: int | None, writer: Writer | None) -> None:
+        self._storage = storage
+        self._path = named(storage)
+        self._mode = mode
+        self._root_attrs = dict(attrs)
+        self._lock = lock
+        self._writer = writer
+        self._closed = False
+        self._generation = generation
+        self._previous = previous
+        self._docs: dict[int, dict[str, Any]] = {}  # attributes of retained generations
+        self._written: dict[str, int] = {}
+        self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
+
+    def _keep(self) -> collector.Keep:
+        return collector.Keep(self._generation, self._previous, self._docs)
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str] | Storage,
+        *,
+        n: int,
+        dtype: Any = "float64",
+        inner_fingerprint: str,
+        attrs: Mapping[str, Any] | None = None,
+        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        storage_options: Mapping[str, Any] | None = None,
+    ) -> BasisStore:
+        """Create a new store at ``path`` and return it opened for writing (generation 0).
+
+        Parameters
+        ----------
+        path : str, os.PathLike or Storage
+            A directory (or ``file://`` URL) that does not exist yet or is empty, an
+            ``s3://`` URL under which nothing is stored yet, or a storage. Leftovers of
+            an interrupted creation are replaced; a store that ever committed never is.
+        n : int
+            Snapshot size (the number of rows of ``U``).
+        dtype : {"float64", "float32"}
+            Dtype in which every array is stored; committed arrays are cast to it.
+        inner_fingerprint : str
+            Fingerprint of the inner product (``inner.fingerprint``).
+        attrs : dict, optional
+            JSON-able attributes of generation 0.
+        chunk_bytes : int
+            Target size of one uncompressed chunk.
+        storage_options : dict, optional
+            Options of the fsspec file system of a URL.
+
+        Returns
+        -------
+        BasisStore
+            The store, opened with mode ``"a"`` (it holds the writer lock).
+
+        Raises
+        ------
+        StoreError
+            A store already exists at ``path``, ``path`` is a file or holds other files,
+            or writing failed (then nothing is left behind; the message names the step).
+        StoreLockedError
+            Another process is creating or writing a store at ``path``.
+        """
+        storage = open_storage(path, storage_options=storage_options)
+
+        def opened(storage: Storage, root_attrs: dict[str, Any], lock: Any, writer: Writer,
+                   user_attrs: dict[str, Any]) -> BasisStore:
+            self = cls.__new__(cls)
+            self._setup(storage, "a", root_attrs, lock, -1, None, writer)
+            self._write_generation(0, {}, [], user_attrs)
+            return self
+
+        self = create_store(storage, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+                            attrs=attrs, chunk_bytes=chunk_bytes, opened=opened)
+        logger.info("created basis store %s (n=%d, dtype=%s)", self.path, self.n, self.dtype)
+        return self
+
+    # --------------------------------------------------------------- properties
+
+    @property
+    def path(self) -> Path | str:
+        """Directory of the store (a Path), or its URL on an object store."""
+        return self._path
+
+    @property
+    def mode(self) -> str:
+        """``"r"`` (read only) or ``"a"`` (read and commit)."""
+        return self._mode
+
+    @property
+    def format_version(self) -> int:
+        """Format version of the store layout."""
+        return int(self._root_attrs["format_version"])
+
+    @property
+    def generation(self) -> int:
+        """Number of the current generation, as last seen by this handle."""
+        return self._generation
+
+    @property
+    def n(self) -> int:
+        """Snapshot size recorded at creation."""
+        return int(self._root_attrs["n"])
+
+    @property
+    def dtype(self) -> str:
+        """Dtype of the stored arrays."""
+        return str(self._root_attrs["dtype"])
+
+    @property
+    def inner_fingerprint(self) -> str:
+        """Fingerprint of the inner product recorded at creation."""
+        return str(self._root_attrs["inner_fingerprint"])
+
+    @property
+    def root_attrs(self) -> dict[str, Any]:
+        """Root attributes (format, version, n, dtype, fingerprint, created, ...)."""
+        return dict(self._root_attrs)
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    @property
+    def last_written(self) -> dict[str, int]:
+        """Elements written per array name by the last :meth:`commit` of this handle."""
+        return dict(self._written)
+
+    # -------------------------------------------------------------------- reading
+
+    def read(self, *, generation: int | None = None) -> StoreState:
+        """Read the current generation (or the retained previous one), checksums verified.
+
+        A reader (mode ``"r"``) whose generation is collected during the read reads the
+        new pointer's, for as long as the pointer moves; only a generation that fails to
+        verify while the pointer names it is damaged.
+
+        Raises
+        ------
+        StoreFormatError
+            The generation is missing or damaged; the previous generation is not
+            substituted silently (the message names the last readable one).
+        """
+        self._check_open()
+        state, pointer = read_current(self._storage, self._load, generation,
+                                      retry=self._mode == "r")
+        self._generation = pointer["generation"]
+        previous = pointer.get("previous")
+        self._previous = previous if isinstance(previous, int) else None
+        return state
+
+    def _load(self, k: int, attrs_sha256: str | None) -> StoreState:
+        hint = (
+            f"The previous generation is kept: read it with `store.read(generation="
+            f"{self._previous})` and commit it again, or restore the store from a copy."
+            if self._previous is not None and self._previous != k
+            else None
+        )
+        state, doc = load_generation(self._storage, k, attrs_sha256, self._root_attrs,
+                                     hint=hint)
+        self._docs[k] = doc
+        return state
+
+    # --------------------------------------------------------------------- writing
+
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        attrs: Mapping[str, Any] | None = None,
+        *,
+        appended: Mapping[str, Appended] | None = None,
+    ) -> int:
+        """Write ``arrays`` and ``attrs`` as a new generation and make it current.
+
+        The switch is atomic: a reader, or a process reopening the store after this one
+        was killed at any instant, sees the previous generation or the new one, whole.
+        If the commit fails, the previous generation stays current and intact.
+
+        Parameters
+        ----------
+        arrays : dict of str to array_like
+            Named real 1-D or 2-D arrays, each written whole (cast to the store's dtype,
+            finite).
+        attrs : dict, optional
+            JSON-able attributes of the generation.
+        appended : dict of str to Appended, optional
+            Arrays that keep the unchanged part of the same array of the current
+            generation and write only the rest (:class:`~streamsvd.segments.Appended`).
+
+        Returns
+        -------
+        int
+            Number of the new generation.
+
+        Raises
+        ------
+        StoreError
+            The store is read-only or closed, or writing failed.
+        StoreLockedError
+            The lock was taken over by another writer meanwhile (nothing was written).
+        """
+        self._check_open()
+        if self._mode != "a":
+            raise StoreError(
+                f"`store` {self._path} was opened read-only (mode='r'); commit needs "
+                "mode='a'. Reopen it with `open_store(path, mode='a')`."
+            )
+        dtype = np.dtype(self.dtype)
+        prepared = prepare_arrays(arrays, dtype)
+        user_attrs = normalise_attrs(attrs)
+        k = self._generation + 1
+        records: dict[str, Any] = {}
+        pieces: list[Piece] = []
+        for name, arr in prepared.items():
+            records[name], new = plan_whole(arr, generation=k)
+            pieces += new
+        if appended:
+            if not isinstance(appended, Mapping):
+                raise InputError(
+                    f"`appended` must be a dict mapping names to Appended; got "
+                    f"{type(appended).__name__}."
+                )
+            current = self._current_doc()["streamsvd"]["arrays"] if any(
+                getattr(v, "unchanged", 0) for v in appended.values()
+            ) else {}
+            seal = int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES))
+            for name, value in appended.items():
+                if not isinstance(name, str) or not NAME_RE.match(name) or name in records:
+                    raise InputError(
+                        f"`appended` keys must be identifiers not used in `arrays`; got "
+                        f"{name!r}. Rename the array."
+                    )
+                records[name], new = plan_appended(
+                    name, value, current.get(name), generation=k, dtype=dtype,
+                    seal_bytes=seal,
+                )
+                pieces += new
+        self._write_generation(k, records, pieces, user_attrs)
+        return k
+
+    def _current_doc(self) -> dict[str, Any]:
+        """Attributes of the current generation (its digest checked against the pointer)."""
+        k = self._generation
+        doc = self._docs.get(k)
+        if doc is None:
+            doc = read_generation_doc(self._storage, k)
+            if doc is None or attrs_digest(doc) != read_pointer(self._storage)["attrs_sha256"]:
+                raise StoreFormatError(
+                    f"`path` {self._path} is damaged: the attributes of the current "
+                    f"generation {k} cannot be read or do not match {POINTER_NAME}, so "
+                    "nothing can be appended to it. Restore the store from a copy."
+                )
+            self._docs[k] = doc
+        return doc
+
+    def _write_generation(self, k: int, records: dict[str, Any], pieces: list[Piece],
+                          user_attrs: dict[str, Any]) -> None:
+        writer = self._writer
+        if writer is None:  # pragma: no cover - commit checks the mode first
+            raise StoreError(f"`store` {self._path} was opened read-only (mode='r').")
+        previous = self._generation if self._generation >= 0 else None
+        adopted: list[dict[str, Any]] = []
+
+        def adopt(doc: dict[str, Any], pointer: dict[str, Any], written: dict[str, int]) -> None:
+            self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
+            self._docs[k] = doc
+            self._previous, self._generation, self._written = previous, k, written
+            adopted.append(pointer)
+            logger.debug("committed generation %d of %s (%s)", k, self._path, written)
+
+        writer.write_generation(k, records, pieces, user_attrs, previous, adopt)
+        writer.after_switch(k, adopted[0], self._keep())
+
+    # --------------------------------------------------------------------- closing
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StoreError(
+                f"`store` {self._path} is closed. Open it again with `open_store(path)`."
+            )
+
+    def close(self) -> None:
+        """Release the writer lock (if held); the handle cannot be used afterwards."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._finalizer is not None:
+            self._finalizer()
+
+    def __enter__(self) -> BasisStore:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"mode={self._mode!r}"
+        return (
+            f"BasisStore({str(self._path)!r}, {state}, generation={self._generation}, "
+            f"n={self.n}, dtype={self.dtype!r})"
+        )
+
+
+def open_store(
+    path: str | os.PathLike[str] | Storage,
+    mode: Literal["r", "a"] = "r",
+    *,
+    n: int | None = None,
+    dtype: Any = None,
+    inner_fingerprint: str | None = None,
+    storage_options: Mapping[str, Any] | None = None,
+) -> BasisStore:
+    """Open an existing basis store.
+
+    Parameters
+    ----------
+    path : str, os.PathLike or Storage
+        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
+        :func:`streamsvd.storage.open_storage`.
+    mode : {"r", "a"}
+        ``"r"`` to read only (no lock is taken), ``"a"`` to read and commit (takes the
+        writer lock; leftovers of interrupted commits are deleted).
+    n, dtype, inner_fingerprint : optional
+        Expected snapshot size, stored dtype and inner-product fingerprint; each one
+        given is checked against the store.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...); the ``AWS_*`` environment variables apply too.
+
+    Returns
+    -------
+    BasisStore
+        The open store; use it as a context manager or call :meth:`BasisStore.close`.
+
+    Raises
+    ------
+    StoreFormatError
+        ``path`` is not a basis store, is damaged, or has another format version.
+    StoreMismatchError
+        An expectation differs from what the store holds.
+    StoreLockedError
+        ``mode="a"`` and another live writer holds the lock.
+    """
+    return BasisStore(
+        path, mode, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+        storage_options=storage_options,
+    )
