@@ -22,6 +22,7 @@ from ..locks import LOCK_NAME
 from .fence import Fence
 from .format import (
     MARKER_NAME,
+    attrs_digest,
     POINTER_NAME,
     gen_key,
     gen_name,
@@ -41,6 +42,7 @@ class Keep:
     current: int
     previous: int | None
     docs: dict[int, dict[str, Any]] = field(default_factory=dict)
+    current_sha256: str | None = None  # the pointer's checksum of the current attributes
 
 
 def retained(fence: Fence, keep: Keep) -> set[int] | None:
@@ -49,7 +51,13 @@ def retained(fence: Fence, keep: Keep) -> set[int] | None:
     for g in (keep.current, keep.previous):
         if g is None:
             continue
-        doc = keep.docs.get(g) or read_generation_doc(fence.storage, g)
+        doc = keep.docs.get(g)
+        if doc is None:
+            doc = read_generation_doc(fence.storage, g)
+            marker = read_marker(fence.storage, g) or {}
+            want = keep.current_sha256 if g == keep.current else marker.get("attrs_sha256")
+            if doc is not None and want is not None and attrs_digest(doc) != want:
+                doc = None  # damaged attributes: their segment lists cannot be trusted
         if doc is None:
             logger.warning(
                 "generation %d of %s cannot be read; keeping every older generation",

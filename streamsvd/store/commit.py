@@ -30,7 +30,8 @@ from ..errors import StoreError, StoreLockedError
 from ..segments import Piece, pack
 from ..storage import Storage, remote_errors
 from . import collector
-from .fence import Fence, crash_point
+from . import fence as _fence
+from .fence import Fence
 from .format import (
     DEFAULT_CHUNK_BYTES,
     FORMAT,
@@ -76,7 +77,7 @@ def _write_pack(
     for i, (name, blob) in enumerate(encode_pack(data, doc, chunk_bytes).items()):
         fence.create(f"{path}/{name}", blob)
         if i == 0:
-            crash_point("pack-started")
+            _fence.crash_point("pack-started")
     fence.storage.sync_dir(path)
 
 
@@ -160,14 +161,14 @@ class Writer:
                 self.fence, gkey, data, doc,
                 int(self.root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
             )
-            crash_point("pack-written")
+            _fence.crash_point("pack-written")
             if not self.lock.owned():
                 raise StoreLockedError(
                     f"`store` {self.path} lost its writer lock to {self.lock.holder()}; "
                     f"generation {k} was not committed. Make sure a single writer opens the "
                     "store."
                 )
-            crash_point("before-switch")
+            _fence.crash_point("before-switch")
             self.switch(pointer, k)
         except BaseException as exc:
             if not self.pointer_is(pointer):
@@ -200,15 +201,15 @@ class Writer:
 
         A failure here leaves the commit standing; it is logged.
         """
-        crash_point("switched")
         try:
+            _fence.crash_point("switched")
             self.fence.create(
                 f"{gen_key(k)}/{MARKER_NAME}", json.dumps(pointer, indent=2).encode()
             )
-            crash_point("marked")
+            _fence.crash_point("marked")
             if self.pointer_is(pointer):
                 collector.collect(self.fence, keep)
-            crash_point("collected")
+            _fence.crash_point("collected")
         except (*self.failures, FileExistsError) as exc:
             logger.warning(
                 "generation %d of %s was committed; recording it or collecting older "

@@ -12,7 +12,6 @@ leftovers of an interrupted creation (root metadata, a lock, an uncommitted gene
 from __future__ import annotations
 
 import contextlib
-import errno
 import logging
 from collections.abc import Mapping
 from typing import Any
@@ -20,7 +19,7 @@ from typing import Any
 import zarr
 from zarr.storage import MemoryStore
 
-from ..errors import StoreError
+from ..errors import StoreError, StoreLockedError
 from ..storage import Storage, remote_errors
 from .commit import Writer
 from .format import (
@@ -126,13 +125,13 @@ def create_store(
                     "removing %s/%s, left by an interrupted store creation", root, entry
                 )
                 writer.fence.delete(entry)
+        written.append(GENERATIONS)
         for key, blob in _root_documents(root_attrs).items():
             step = f"writing {key}"
             written.append(key)
             writer.fence.create(key, blob)
         storage.sync_dir(GENERATIONS)
         step = "writing generation 0 and its pointer"
-        written.append(GENERATIONS)
         return opened(storage, root_attrs, lock, writer, user_attrs)
     except BaseException as exc:
         if writer is not None and writer.switched:  # the pointer exists: the store stands (an interrupt after it)
@@ -145,12 +144,11 @@ def create_store(
         if not existed:
             with contextlib.suppress(OSError, *remote_errors()):
                 storage.delete("") if not storage.list() else None
-        if isinstance(exc, StoreError) or not isinstance(exc, (OSError, *remote_errors())):
+        if isinstance(exc, StoreLockedError) or not isinstance(exc, (OSError, *remote_errors())):
             raise
-        full = " (the disk is full: free space)" if getattr(exc, "errno", None) == errno.ENOSPC \
-            else ""
+        cause = exc.__cause__ if isinstance(exc, StoreError) and exc.__cause__ else exc
         raise StoreError(
-            f"`path` {root}: creating the store failed while {step} ({exc}){full}; "
+            f"`path` {root}: creating the store failed while {step} ({cause}); "
             "nothing was left behind. Fix the cause and run the command again."
         ) from exc
 

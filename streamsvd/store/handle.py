@@ -117,7 +117,9 @@ class BasisStore:
                         pointer.get("previous"), Writer(storage, lock, attrs, tag)
                         if lock is not None else None)
             if self._writer is not None:
-                collector.clean_leftovers(self._writer.fence, self._keep())
+                keep = self._keep()
+                keep.current_sha256 = pointer["attrs_sha256"]
+                collector.clean_leftovers(self._writer.fence, keep)
         except BaseException:
             if lock is not None:
                 lock.release()
