@@ -1,4 +1,4 @@
-"""What ``streamsvd ingest`` does with STORE: create it, continue it, or refuse; and undo a failed start.
+"""What ``streamsvd ingest`` does with STORE: create, continue or refuse it; undo a failed start.
 
 * :func:`resuming`: with ``--resume``, a STORE that holds a store (it has a pointer, or
   has ever committed: a generation above 0, even with its pointer missing) is continued

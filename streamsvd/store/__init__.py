@@ -117,6 +117,8 @@ with an expiry after which a dead writer's lease is taken over
 
 from __future__ import annotations
 
+from ..locks import LOCK_NAME
+from ..segments import Appended
 from .create import check_creatable
 from .fence import CRASH_POINTS, crash_point
 from .format import (
@@ -132,8 +134,6 @@ from .format import (
 )
 from .handle import BasisStore, open_store
 from .reading import CheckReport, check_store
-from ..locks import LOCK_NAME
-from ..segments import Appended
 
 __all__ = [
     "CRASH_POINTS",

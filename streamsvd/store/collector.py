@@ -22,8 +22,8 @@ from ..locks import LOCK_NAME
 from .fence import Fence
 from .format import (
     MARKER_NAME,
-    attrs_digest,
     POINTER_NAME,
+    attrs_digest,
     gen_key,
     gen_name,
     generations,
@@ -46,7 +46,7 @@ class Keep:
 
 
 def retained(fence: Fence, keep: Keep) -> set[int] | None:
-    """Generations the current and previous ones use; None if one cannot be read."""
+    """Return the generations the current and previous ones use (None: one is unreadable)."""
     out: set[int] = {keep.current} | ({keep.previous} if keep.previous is not None else set())
     for g in (keep.current, keep.previous):
         if g is None:

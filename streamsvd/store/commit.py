@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -26,8 +26,8 @@ import zarr
 import zarr.codecs
 from zarr.storage import MemoryStore
 
-from ..errors import StoreError, StoreLockedError
-from ..segments import Piece, pack
+from ..errors import InputError, StoreError, StoreLockedError
+from ..segments import Appended, Piece, pack, plan_appended, plan_whole
 from ..storage import Storage, remote_errors
 from . import collector
 from . import fence as _fence
@@ -37,11 +37,14 @@ from .format import (
     FORMAT,
     FORMAT_VERSION,
     MARKER_NAME,
+    NAME_RE,
     POINTER_NAME,
     attrs_digest,
     gen_key,
     now,
+    prepare_arrays,
     root_record,
+    unreadable,
 )
 
 logger = logging.getLogger(__name__)
@@ -79,6 +82,48 @@ def _write_pack(
         if i == 0:
             _fence.crash_point("pack-started")
     fence.storage.sync_dir(path)
+
+
+def plan_commit(
+    arrays: Mapping[str, Any],
+    appended: Mapping[str, Appended] | None,
+    *,
+    generation: int,
+    dtype: np.dtype,
+    seal_bytes: int,
+    current: Callable[[], dict[str, Any]],
+) -> tuple[dict[str, Any], list[Piece]]:
+    """Plan generation ``generation``: the segment records of every array, the pieces to write.
+
+    ``current()`` returns the segment records of the current generation (read only when
+    an appended array keeps a part of it).
+    """
+    prepared = prepare_arrays(arrays, dtype)
+    records: dict[str, Any] = {}
+    pieces: list[Piece] = []
+    for name, arr in prepared.items():
+        records[name], new = plan_whole(arr, generation=generation)
+        pieces += new
+    if not appended:
+        return records, pieces
+    if not isinstance(appended, Mapping):
+        raise InputError(
+            f"`appended` must be a dict mapping names to Appended; got "
+            f"{type(appended).__name__}."
+        )
+    kept = current() if any(getattr(v, "unchanged", 0) for v in appended.values()) else {}
+    for name, value in appended.items():
+        if not isinstance(name, str) or not NAME_RE.match(name) or name in records:
+            raise InputError(
+                f"`appended` keys must be identifiers not used in `arrays`; got "
+                f"{name!r}. Rename the array."
+            )
+        records[name], new = plan_appended(
+            name, value, kept.get(name), generation=generation, dtype=dtype,
+            seal_bytes=seal_bytes,
+        )
+        pieces += new
+    return records, pieces
 
 
 class Writer:
@@ -210,7 +255,7 @@ class Writer:
             if self.pointer_is(pointer):
                 collector.collect(self.fence, keep)
             _fence.crash_point("collected")
-        except (*self.failures, FileExistsError) as exc:
+        except self.failures as exc:  # FileExistsError is an OSError
             logger.warning(
                 "generation %d of %s was committed; recording it or collecting older "
                 "generations failed (%s)", k, self.path, exc,
@@ -226,7 +271,7 @@ class Writer:
             seen = self.storage.get_tagged(POINTER_NAME)
             if seen is None or json.loads(seen[0]) != pointer:
                 return False
-        except (OSError, ValueError, *remote_errors()):
+        except unreadable():
             return False
         if self.storage.conditional:
             self.pointer_tag = seen[1]
@@ -243,12 +288,12 @@ class Writer:
             if seen is None:
                 return True
             named = json.loads(seen[0]).get("generation")
-        except (OSError, ValueError, AttributeError, *remote_errors()):
+        except unreadable():
             return False
         return isinstance(named, int) and named < k
 
     def pointer_changed(self, k: int) -> StoreLockedError:
-        """The error of a commit that found the pointer changed under it."""
+        """Return the error of a commit that found the pointer changed under it."""
         mine = self.fence.holds()
         who = (
             "although this writer still holds the lease: the store was changed by hand, "

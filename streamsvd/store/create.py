@@ -67,7 +67,7 @@ def check_creatable(storage: Storage) -> None:
 
 
 def _root_documents(root_attrs: dict[str, Any]) -> dict[str, bytes]:
-    """The zarr metadata of the root group and of the ``generations`` group."""
+    """Return the zarr metadata of the root group and of the ``generations`` group."""
     memory: dict[str, Any] = {}
     group = zarr.create_group(store=MemoryStore(memory), zarr_format=3,
                               attributes=dict(root_attrs))
@@ -134,7 +134,7 @@ def create_store(
         step = "writing generation 0 and its pointer"
         return opened(storage, root_attrs, lock, writer, user_attrs)
     except BaseException as exc:
-        if writer is not None and writer.switched:  # the pointer exists: the store stands (an interrupt after it)
+        if writer is not None and writer.switched:  # an interrupt after the switch: it stands
             if lock is not None:
                 lock.release()
             raise

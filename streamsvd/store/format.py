@@ -22,7 +22,7 @@ from typing import Any, cast
 import numpy as np
 
 from .._validation import check_finite, check_positive_int
-from ..errors import InputError, StoreFormatError
+from ..errors import InputError, StoreFormatError, StoreMismatchError
 from ..locks import LOCK_NAME
 from ..storage import LocalStorage, Storage, remote_errors
 
@@ -81,13 +81,18 @@ class StoreState:
 # --------------------------------------------------------------------------- helpers
 
 
+def unreadable() -> tuple[type[BaseException], ...]:
+    """Return the errors of reading a small document that is missing, damaged or unreachable."""
+    return (OSError, ValueError, AttributeError, *remote_errors())
+
+
 def now() -> str:
-    """The current UTC time, ISO 8601 to the second."""
+    """Return the current UTC time, ISO 8601 to the second."""
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 def library_version() -> str:
-    """The installed version of streamsvd."""
+    """Return the installed version of streamsvd."""
     try:
         return importlib.metadata.version("streamsvd")
     except importlib.metadata.PackageNotFoundError:
@@ -218,7 +223,7 @@ def read_generation_doc(storage: Storage, k: int) -> dict[str, Any] | None:
     """Return the attributes of generation ``k`` from its ``zarr.json`` (None if unreadable)."""
     try:
         doc = json.loads(storage.get(f"{gen_key(k)}/zarr.json"))
-    except (OSError, ValueError, *remote_errors()):
+    except unreadable():
         return None
     attrs = doc.get("attributes") if isinstance(doc, dict) else None
     meta = attrs.get("streamsvd") if isinstance(attrs, dict) else None
@@ -231,7 +236,7 @@ def read_marker(storage: Storage, k: int) -> dict[str, Any] | None:
     """Return the pointer recorded in generation ``k`` once it was committed (None if none)."""
     try:
         doc = json.loads(storage.get(f"{gen_key(k)}/{MARKER_NAME}"))
-    except (OSError, ValueError, *remote_errors()):
+    except unreadable():
         return None
     return doc if isinstance(doc, dict) and doc.get("generation") == k else None
 
@@ -256,12 +261,12 @@ def generations(storage: Storage) -> list[int]:
 
 
 def committed_generations(storage: Storage) -> list[int]:
-    """Generations above 0 (generation 0, written by the creation, holds no data)."""
+    """Return the generations above 0 (generation 0, of the creation, holds no data)."""
     return [k for k in generations(storage) if k > 0]
 
 
 def history(storage: Storage) -> str:
-    """What ``storage`` holds: ``"empty"``, ``"creation"`` (leftovers), ``"store"`` or ``"other"``.
+    """Tell what ``storage`` holds: ``"empty"``, ``"creation"``, ``"store"`` or ``"other"``.
 
     ``"store"`` is a store that has a pointer or has ever committed (a generation above
     0, or generation 0 marked as committed): such a store is never replaced. Leftovers of
@@ -364,12 +369,12 @@ def check_root_against_pointer(
 
 
 def root_record(attrs: Mapping[str, Any]) -> dict[str, Any]:
-    """The root attributes a pointer records (and checks on every open)."""
+    """Return the root attributes a pointer records (checked on every open)."""
     return {key: attrs[key] for key in ROOT_FIELDS if key in attrs}
 
 
 def missing_pointer(storage: Storage) -> StoreFormatError:
-    """The error for a store without a pointer: an interrupted creation, or damage."""
+    """Return the error for a store without a pointer: an interrupted creation, or damage."""
     path = named(storage)
     done = committed_generations(storage)
     if not done:
@@ -438,6 +443,27 @@ def read_pointer_tagged(storage: Storage) -> tuple[dict[str, Any], str]:
 def read_pointer(storage: Storage) -> dict[str, Any]:
     """Return the pointer of the store (checked)."""
     return read_pointer_tagged(storage)[0]
+
+
+def expectations(n: Any, dtype: Any, inner_fingerprint: Any) -> dict[str, Any]:
+    """Check what a caller expects of a store (None: not checked) and normalise it."""
+    return {
+        "n": check_positive_int(n, "n", allow_none=True),
+        "dtype": None if dtype is None else check_dtype(dtype),
+        "inner_fingerprint": None if inner_fingerprint is None
+        else check_fingerprint(inner_fingerprint),
+    }
+
+
+def check_expected(storage: Storage, attrs: dict[str, Any], want: dict[str, Any]) -> None:
+    """Raise :class:`StoreMismatchError` if ``n``, ``dtype`` or ``inner_fingerprint`` differ."""
+    for key, value in want.items():
+        if value is not None and attrs[key] != value:
+            raise StoreMismatchError(
+                f"`{key}` must match the store {named(storage)}: expected {value!r}, "
+                f"found {attrs[key]!r}. Open the store that belongs to this problem, "
+                "or create a new one."
+            )
 
 
 def read_root(storage: Storage) -> tuple[dict[str, Any], dict[str, Any], str]:

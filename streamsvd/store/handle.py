@@ -19,30 +19,23 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .._validation import check_positive_int
-from ..errors import InputError, StoreError, StoreFormatError, StoreMismatchError
-from ..segments import Appended, Piece, plan_appended, plan_whole
+from ..errors import InputError, StoreError
+from ..segments import Appended, Piece
 from ..storage import Storage, open_storage
 from . import collector
-from .commit import Writer
+from .commit import Writer, plan_commit
 from .create import create_store
 from .format import (
     DEFAULT_CHUNK_BYTES,
-    NAME_RE,
-    POINTER_NAME,
     StoreState,
-    attrs_digest,
-    check_dtype,
-    check_fingerprint,
+    check_expected,
+    expectations,
     lock_key,
     named,
     normalise_attrs,
-    prepare_arrays,
-    read_generation_doc,
-    read_pointer,
     read_root,
 )
-from .reading import load_generation, read_current
+from .reading import current_doc, load_generation, read_current
 
 logger = logging.getLogger("streamsvd.store")
 
@@ -53,60 +46,21 @@ class BasisStore:
     Open one with :func:`open_store` or create one with :meth:`BasisStore.create`; see
     :mod:`streamsvd.store` for the layout and the guarantees. A store opened for writing
     holds the writer lock (the lease, on an object store) until :meth:`close` (also
-    called on leaving a ``with`` block).
-
-    Parameters
-    ----------
-    path : str, os.PathLike or Storage
-        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
-        :func:`streamsvd.storage.open_storage`.
-    mode : {"r", "a"}
-        ``"r"`` to read only (no lock taken), ``"a"`` to read and commit (takes the
-        writer lock).
-    n, dtype, inner_fingerprint : optional
-        Expected snapshot size, dtype and inner-product fingerprint; checked.
-    storage_options : dict, optional
-        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``, ...).
-
-    Raises
-    ------
-    StoreFormatError
-        ``path`` is not a basis store, is damaged, or has another format version.
-    StoreMismatchError
-        The store's ``n``, ``dtype`` or ``inner_fingerprint`` differs from the one passed.
-    StoreLockedError
-        ``mode="a"`` and another live writer holds the lock.
+    called on leaving a ``with`` block). The parameters, and the errors raised on opening,
+    are those of :func:`open_store`.
     """
 
-    def __init__(
-        self,
-        path: str | os.PathLike[str] | Storage,
-        mode: Literal["r", "a"] = "r",
-        *,
-        n: int | None = None,
-        dtype: Any = None,
-        inner_fingerprint: str | None = None,
-        storage_options: Mapping[str, Any] | None = None,
-    ) -> None:
+    def __init__(self, path: str | os.PathLike[str] | Storage, mode: Literal["r", "a"] = "r", *,
+                 n: int | None = None, dtype: Any = None, inner_fingerprint: str | None = None,
+                 storage_options: Mapping[str, Any] | None = None) -> None:
         storage = open_storage(path, storage_options=storage_options)
         if mode not in ("r", "a"):
             raise InputError(
                 f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
             )
-        expected = {
-            "n": check_positive_int(n, "n", allow_none=True),
-            "dtype": None if dtype is None else check_dtype(dtype),
-            "inner_fingerprint": None if inner_fingerprint is None
-            else check_fingerprint(inner_fingerprint),
-        }
+        want = expectations(n, dtype, inner_fingerprint)
         attrs, _pointer, _tag = read_root(storage)
-        for key, want in expected.items():
-            if want is not None and attrs[key] != want:
-                raise StoreMismatchError(
-                    f"`{key}` must match the store {named(storage)}: expected {want!r}, "
-                    f"found {attrs[key]!r}. Open the store that belongs to this problem, "
-                    "or create a new one."
-                )
+        check_expected(storage, attrs, want)
         lock = None
         if mode == "a":
             lock = storage.lock(lock_key(storage))
@@ -144,25 +98,18 @@ class BasisStore:
         return collector.Keep(self._generation, self._previous, self._docs)
 
     @classmethod
-    def create(
-        cls,
-        path: str | os.PathLike[str] | Storage,
-        *,
-        n: int,
-        dtype: Any = "float64",
-        inner_fingerprint: str,
-        attrs: Mapping[str, Any] | None = None,
-        chunk_bytes: int = DEFAULT_CHUNK_BYTES,
-        storage_options: Mapping[str, Any] | None = None,
-    ) -> BasisStore:
+    def create(cls, path: str | os.PathLike[str] | Storage, *, n: int, dtype: Any = "float64",
+               inner_fingerprint: str, attrs: Mapping[str, Any] | None = None,
+               chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+               storage_options: Mapping[str, Any] | None = None) -> BasisStore:
         """Create a new store at ``path`` and return it opened for writing (generation 0).
 
         Parameters
         ----------
         path : str, os.PathLike or Storage
-            A directory (or ``file://`` URL) that does not exist yet or is empty, an
-            ``s3://`` URL under which nothing is stored yet, or a storage. Leftovers of
-            an interrupted creation are replaced; a store that ever committed never is.
+            A directory, ``file://`` or ``s3://`` URL where nothing is stored yet (the
+            leftovers of an interrupted creation are replaced; a store that ever committed
+            never is), or a storage.
         n : int
             Snapshot size (the number of rows of ``U``).
         dtype : {"float64", "float32"}
@@ -184,8 +131,8 @@ class BasisStore:
         Raises
         ------
         StoreError
-            A store already exists at ``path``, ``path`` is a file or holds other files,
-            or writing failed (then nothing is left behind; the message names the step).
+            A store or other files exist at ``path``, or writing failed (nothing is left
+            behind then; the message names the step).
         StoreLockedError
             Another process is creating or writing a store at ``path``.
         """
@@ -279,26 +226,15 @@ class BasisStore:
         return state
 
     def _load(self, k: int, attrs_sha256: str | None) -> StoreState:
-        hint = (
-            f"The previous generation is kept: read it with `store.read(generation="
-            f"{self._previous})` and commit it again, or restore the store from a copy."
-            if self._previous is not None and self._previous != k
-            else None
-        )
         state, doc = load_generation(self._storage, k, attrs_sha256, self._root_attrs,
-                                     hint=hint)
+                                     previous=self._previous)
         self._docs[k] = doc
         return state
 
     # --------------------------------------------------------------------- writing
 
-    def commit(
-        self,
-        arrays: Mapping[str, Any],
-        attrs: Mapping[str, Any] | None = None,
-        *,
-        appended: Mapping[str, Appended] | None = None,
-    ) -> int:
+    def commit(self, arrays: Mapping[str, Any], attrs: Mapping[str, Any] | None = None, *,
+               appended: Mapping[str, Appended] | None = None) -> int:
         """Write ``arrays`` and ``attrs`` as a new generation and make it current.
 
         The switch is atomic: a reader, or a process reopening the store after this one
@@ -308,13 +244,12 @@ class BasisStore:
         Parameters
         ----------
         arrays : dict of str to array_like
-            Named real 1-D or 2-D arrays, each written whole (cast to the store's dtype,
-            finite).
+            Named real 1-D or 2-D arrays, written whole (cast to the store's dtype, finite).
         attrs : dict, optional
             JSON-able attributes of the generation.
         appended : dict of str to Appended, optional
-            Arrays that keep the unchanged part of the same array of the current
-            generation and write only the rest (:class:`~streamsvd.segments.Appended`).
+            Arrays that keep the unchanged part of the current generation's and write the
+            rest (:class:`~streamsvd.segments.Appended`).
 
         Returns
         -------
@@ -334,53 +269,22 @@ class BasisStore:
                 f"`store` {self._path} was opened read-only (mode='r'); commit needs "
                 "mode='a'. Reopen it with `open_store(path, mode='a')`."
             )
-        dtype = np.dtype(self.dtype)
-        prepared = prepare_arrays(arrays, dtype)
-        user_attrs = normalise_attrs(attrs)
         k = self._generation + 1
-        records: dict[str, Any] = {}
-        pieces: list[Piece] = []
-        for name, arr in prepared.items():
-            records[name], new = plan_whole(arr, generation=k)
-            pieces += new
-        if appended:
-            if not isinstance(appended, Mapping):
-                raise InputError(
-                    f"`appended` must be a dict mapping names to Appended; got "
-                    f"{type(appended).__name__}."
-                )
-            current = self._current_doc()["streamsvd"]["arrays"] if any(
-                getattr(v, "unchanged", 0) for v in appended.values()
-            ) else {}
-            seal = int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES))
-            for name, value in appended.items():
-                if not isinstance(name, str) or not NAME_RE.match(name) or name in records:
-                    raise InputError(
-                        f"`appended` keys must be identifiers not used in `arrays`; got "
-                        f"{name!r}. Rename the array."
-                    )
-                records[name], new = plan_appended(
-                    name, value, current.get(name), generation=k, dtype=dtype,
-                    seal_bytes=seal,
-                )
-                pieces += new
+        records, pieces = plan_commit(
+            arrays, appended, generation=k, dtype=np.dtype(self.dtype),
+            seal_bytes=int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
+            current=lambda: self._current_doc()["streamsvd"]["arrays"],
+        )
+        user_attrs = normalise_attrs(attrs)
         self._write_generation(k, records, pieces, user_attrs)
         return k
 
     def _current_doc(self) -> dict[str, Any]:
         """Attributes of the current generation (its digest checked against the pointer)."""
         k = self._generation
-        doc = self._docs.get(k)
-        if doc is None:
-            doc = read_generation_doc(self._storage, k)
-            if doc is None or attrs_digest(doc) != read_pointer(self._storage)["attrs_sha256"]:
-                raise StoreFormatError(
-                    f"`path` {self._path} is damaged: the attributes of the current "
-                    f"generation {k} cannot be read or do not match {POINTER_NAME}, so "
-                    "nothing can be appended to it. Restore the store from a copy."
-                )
-            self._docs[k] = doc
-        return doc
+        if k not in self._docs:
+            self._docs[k] = current_doc(self._storage, k)
+        return self._docs[k]
 
     def _write_generation(self, k: int, records: dict[str, Any], pieces: list[Piece],
                           user_attrs: dict[str, Any]) -> None:

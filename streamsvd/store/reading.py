@@ -30,6 +30,7 @@ from .format import (
     generations,
     last_readable_hint,
     named,
+    read_generation_doc,
     read_marker,
     read_pointer,
     read_root,
@@ -49,12 +50,20 @@ def load_generation(
     root: dict[str, Any],
     *,
     hint: str | None = None,
+    previous: int | None = None,
 ) -> tuple[StoreState, dict[str, Any]]:
     """Read generation ``k`` and verify its attributes (against ``attrs_sha256``) and segments.
 
     Returns the state and the generation's attributes document; raises
-    :class:`StoreFormatError` naming the store, the generation, the array and the pack.
+    :class:`StoreFormatError` naming the store, the generation, the array and the pack,
+    and how to recover: ``hint``, else the kept ``previous`` generation, else the last
+    readable one.
     """
+    if hint is None and previous is not None and previous != k:
+        hint = (
+            f"The previous generation is kept: read it with `store.read(generation="
+            f"{previous})` and commit it again, or restore the store from a copy."
+        )
     path = named(storage)
     where = f"{path}/{gen_key(k)}"
     dtype = str(root["dtype"])
@@ -143,6 +152,18 @@ def load_generation(
     return state, doc
 
 
+def current_doc(storage: Storage, k: int) -> dict[str, Any]:
+    """Return the attributes of the current generation ``k``, checked against the pointer."""
+    doc = read_generation_doc(storage, k)
+    if doc is None or attrs_digest(doc) != read_pointer(storage)["attrs_sha256"]:
+        raise StoreFormatError(
+            f"`path` {named(storage)} is damaged: the attributes of the current generation "
+            f"{k} ({named(storage)}/{gen_key(k)}/zarr.json) cannot be read or do not match "
+            f"{POINTER_NAME}, so nothing can be appended to it. {last_readable_hint(storage)}"
+        )
+    return doc
+
+
 Loader = Callable[[int, str | None], StoreState]
 
 
@@ -189,7 +210,7 @@ def read_current(
 
 
 def last_readable(storage: Storage, *, tries: int = 8) -> int | None:
-    """The newest generation with a commit record that reads back verified (None if none).
+    """Return the newest generation with a commit record that reads back verified, or None.
 
     Only the ``tries`` newest generations holding a commit record are tried.
     """
