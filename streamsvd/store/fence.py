@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import StoreLockedError
-from ..storage import Storage
+from ..storage import Storage, remote_errors
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +56,7 @@ class Fence:
         self.storage = storage
         self.lock = lock
         self.path = path
+        self.unreachable: tuple[type[BaseException], ...] = (OSError, *remote_errors())
 
     def holds(self) -> bool:
         """Whether the writer still holds its lock or lease."""
@@ -76,8 +77,18 @@ class Fence:
         self.storage.create(key, data)
 
     def delete(self, key: str) -> bool:
-        """Delete ``key`` if the writer still holds the lock; return whether it did."""
-        if not self.holds():
+        """Delete ``key`` if the writer still holds the lock; return whether it did.
+
+        A lock or lease that cannot be checked (the object store unreachable) counts as
+        lost: nothing is deleted.
+        """
+        try:
+            held = self.holds()
+        except self.unreachable as exc:
+            logger.warning("not deleting %s/%s: the lock cannot be checked (%s)",
+                           self.path, key, exc)
+            return False
+        if not held:
             logger.warning(
                 "not deleting %s/%s: this writer no longer holds the lock of the store",
                 self.path, key,
