@@ -23,7 +23,8 @@ an S3 server on localhost (moto, started by the script, ``streamsvd.testing.s3se
   garbled, missing or rolled-back pointer, an edited root ``n`` or ``dtype``): ``check``
   exits 2, ``ingest --resume`` exits 2 and changes no file.
 
-The campaign stops starting new scenarios once ``--seconds`` have passed.
+The campaign stops starting new scenarios once ``--seconds`` have passed; ``--only``
+runs some groups of scenarios.
 """
 
 from __future__ import annotations
@@ -71,6 +72,8 @@ from streamsvd.cli import main
 sys.exit(main(argv))
 """
 
+GROUPS = ("kills-local", "zombies-local", "readers-local", "enospc", "damage", "kills-s3",
+          "zombies-s3", "readers-s3")
 SEED = 2026
 N, M, BLOCK = 120, 600, 8
 
@@ -411,7 +414,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--s3-kills", type=int, default=6,
                    help="random kills on S3, besides the 12 at named steps (default 6)")
     p.add_argument("--no-s3", action="store_true", help="skip the S3 scenarios")
+    p.add_argument("--only", default=",".join(GROUPS),
+                   help=f"comma-separated groups to run (default: all, {','.join(GROUPS)})")
     args = p.parse_args(argv)
+    only = set(args.only.split(","))
+    if only - set(GROUPS):
+        p.error(f"--only takes groups among {', '.join(GROUPS)}; got {args.only!r}")
     started = time.monotonic()
     print(f"load before: {os.getloadavg()}", flush=True)
     root = Path(tempfile.mkdtemp(prefix="streamsvd-faults-"))
@@ -426,19 +434,25 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             s3fs.S3FileSystem().mkdir("campaign")
         campaign = Campaign(root, args.seconds, server)
-        campaign.kills("local", lambda i: root / f"kill{i}.zarr", args.local_kills)
-        for point in ("-", *CRASH_POINTS[:3]):
+        if "kills-local" in only:
+            campaign.kills("local", lambda i: root / f"kill{i}.zarr", args.local_kills)
+        for point in ("-", *CRASH_POINTS[:3]) if "zombies-local" in only else ():
             if campaign.left():
                 campaign.zombie(root / f"zombie-{point}.zarr", "local", point)
-        campaign.readers(root / "readers.zarr", "local")
-        campaign.enospc(30)
-        campaign.damage()
+        if "readers-local" in only:
+            campaign.readers(root / "readers.zarr", "local")
+        if "enospc" in only:
+            campaign.enospc(30)
+        if "damage" in only:
+            campaign.damage()
         if server is not None:
-            campaign.kills("s3", lambda i: f"s3://campaign/kill{i}.zarr", args.s3_kills)
-            for point in ("-", *CRASH_POINTS):
+            if "kills-s3" in only:
+                campaign.kills("s3", lambda i: f"s3://campaign/kill{i}.zarr", args.s3_kills)
+            for point in ("-", *CRASH_POINTS) if "zombies-s3" in only else ():
                 if campaign.left():
                     campaign.zombie(f"s3://campaign/zombie-{point}.zarr", "s3", point)
-            campaign.readers("s3://campaign/readers.zarr", "s3")
+            if "readers-s3" in only and campaign.left():
+                campaign.readers("s3://campaign/readers.zarr", "s3")
     finally:
         if server is not None:
             server.stop()

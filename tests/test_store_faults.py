@@ -537,3 +537,17 @@ def test_a_source_of_snapshots_of_size_zero_names_source(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "SOURCE" in err and "size 0" in err and "`n`" not in err, err
     assert not (tmp_path / "s.zarr").exists()
+
+
+# ------------------------------------------------------------------- the campaign
+
+
+def test_the_fault_campaign_runs_its_damage_scenarios(monkeypatch, capsys):
+    """The bench campaign (bench/fault_campaign.py) on its fastest group: every line passes."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
+    import fault_campaign
+
+    assert fault_campaign.main(["--no-s3", "--only", "damage", "--seconds", "600"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines()
+             if line.startswith(("PASS", "FAIL"))]
+    assert len(lines) == 8 and all(line.startswith("PASS  damage") for line in lines)
