@@ -424,6 +424,8 @@ class ObjectStorage:
         except OSError as exc:
             if _precondition_failed(exc):
                 return None
+            if isinstance(exc, FileNotFoundError) and "IfMatch" in condition:
+                return None  # If-Match on an object deleted meanwhile: not matched either
             raise
         return str(out["ETag"])
 

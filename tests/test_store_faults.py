@@ -551,3 +551,12 @@ def test_the_fault_campaign_runs_its_damage_scenarios(monkeypatch, capsys):
     lines = [line for line in capsys.readouterr().out.splitlines()
              if line.startswith(("PASS", "FAIL"))]
     assert len(lines) == 8 and all(line.startswith("PASS  damage") for line in lines)
+
+
+def test_if_match_on_an_object_deleted_meanwhile_is_not_matched(s3):
+    """A zombie renewing a lease its taker has released and deleted: refused, not an error."""
+    storage = open_storage(f"{s3}/gone")
+    tag = storage.put_if_absent("lease", b"mine")
+    storage.delete("lease")
+    assert storage.put_if_match("lease", b"again", tag) is None
+    assert storage.list() == []
