@@ -27,9 +27,6 @@ import os
 import re
 import shlex
 import sys
-import time
-from collections.abc import Iterator
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -38,6 +35,7 @@ from .errors import (
     InputError,
     NonFiniteError,
     ShapeMismatchError,
+    SourceError,
     StoreError,
     StoreMismatchError,
     StreamSVDError,
@@ -377,6 +375,15 @@ def _parser() -> argparse.ArgumentParser:
     exp.add_argument("out", metavar="OUT",
                      help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
 
+    check = sub.add_parser(
+        "check", help="verify every checksum of a store",
+        description="Verify every checksum of a basis store (root attributes, pointer, the "
+        "current and previous generations, every segment) without changing it. Exit 0 if "
+        "it is healthy, 2 if it is damaged: one line per problem, naming what is damaged "
+        "and the last readable generation.")
+    check.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
+    _add_storage_option(check)
+
     plot = reader("plot", help="amplitudes, error bound against k, orthogonality as PNG",
                   description="Plot the amplitudes, the error bound against the terms "
                   "kept (log scale, with the target when there is one) and the "
@@ -403,9 +410,10 @@ _REWRITES = (
      "store meanwhile."),
     (r"Open it with `open_store\(path, mode='a'\)`, or delete it first to start afresh\.",
      "Pass --resume to continue it, or delete it first to start afresh."),
-    (r"The previous generation is kept: read it with `store\.read\(generation=\d+\)` and "
+    (r"The previous generation is kept: read it with `store\.read\(generation=(\d+)\)` and "
      r"commit it again, or restore the store from a copy\.",
-     "Restore the store from a copy."),
+     r"The previous generation \1 is kept (`streamsvd check STORE` verifies it); restore "
+     "the store from a copy."),
     (r"Pass dataset=<one of them>\.", "Pass --dataset with one of them."),
     (r"Use the in-memory StreamCompressor, or lump the mass matrix into weights\.",
      "Drop --tall, or lump the mass matrix into weights."),
@@ -422,6 +430,7 @@ _NAMES = {
     "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
     "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
     "inner": "--inner", "storage_options": "--storage-option",
+    "M": "--inner (its matrix)", "weights": "--inner (its weights)",
 }
 
 # a sentence holding Python code: a quoted call, a keyword argument, a module path
@@ -640,26 +649,6 @@ def _check_resume(args: Any, sc: Any, record: Any) -> None:
     sc.source_record = record
 
 
-def _resuming(args: Any, store: Any) -> bool:
-    """Whether the command continues STORE (--resume and STORE holds a store).
-
-    With --resume, a path that holds no store pointer (nothing, an empty directory, or
-    the leftovers of a creation killed before its first generation) gets a new store;
-    creating refuses a directory holding anything else.
-    """
-    from .store import POINTER_NAME
-
-    exists = POINTER_NAME in store.list()  # store: a storage (see _locate)
-    if not args.resume and store.exists():
-        raise StoreError(
-            f"STORE {store} already exists; pass --resume to continue it, or choose "
-            "another path."
-        )
-    if args.resume and not exists:
-        logger.info("STORE %s does not exist yet: --resume creates it", store)
-    return bool(args.resume and exists)
-
-
 def _source_record(args: Any) -> Any:
     """Open SOURCE (checking it) and return its record."""
     from .provenance import SourceRecord
@@ -667,37 +656,11 @@ def _source_record(args: Any) -> Any:
 
     source, dataset = getattr(args, "source_given", (args.source, args.dataset))
     with open_source(args.source, dataset=args.dataset) as src:
+        if src.shape[0] < 1:
+            raise SourceError(f"SOURCE {source} holds snapshots of size {src.shape[0]} "
+                              f"(shape {src.shape}); a snapshot needs at least one entry.")
         return SourceRecord.of(source, dataset=dataset, shape=src.shape,
                                description=src.description)
-
-
-@contextlib.contextmanager
-def _removed_on_failure(store: Storage, *, new: bool) -> Iterator[None]:
-    """Remove STORE if this command created it and fails before committing a snapshot."""
-    started = math.floor(time.time())
-    try:
-        yield
-    except BaseException:
-        if new:
-            _remove_new_store(store, since=started)
-        raise
-
-
-def _remove_new_store(store: Storage, *, since: float) -> None:
-    """Delete STORE if it holds no snapshot, no writer has it and it was created since."""
-    from .storage import open_storage
-    from .store import open_store
-
-    try:
-        with open_store(store, "a") as st:  # the writer lock: no other writer is at work
-            created = datetime.fromisoformat(st.root_attrs["created"]).timestamp()
-            state = st.read()  # generation 0 (no arrays) or a commit of no snapshot
-            empty = not state.arrays or int(state.attrs.get("source_offset", 0)) == 0
-    except (StreamSVDError, OSError, ValueError, KeyError):
-        return  # not a store this command made, or one another writer holds
-    if empty and created >= since:
-        logger.info("removing STORE %s: the command failed before its first commit", store)
-        open_storage(store).delete("")
 
 
 def _load_inner(args: Any) -> Any:
@@ -711,8 +674,10 @@ def _load_inner(args: Any) -> Any:
 def _ingest(args: Any) -> int:
     mode = _mode(args)
     _check_mode_options(args, mode)
+    from .policy import removed_on_failure, resuming
+
     store = args.store  # a storage (see _locate)
-    resume = _resuming(args, store)
+    resume = resuming(store, resume=args.resume)
     if args.oversampling is not None and args.max_rank is None and not resume:
         raise InputError(
             "--oversampling adds terms to --max-rank while streaming; add --max-rank K, or "
@@ -721,7 +686,7 @@ def _ingest(args: Any) -> int:
     options = _compressor_options(args, mode, resume=resume, inner=_load_inner(args))
     block = args.block or _DEFAULT_BLOCK
     record = _source_record(args)
-    with _removed_on_failure(store, new=not resume):
+    with removed_on_failure(store, new=not resume):
         try:
             if mode == "memory":
                 summary = _ingest_memory(args, store, block, options, resume=resume,
@@ -1008,7 +973,23 @@ def _plot(args: Any) -> int:
     return 0
 
 
-_COMMANDS = {"ingest": _ingest, "info": _info, "export": _export, "plot": _plot}
+def _check(args: Any) -> int:
+    """Verify every checksum of STORE: one line per problem (exit 2), or what verified (0)."""
+    from .storage import open_storage
+    from .store import check_store
+
+    report = check_store(open_storage(args.store))
+    for problem in report.problems:
+        print(f"damaged: {_in_cli_words(problem)}")
+    if report.problems:
+        return 2
+    for line in report.verified:
+        print(f"STORE {report.store}: {line}")
+    return 0
+
+
+_COMMANDS = {"ingest": _ingest, "info": _info, "export": _export, "plot": _plot,
+             "check": _check}
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from .errors import StoreLockedError
+from .errors import StoreError, StoreLockedError
 
 __all__ = ["LEASE_SECONDS", "FileLock", "Lease"]
 
@@ -104,6 +104,12 @@ class FileLock:
 
     def acquire(self) -> None:
         """Create the lock file, taking over a stale one; raise if a live writer holds it."""
+        if self.path.is_dir():
+            raise StoreError(
+                f"`path` {self.path.parent} cannot be locked: its lock {self.path} is a "
+                "directory, not the lock file streamsvd writes. Move that directory away "
+                "(no streamsvd writer made it), then retry."
+            )
         for _attempt in range(8):
             try:
                 fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
@@ -125,7 +131,14 @@ class FileLock:
                     ) from None
                 self._take_over(info, raw, ident, reason)
             else:
-                self._fill(fd)
+                try:
+                    self._fill(fd)
+                except BaseException:  # a full disk: leave no empty lock file behind
+                    os.close(fd)
+                    with contextlib.suppress(OSError):
+                        os.unlink(self.path)
+                    self.fd = None
+                    raise
                 return
         raise StoreLockedError(
             f"`path` {self.path.parent} could not be locked: the lock file {self.path} kept "
@@ -222,6 +235,10 @@ class FileLock:
         mine = os.fstat(self.fd)
         return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
 
+    def held(self) -> bool:
+        """Whether this process still holds the lock (checked before every write and delete)."""
+        return os.getpid() == self.owner_pid and self.owned()
+
     def holder(self) -> str:
         """Describe the current holder of the lock file."""
         seen = self._read()
@@ -297,6 +314,7 @@ class Lease:
         self.holder_id = uuid.uuid4().hex
         self.owner_pid = os.getpid()
         self.tag: str | None = None
+        self.token = 1  # the fencing token: one more than the lease taken over
         self.lost = False
         self._mutex = threading.Lock()
         self._stop = threading.Event()
@@ -311,6 +329,7 @@ class Lease:
             "host": socket.gethostname(),
             "started": _process_started(pid),
             "since": self._since,
+            "token": self.token,
             "expires": time.time() + self.seconds,
         }).encode()
 
@@ -367,6 +386,8 @@ class Lease:
                     f"lease; a dead writer's lease is taken over once it expires (at most "
                     f"{self.seconds:.0f} s after its last renewal)."
                 )
+            previous = info.get("token") if isinstance(info, dict) else None
+            self.token = previous + 1 if isinstance(previous, int) else 2
             tag = self.storage.put_if_match(self.key, self._document(), old)
             if tag is None:
                 raise StoreLockedError(
@@ -417,6 +438,21 @@ class Lease:
     def owned(self) -> bool:
         """Renew the lease now; whether it is still ours (checked before a pointer switch)."""
         return os.getpid() == self.owner_pid and self.renew()
+
+    def held(self) -> bool:
+        """Whether the lease object is still the version this writer last wrote.
+
+        One ``GET``, checked before every write and delete of the writer (its fence): a
+        writer whose lease was taken over changes nothing.
+        """
+        with self._mutex:  # not during a renewal, which changes the tag
+            if self.tag is None or self.lost or os.getpid() != self.owner_pid:
+                return False
+            seen = self.storage.get_tagged(self.key)
+            if seen is None or seen[1] != self.tag:
+                self.lost = True
+                return False
+            return True
 
     def holder(self) -> str:
         """Describe the current holder of the lease."""

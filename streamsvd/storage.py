@@ -76,6 +76,12 @@ class Storage(Protocol):
     def put_if_match(self, key: str, data: bytes, tag: str) -> str | None:
         """Replace ``key`` if its tag is ``tag``; return the new tag, or None if not."""
 
+    def create(self, key: str, data: bytes) -> None:
+        """Create ``key`` holding ``data`` durably; :class:`FileExistsError` if it exists."""
+
+    def sync_dir(self, key: str) -> None:
+        """Make the entries of the directory ``key`` (and ``key`` in its parent) durable."""
+
     def list(self, prefix: str = "") -> list[str]:
         """Return the names directly below ``prefix`` (sorted; empty if absent)."""
 
@@ -170,6 +176,34 @@ class LocalStorage:
             with contextlib.suppress(OSError):
                 tmp.unlink()
             raise
+        _fsync_path(path.parent, directory=True)
+
+    def create(self, key: str, data: bytes) -> None:
+        """Create the file ``key`` (``O_EXCL``) holding ``data`` and ``fsync`` it.
+
+        A partly written file is removed when writing fails (a full disk), so a failed
+        call leaves nothing behind; :class:`FileExistsError` if ``key`` exists.
+        """
+        path = self._path(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view) :]
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            raise
+
+    def sync_dir(self, key: str) -> None:
+        """``fsync`` the directory ``key`` and the directory holding it."""
+        path = self._path(key)
+        _fsync_path(path, directory=True)
         _fsync_path(path.parent, directory=True)
 
     def put_if_absent(self, key: str, data: bytes) -> str | None:
@@ -390,8 +424,18 @@ class ObjectStorage:
         except OSError as exc:
             if _precondition_failed(exc):
                 return None
+            if isinstance(exc, FileNotFoundError) and "IfMatch" in condition:
+                return None  # If-Match on an object deleted meanwhile: not matched either
             raise
         return str(out["ETag"])
+
+    def create(self, key: str, data: bytes) -> None:
+        """``PUT`` with ``If-None-Match: *``; :class:`FileExistsError` if ``key`` exists."""
+        if self.put_if_absent(key, data) is None:
+            raise FileExistsError(f"{self.url}/{key} exists already")
+
+    def sync_dir(self, key: str) -> None:
+        """Nothing to do: an object is durable when its ``PUT`` returns."""
 
     def put_if_absent(self, key: str, data: bytes) -> str | None:
         """``PUT`` with ``If-None-Match: *``; None when the object already exists."""

@@ -2,6 +2,7 @@
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -245,10 +246,23 @@ def test_one_resume_command_starts_and_restarts_in_every_mode(tmp_path, matrix, 
     np.testing.assert_allclose(info["amplitudes_head"], s[:10], atol=100 * 80 * EPS * s[0])
 
 
+def _as_an_interrupted_creation(store):
+    """Leave of ``store`` what a creation killed before its pointer switch leaves.
+
+    A store that has committed generations is never replaced, pointer or not
+    (tests/test_store_faults.py): its generations above 0 go too.
+    """
+    (store / "current.json").unlink()
+    for gen in (store / "generations").glob("g*"):
+        if gen.name != "g00000000":
+            shutil.rmtree(gen)
+    (store / "generations" / "g00000000" / "committed.json").unlink(missing_ok=True)
+
+
 def test_resume_replaces_the_leftovers_of_an_interrupted_creation(tmp_path, npy, capsys):
     store = tmp_path / "s.zarr"
     assert main(["ingest", str(npy), str(store), "--quiet"]) == 0
-    (store / "current.json").unlink()  # as a creation killed before its first generation
+    _as_an_interrupted_creation(store)
     assert main(["ingest", str(npy), str(store), "--resume", "--quiet"]) == 0
     with StreamCompressor.open(store, mode="r") as sc:
         assert sc.n_seen == 60
@@ -431,7 +445,7 @@ def test_user_mistakes_print_one_line_in_cli_words(tmp_path, matrix, capsys):
     assert main(["ingest", str(t / "a.npy"), str(t / "tall.zarr"), "--tall", "--quiet"]) == 0
     incomplete = t / "incomplete.zarr"
     assert main(["ingest", str(t / "a.npy"), str(incomplete), "--quiet"]) == 0
-    (incomplete / "current.json").unlink()
+    _as_an_interrupted_creation(incomplete)
     capsys.readouterr()
     cases = [
         (["info", t / "missing.zarr"], r"STORE must be an existing basis store; .* Create it "
@@ -557,7 +571,7 @@ def test_help_gives_every_option_a_help_line_and_its_default(capsys):
     import argparse
 
     parser, commands = _subparsers()
-    assert set(commands) == {"ingest", "info", "export", "plot"}
+    assert set(commands) == {"ingest", "info", "export", "plot", "check"}
     for name, sub in [("streamsvd", parser), *commands.items()]:
         for action in sub._actions:
             if isinstance(action, argparse._HelpAction | argparse._VersionAction

@@ -198,7 +198,7 @@ def test_sigkill_many_times(tmp_path, rng):
 
 def _written_by_commits(path, m, monkeypatch, *, n=60, b=5, commits=8):
     """Elements written by each commit of ``b`` columns after a stream of ``m`` columns."""
-    import streamsvd.store as store_mod
+    import streamsvd.store.commit as store_mod
 
     rng = np.random.default_rng(5)  # the same basis and the same last blocks for every m
     Q1 = np.linalg.qr(rng.standard_normal((n, 8)))[0] * np.logspace(0, -3, 8)

@@ -13,7 +13,7 @@ import pytest
 from _store_writer import CHUNK_BYTES, CREATE_ATTRS, N, expected_generation
 
 import streamsvd.storage as storage_mod
-import streamsvd.store as store_mod
+import streamsvd.store.commit as store_mod
 from streamsvd.errors import (
     InputError,
     NonFiniteError,
@@ -169,7 +169,9 @@ def test_large_commits_are_chunked(tmp_path, rng):
     # one pack per generation, 600 float64 (4800 bytes) per chunk, flat chunk keys
     assert meta["node_type"] == "array" and meta["shape"] == [3000]
     assert meta["chunk_grid"]["configuration"]["chunk_shape"] == [600]
-    assert sorted(p.name for p in gdir.iterdir()) == [f"c.{i}" for i in range(5)] + ["zarr.json"]
+    assert sorted(p.name for p in gdir.iterdir()) == (
+        [f"c.{i}" for i in range(5)] + ["committed.json", "zarr.json"]
+    )
     (zstd,) = [codec for codec in meta["codecs"] if codec["name"] == "zstd"]
     assert zstd["configuration"]["checksum"] is False  # one checksum: the SHA-256
     (record,) = meta["attributes"]["streamsvd"]["arrays"].values()
@@ -589,7 +591,7 @@ def test_failing_pointer_switch_leaves_the_previous_state_intact(store, rng, mon
     def refuse(src, dst):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(store_mod.os, "replace", refuse)
+    monkeypatch.setattr(storage_mod.os, "replace", refuse)
     with pytest.raises(StoreError, match=r"writing generation 2 failed"):
         store.commit(factors(rng), {"k": 2})
     monkeypatch.undo()

@@ -1,0 +1,381 @@
+"""The store handle: :class:`BasisStore` and :func:`open_store`.
+
+A thin handle: it checks the root and the pointer on opening
+(:mod:`~streamsvd.store.format`), reads through :mod:`~streamsvd.store.reading`, plans
+what a commit writes (:mod:`streamsvd.segments`) and hands it to its
+:class:`~streamsvd.store.commit.Writer`, which owns the fence, the pointer switch and the
+collector.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import weakref
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import numpy as np
+
+from ..errors import InputError, StoreError
+from ..segments import Appended, Piece
+from ..storage import Storage, open_storage
+from . import collector
+from .commit import Writer, plan_commit
+from .create import create_store
+from .format import (
+    DEFAULT_CHUNK_BYTES,
+    StoreState,
+    check_expected,
+    expectations,
+    lock_key,
+    named,
+    normalise_attrs,
+    read_root,
+)
+from .reading import current_doc, load_generation, read_current
+
+logger = logging.getLogger("streamsvd.store")
+
+
+class BasisStore:
+    """A versioned, crash-safe basis store in a zarr v3 group (a directory or an object store).
+
+    Open one with :func:`open_store` or create one with :meth:`BasisStore.create`; see
+    :mod:`streamsvd.store` for the layout and the guarantees. A store opened for writing
+    holds the writer lock (the lease, on an object store) until :meth:`close` (also
+    called on leaving a ``with`` block). The parameters, and the errors raised on opening,
+    are those of :func:`open_store`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | Storage, mode: Literal["r", "a"] = "r", *,
+                 n: int | None = None, dtype: Any = None, inner_fingerprint: str | None = None,
+                 storage_options: Mapping[str, Any] | None = None) -> None:
+        storage = open_storage(path, storage_options=storage_options)
+        if mode not in ("r", "a"):
+            raise InputError(
+                f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
+            )
+        want = expectations(n, dtype, inner_fingerprint)
+        attrs, _pointer, _tag = read_root(storage)
+        check_expected(storage, attrs, want)
+        lock = None
+        if mode == "a":
+            lock = storage.lock(lock_key(storage))
+            lock.acquire()
+        try:
+            attrs, pointer, tag = read_root(storage)  # as it is now that the lock is held
+            self._setup(storage, mode, attrs, lock, pointer["generation"],
+                        pointer.get("previous"), Writer(storage, lock, attrs, tag)
+                        if lock is not None else None)
+            if self._writer is not None:
+                keep = self._keep()
+                keep.current_sha256 = pointer["attrs_sha256"]
+                collector.clean_leftovers(self._writer.fence, keep)
+        except BaseException:
+            if lock is not None:
+                lock.release()
+            raise
+
+    def _setup(self, storage: Storage, mode: str, attrs: dict[str, Any], lock: Any,
+               generation: int, previous: int | None, writer: Writer | None) -> None:
+        self._storage = storage
+        self._path = named(storage)
+        self._mode = mode
+        self._root_attrs = dict(attrs)
+        self._lock = lock
+        self._writer = writer
+        self._closed = False
+        self._generation = generation
+        self._previous = previous
+        self._docs: dict[int, dict[str, Any]] = {}  # attributes of retained generations
+        self._written: dict[str, int] = {}
+        self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
+
+    def _keep(self) -> collector.Keep:
+        return collector.Keep(self._generation, self._previous, self._docs)
+
+    @classmethod
+    def create(cls, path: str | os.PathLike[str] | Storage, *, n: int, dtype: Any = "float64",
+               inner_fingerprint: str, attrs: Mapping[str, Any] | None = None,
+               chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+               storage_options: Mapping[str, Any] | None = None) -> BasisStore:
+        """Create a new store at ``path`` and return it opened for writing (generation 0).
+
+        Parameters
+        ----------
+        path : str, os.PathLike or Storage
+            A directory, ``file://`` or ``s3://`` URL where nothing is stored yet (the
+            leftovers of an interrupted creation are replaced; a store that ever committed
+            never is), or a storage.
+        n : int
+            Snapshot size (the number of rows of ``U``).
+        dtype : {"float64", "float32"}
+            Dtype in which every array is stored; committed arrays are cast to it.
+        inner_fingerprint : str
+            Fingerprint of the inner product (``inner.fingerprint``).
+        attrs : dict, optional
+            JSON-able attributes of generation 0.
+        chunk_bytes : int
+            Target size of one uncompressed chunk.
+        storage_options : dict, optional
+            Options of the fsspec file system of a URL.
+
+        Returns
+        -------
+        BasisStore
+            The store, opened with mode ``"a"`` (it holds the writer lock).
+
+        Raises
+        ------
+        StoreError
+            A store or other files exist at ``path``, or writing failed (nothing is left
+            behind then; the message names the step).
+        StoreLockedError
+            Another process is creating or writing a store at ``path``.
+        """
+        storage = open_storage(path, storage_options=storage_options)
+
+        def opened(storage: Storage, root_attrs: dict[str, Any], lock: Any, writer: Writer,
+                   user_attrs: dict[str, Any]) -> BasisStore:
+            self = cls.__new__(cls)
+            self._setup(storage, "a", root_attrs, lock, -1, None, writer)
+            self._write_generation(0, {}, [], user_attrs)
+            return self
+
+        self = create_store(storage, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+                            attrs=attrs, chunk_bytes=chunk_bytes, opened=opened)
+        logger.info("created basis store %s (n=%d, dtype=%s)", self.path, self.n, self.dtype)
+        return self
+
+    # --------------------------------------------------------------- properties
+
+    @property
+    def path(self) -> Path | str:
+        """Directory of the store (a Path), or its URL on an object store."""
+        return self._path
+
+    @property
+    def mode(self) -> str:
+        """``"r"`` (read only) or ``"a"`` (read and commit)."""
+        return self._mode
+
+    @property
+    def format_version(self) -> int:
+        """Format version of the store layout."""
+        return int(self._root_attrs["format_version"])
+
+    @property
+    def generation(self) -> int:
+        """Number of the current generation, as last seen by this handle."""
+        return self._generation
+
+    @property
+    def n(self) -> int:
+        """Snapshot size recorded at creation."""
+        return int(self._root_attrs["n"])
+
+    @property
+    def dtype(self) -> str:
+        """Dtype of the stored arrays."""
+        return str(self._root_attrs["dtype"])
+
+    @property
+    def inner_fingerprint(self) -> str:
+        """Fingerprint of the inner product recorded at creation."""
+        return str(self._root_attrs["inner_fingerprint"])
+
+    @property
+    def root_attrs(self) -> dict[str, Any]:
+        """Root attributes (format, version, n, dtype, fingerprint, created, ...)."""
+        return dict(self._root_attrs)
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    @property
+    def last_written(self) -> dict[str, int]:
+        """Elements written per array name by the last :meth:`commit` of this handle."""
+        return dict(self._written)
+
+    # -------------------------------------------------------------------- reading
+
+    def read(self, *, generation: int | None = None) -> StoreState:
+        """Read the current generation (or the retained previous one), checksums verified.
+
+        A reader (mode ``"r"``) whose generation is collected during the read reads the
+        new pointer's, for as long as the pointer moves; only a generation that fails to
+        verify while the pointer names it is damaged.
+
+        Raises
+        ------
+        StoreFormatError
+            The generation is missing or damaged; the previous generation is not
+            substituted silently (the message names the last readable one).
+        """
+        self._check_open()
+        state, pointer = read_current(self._storage, self._load, generation,
+                                      retry=self._mode == "r")
+        self._generation = pointer["generation"]
+        previous = pointer.get("previous")
+        self._previous = previous if isinstance(previous, int) else None
+        return state
+
+    def _load(self, k: int, attrs_sha256: str | None) -> StoreState:
+        state, doc = load_generation(self._storage, k, attrs_sha256, self._root_attrs,
+                                     previous=self._previous)
+        self._docs[k] = doc
+        return state
+
+    # --------------------------------------------------------------------- writing
+
+    def commit(self, arrays: Mapping[str, Any], attrs: Mapping[str, Any] | None = None, *,
+               appended: Mapping[str, Appended] | None = None) -> int:
+        """Write ``arrays`` and ``attrs`` as a new generation and make it current.
+
+        The switch is atomic: a reader, or a process reopening the store after this one
+        was killed at any instant, sees the previous generation or the new one, whole.
+        If the commit fails, the previous generation stays current and intact.
+
+        Parameters
+        ----------
+        arrays : dict of str to array_like
+            Named real 1-D or 2-D arrays, written whole (cast to the store's dtype, finite).
+        attrs : dict, optional
+            JSON-able attributes of the generation.
+        appended : dict of str to Appended, optional
+            Arrays that keep the unchanged part of the current generation's and write the
+            rest (:class:`~streamsvd.segments.Appended`).
+
+        Returns
+        -------
+        int
+            Number of the new generation.
+
+        Raises
+        ------
+        StoreError
+            The store is read-only or closed, or writing failed.
+        StoreLockedError
+            The lock was taken over by another writer meanwhile (nothing was written).
+        """
+        self._check_open()
+        if self._mode != "a":
+            raise StoreError(
+                f"`store` {self._path} was opened read-only (mode='r'); commit needs "
+                "mode='a'. Reopen it with `open_store(path, mode='a')`."
+            )
+        k = self._generation + 1
+        records, pieces = plan_commit(
+            arrays, appended, generation=k, dtype=np.dtype(self.dtype),
+            seal_bytes=int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
+            current=lambda: self._current_doc()["streamsvd"]["arrays"],
+        )
+        user_attrs = normalise_attrs(attrs)
+        self._write_generation(k, records, pieces, user_attrs)
+        return k
+
+    def _current_doc(self) -> dict[str, Any]:
+        """Attributes of the current generation (its digest checked against the pointer)."""
+        k = self._generation
+        if k not in self._docs:
+            self._docs[k] = current_doc(self._storage, k)
+        return self._docs[k]
+
+    def _write_generation(self, k: int, records: dict[str, Any], pieces: list[Piece],
+                          user_attrs: dict[str, Any]) -> None:
+        writer = self._writer
+        if writer is None:  # pragma: no cover - commit checks the mode first
+            raise StoreError(f"`store` {self._path} was opened read-only (mode='r').")
+        previous = self._generation if self._generation >= 0 else None
+        adopted: list[dict[str, Any]] = []
+
+        def adopt(doc: dict[str, Any], pointer: dict[str, Any], written: dict[str, int]) -> None:
+            self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
+            self._docs[k] = doc
+            self._previous, self._generation, self._written = previous, k, written
+            adopted.append(pointer)
+            logger.debug("committed generation %d of %s (%s)", k, self._path, written)
+
+        writer.write_generation(k, records, pieces, user_attrs, previous, adopt)
+        writer.after_switch(k, adopted[0], self._keep())
+
+    # --------------------------------------------------------------------- closing
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StoreError(
+                f"`store` {self._path} is closed. Open it again with `open_store(path)`."
+            )
+
+    def close(self) -> None:
+        """Release the writer lock (if held); the handle cannot be used afterwards."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._finalizer is not None:
+            self._finalizer()
+
+    def __enter__(self) -> BasisStore:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"mode={self._mode!r}"
+        return (
+            f"BasisStore({str(self._path)!r}, {state}, generation={self._generation}, "
+            f"n={self.n}, dtype={self.dtype!r})"
+        )
+
+
+def open_store(
+    path: str | os.PathLike[str] | Storage,
+    mode: Literal["r", "a"] = "r",
+    *,
+    n: int | None = None,
+    dtype: Any = None,
+    inner_fingerprint: str | None = None,
+    storage_options: Mapping[str, Any] | None = None,
+) -> BasisStore:
+    """Open an existing basis store.
+
+    Parameters
+    ----------
+    path : str, os.PathLike or Storage
+        Directory of the store, a ``file://`` or ``s3://`` URL, or a storage from
+        :func:`streamsvd.storage.open_storage`.
+    mode : {"r", "a"}
+        ``"r"`` to read only (no lock is taken), ``"a"`` to read and commit (takes the
+        writer lock; leftovers of interrupted commits are deleted).
+    n, dtype, inner_fingerprint : optional
+        Expected snapshot size, stored dtype and inner-product fingerprint; each one
+        given is checked against the store.
+    storage_options : dict, optional
+        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
+        ``endpoint_url``, ...); the ``AWS_*`` environment variables apply too.
+
+    Returns
+    -------
+    BasisStore
+        The open store; use it as a context manager or call :meth:`BasisStore.close`.
+
+    Raises
+    ------
+    StoreFormatError
+        ``path`` is not a basis store, is damaged, or has another format version.
+    StoreMismatchError
+        An expectation differs from what the store holds.
+    StoreLockedError
+        ``mode="a"`` and another live writer holds the lock.
+    """
+    return BasisStore(
+        path, mode, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+        storage_options=storage_options,
+    )
