@@ -104,6 +104,18 @@ class Storage(Protocol):
 # ------------------------------------------------------------------------ local
 
 
+def _write_new_file(path: Path, data: bytes) -> None:
+    """Create ``path`` (``O_EXCL``), write all of ``data`` and ``fsync`` it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _fsync_path(path: Path, *, directory: bool = False) -> None:
     flags = os.O_RDONLY | (os.O_DIRECTORY if directory else 0)
     fd = os.open(path, flags)
@@ -162,15 +174,8 @@ class LocalStorage:
         """Replace ``key`` atomically: temporary file, fsync, rename, fsync of the directory."""
         path = self._path(key)
         tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            try:
-                view = memoryview(data)
-                while view:
-                    view = view[os.write(fd, view) :]
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            _write_new_file(tmp, data)
             os.replace(tmp, path)
         except BaseException:
             with contextlib.suppress(OSError):
@@ -186,15 +191,8 @@ class LocalStorage:
         """
         path = self._path(key)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            try:
-                view = memoryview(data)
-                while view:
-                    view = view[os.write(fd, view) :]
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            _write_new_file(path, data)
         except BaseException:
             with contextlib.suppress(OSError):
                 path.unlink()
