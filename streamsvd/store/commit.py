@@ -299,7 +299,8 @@ class Writer:
             "although this writer still holds the lease: the store was changed by hand, "
             "or by a writer that ignored the lease"
             if mine
-            else f"by another writer ({self.lock.holder()})"
+            else f"by another writer ({self.lock.holder()})".replace(
+                "(nobody)", "(which has closed the store since)")
         )
         return StoreLockedError(
             f"`store` {self.path}: the pointer {POINTER_NAME} was changed {who} since this "

@@ -67,7 +67,9 @@ class Fence:
         if not self.holds():
             holder = self.lock.holder() if self.lock is not None else "nobody"
             raise StoreLockedError(
-                f"`store` {self.path} lost its writer lock to {holder}; nothing was "
+                f"`store` {self.path} lost its writer lock to "
+                f"{'a writer that has closed the store since' if holder == 'nobody' else holder}"
+                "; nothing was "
                 f"written or deleted ({doing}). Make sure a single writer opens the store."
             )
 
