@@ -14,7 +14,8 @@ operations, all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
 * ``stage_new(r)``, ``persisted(...)``, ``restore(...)``: what a commit to a store needs;
   ``compactions`` counts the swaps, so a commit tells the columns appended since the
   previous one (the others are unchanged) from a basis replaced whole.
-* ``cross(r)``: ``MQ^T Y`` for the ``r`` workspace columns; ``take(G)``: ``Q G``.
+* ``take(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
+  Gram-Schmidt with ``project``, never formed again.)
 
 :class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
 column-major buffers whose capacity grows geometrically, so appending columns never
@@ -63,9 +64,6 @@ class BasisBackend(Protocol):
     def accept(self, r: int) -> None:
         """Make the first ``r`` workspace columns stored columns."""
 
-    def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return the first ``r`` workspace columns and their ``M`` image."""
-
     def stage_new(self, r: int) -> None:
         """Make the first ``r`` workspace columns durable before a commit refers to them."""
 
@@ -83,9 +81,6 @@ class BasisBackend(Protocol):
 
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
         """Load the basis a commit wrote."""
-
-    def cross(self, r: int) -> np.ndarray:
-        """Return ``MQ^T Y[:, :r]`` for the workspace columns."""
 
     def take(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
@@ -193,12 +188,6 @@ class MemoryBasis:
         """Make the first ``r`` workspace columns stored columns."""
         self._w += int(r)
 
-    def planned_new(self, r: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return the first ``r`` workspace columns and their ``M`` image (views)."""
-        w = self._w
-        Q, MQ = self._bufs
-        return Q[:, w : w + r], MQ[:, w : w + r]
-
     def stage_new(self, r: int) -> None:
         """Nothing to do: the workspace columns are in memory until :meth:`accept`."""
 
@@ -244,11 +233,6 @@ class MemoryBasis:
         self._spare, self._bufs = self._bufs, self._spare
         self._w = p
         self.compactions += 1
-
-    def cross(self, r: int) -> np.ndarray:
-        """Return ``MQ^T Y[:, :r]`` for the first ``r`` workspace columns."""
-        w = self._w
-        return self.MQ.T @ self._bufs[0][:, w : w + r]
 
     def take(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""

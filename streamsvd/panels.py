@@ -239,15 +239,6 @@ class PanelBasis:
                 self.root.delete(f"panels/{staged[0]}")
         self._staged_new = self._staged_compact = None
 
-    def cross(self, r: int) -> np.ndarray:
-        """Return ``MQ^T Y[:, :r]`` for the first ``r`` workspace columns."""
-        Q = self._q()
-        if Q is None or r == 0:
-            return np.zeros((self.width, r))
-        Y = self._block(np.ascontiguousarray(self.planned_new(r)[0]))
-        (C,) = execute([self._weighted(Q).T @ Y], client=self.client)
-        return np.asarray(C)
-
     def take(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` in memory (``n x p``)."""
         Q = self._q()
