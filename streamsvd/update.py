@@ -23,6 +23,7 @@ of :mod:`streamsvd.rows`). ``add`` costs ``O(m p^2)`` more (its increment spans 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -42,6 +43,8 @@ __all__ = [
     "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_finalize",
     "plan_merge",
 ]
+
+logger = logging.getLogger(__name__)
 
 # Compaction pays when the projections wasted on the extra width since the last one
 # (about 4 flops per extra column, per snapshot, per row) reach its own cost
@@ -310,6 +313,10 @@ def _plan(
         discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
     )
     record = _record(kind, columns, p_new, ext, step, discarded, orth, bound, t0)
+    logger.debug(
+        "%s of %d columns: %d passes over the basis, %d sweeps, rank %d", kind, columns,
+        ext.passes, step.sweeps, p_new,
+    )
     return Plan(
         new_directions=r, compact=compact, Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound,
         record=record, rows_appended=appended, Vp=Vp, V_replace=V_replace,
