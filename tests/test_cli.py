@@ -799,12 +799,19 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     with StreamCompressor.open(store, mode="r") as sc:
         fig = cli._figure(sc, name="tree.zarr")
         rank, amps, orth = sc.rank, sc.amplitudes, sc.history[0].orthogonality
+        relative = sc.error_in_measure  # no target: the relative measure
     assert fig._suptitle.get_text().startswith(f"tree.zarr: n = 80, rank {rank}, 60 snapshots")
-    amp_ax, energy_ax, orth_ax = fig.axes
+    amp_ax, bound_ax, orth_ax = fig.axes
     assert amp_ax.get_xlabel() == "term i"
     assert amp_ax.get_ylabel() == "amplitude ||v_i|| (units of the data)"
     np.testing.assert_array_equal(amp_ax.lines[0].get_ydata(), amps)
-    assert energy_ax.lines[0].get_ydata()[-1] == pytest.approx(1.0, abs=1e-12)
+    # the error bound against k: keeping every term gives the store's own bound, and the
+    # bound of fewer terms is larger, on a log scale
+    shown = bound_ax.lines[0].get_ydata()
+    assert shown[-1] == pytest.approx(max(relative, 1e-300), rel=1e-12)
+    assert np.all(np.diff(shown) <= 0) and bound_ax.get_yscale() == "log"
+    assert bound_ax.get_xlabel() == "terms kept k"
+    assert "||A - U_k V_k^T||_F / ||A||_F" in bound_ax.get_ylabel()
     assert orth_ax.get_xlabel() == "update" and "||U^T M U - I||_2" in orth_ax.get_ylabel()
     (line,) = [ln for ln in orth_ax.lines if ln.get_label() == "after each update"]
     assert line.get_marker() not in ("", "None", None)  # one point is visible as a marker
