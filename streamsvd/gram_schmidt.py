@@ -287,7 +287,6 @@ def extend_basis(
     else:
         parts, Rz, floor, more = _rounds(basis, G, Z, S, C, inner, reject_tol, ref)
         passes += more
-        cross_z = np.zeros((w, 0))
     accepted, Wacc = _column_rule(Rz, ref, reject_tol)
     s, r = Rz.shape[0], Wacc.shape[1]
     keep = None if r == s else Wacc
