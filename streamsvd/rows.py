@@ -1,4 +1,8 @@
-"""The m-sized factor: the right vectors ``V = V0 Vp`` kept in Brand's row-append form.
+"""The m-sized factor ``Y = V0 Vp``, kept in Brand's row-append form.
+
+``Y`` (``m x k``) is the orthonormal factor of the right vectors, ``V = Y R`` with ``R``
+the compressor's small core (module :mod:`streamsvd.update`); here it is simply a matrix
+whose rows grow.
 
 ``V0`` (``m x wv``) lives in a row buffer whose capacity grows geometrically; ``Vp``
 (``wv x p``) is small. An update acts on ``Vp`` only and appends its new rows once:
@@ -13,8 +17,10 @@ terms out (the old rows then carry little of the new terms), and ``N Vp^+`` woul
 rounding by ``cond(Vp)``. Instead of inverting an ill-conditioned ``Vp``, the directions
 of ``Vp`` whose singular value is below ``s_max / cond_limit`` (and, when the rank grows
 beyond ``wv``, the missing ones) get new columns of ``V0``, zero in every old row: with
-``Vp <- [Vp; s_max Y_bad^T]`` the old rows are unchanged, ``cond(Vp) <= cond_limit``
+``Vp <- [Vp; s_max Z_bad^T]`` the old rows are unchanged, ``cond(Vp) <= cond_limit``
 afterwards, and the new rows are written with a rounding of at most ``cond_limit * eps``.
+The new rows are written through the SVD of ``Vp`` (not its Gram matrix), so their
+rounding is ``cond(Vp) eps``, not its square.
 When ``wv`` exceeds ``width_limit * p`` the factor is *rebased*, ``V0 <- V0 Vp`` and
 ``Vp <- I`` (the only operation that reads and writes every row, ``O(m wv p)``), counted
 in :attr:`RowFactor.rebases`.
@@ -25,8 +31,6 @@ one, the old rows being unchanged and zero in every column added since.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
@@ -103,17 +107,25 @@ class RowFactor:
         """
         wv, p = Vp_old_part.shape
         b = N.shape[0]
-        # Vp^T Vp = Y diag(s^2) Y^T (s = 0 for the directions missing when wv < p); the
-        # test s < s_max / COND_LIMIT is far above the Gram's resolution
-        g, Y = np.linalg.eigh(Vp_old_part.T @ Vp_old_part) if p else (np.zeros(0), np.eye(0))
-        g = np.maximum(g, 0.0)
-        g_max = float(g.max()) if p else 0.0
-        bad = (np.flatnonzero(g <= g_max / COND_LIMIT**2) if g_max > 0 else np.arange(p))
-        scale2 = g_max if g_max > 0 else 1.0
-        Vp = np.vstack([Vp_old_part, math.sqrt(scale2) * Y[:, bad].T]) if bad.size else Vp_old_part
-        # Vp^T Vp = Y diag(g + scale^2 [bad]) Y^T, so Vp^+ = Y diag(1 / .) Y^T Vp^T
-        g[bad] += scale2
-        rows = ((N @ Y) / g) @ (Y.T @ Vp.T) if p else np.zeros((b, Vp.shape[0]))
+        # Vp_old = W diag(s) Z^T (s = 0 for the directions missing when wv < p); the
+        # directions with s < s_max / COND_LIMIT get a row s_max z^T each, so that
+        # Vp = B Z^T with B's columns orthogonal, of norms g = s^2 (+ s_max^2 when added),
+        # and Vp^+ = Z diag(1 / g) B^T: the new rows are rounded by cond(Vp) eps, not by
+        # its square as through the Gram matrix
+        W, sv, Zt = np.linalg.svd(Vp_old_part, full_matrices=True)
+        s = np.zeros(p)
+        s[: sv.size] = sv
+        s_max = float(s.max()) if p else 0.0
+        bad = np.flatnonzero(s < s_max / COND_LIMIT) if s_max > 0 else np.arange(p)
+        scale = s_max if s_max > 0 else 1.0
+        Vp = np.vstack([Vp_old_part, scale * Zt[bad]]) if bad.size else Vp_old_part
+        Bt = np.zeros((p, Vp.shape[0]))
+        q = min(wv, p)
+        Bt[:q, :wv] = sv[:, np.newaxis] * W[:, :q].T
+        Bt[bad, wv + np.arange(bad.size)] = scale
+        g = s * s
+        g[bad] += scale * scale
+        rows = ((N @ Zt.T) / g) @ Bt if p else np.zeros((b, Vp.shape[0]))
         self._ensure(self._m + b, Vp.shape[0])
         # the whole row span is written: a staged row never keeps a stale entry from an
         # update that failed before its commit

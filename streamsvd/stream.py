@@ -70,7 +70,9 @@ logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 KIND = "streamsvd.StreamCompressor"
-LAYOUT = 3  # version of the arrays a StreamCompressor commits (3: Q, V0, history appended)
+# version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
+# is the orthonormal factor Y of V = Y R)
+LAYOUT = 4
 
 
 def _norm(x: np.ndarray) -> float:
@@ -202,7 +204,8 @@ class StreamCompressor:
     energies)``.
 
     Cost: an update costs nothing in the number of snapshots already absorbed: the
-    right vectors are appended in Brand's form ``V = V0 Vp`` (:mod:`streamsvd.rows`), the
+    right vectors are kept as ``V = Y R`` with ``Y`` orthonormal, appended in Brand's form
+    ``Y = V0 Vp`` (:mod:`streamsvd.rows`), the
     basis lives in a buffer grown geometrically (:mod:`streamsvd.basis`), and the
     rotations act on small matrices (:mod:`streamsvd.update` has the flop count).
 
@@ -519,7 +522,7 @@ class StreamCompressor:
         else:
             basis, basis_attrs = plan.stored_basis(s)
             rows = plan.stored_rows(s)
-            compact, replaced = plan.compact, plan.V_replace is not None
+            compact, replaced = plan.compact, plan.Y_replace is not None
             Gu, H, R, m, waste, bound = plan.Gu, plan.H, plan.R, plan.m, plan.waste, plan.bound
         # the bound's norms are >= 0; an infinite one (the coupling after `add`) is stored
         # as -1, since a store holds finite numbers only
@@ -625,7 +628,7 @@ class StreamCompressor:
                 "this StreamCompressor keeps no right vectors (`right_vectors=False`); use "
                 "`left_vectors` and `amplitudes`, or create it with `right_vectors=True`."
             )
-        V = rows.value() if self.rank else np.zeros((self.n_seen, 0))
+        V = rows.value() @ self._state.R if self.rank else np.zeros((self.n_seen, 0))
         U, perm, signs = self._order(V)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`
         return Expansion(U, V[:, perm] * signs, inner=self.inner)
@@ -790,7 +793,7 @@ class StreamCompressor:
         if other.n != self.n:
             raise InputError(f"`other` must have snapshots of size {self.n}; got {other.n}.")
         check_same_inner(self.inner, other.inner, "other")
-        V_o: np.ndarray | None
+        Y_o: np.ndarray | None
         if isinstance(other, StreamCompressor):
             o = other._state
             U_o, R_o, m_o, prior = o.basis.take(o.Gu), o.R, o.m, o.bound
@@ -799,15 +802,17 @@ class StreamCompressor:
                     "`other` keeps no right vectors (`right_vectors=False`) but this "
                     "compressor does; merge compressors created alike."
                 )
-            V_o = None if self._state.rows is None or o.rows is None else (
-                o.rows.value() if o.rank else np.zeros((o.m, 0))
-            )
+            Y_o = None if self._state.rows is None or o.rows is None else o.rows.value()
         else:
             U_o, V_o, prior = np.array(other.U), np.array(other.V), Bound()
-            m_o, R_o = V_o.shape[0], r_factor(V_o)
+            m_o = V_o.shape[0]
+            if self._state.rows is None:
+                Y_o, R_o = None, r_factor(V_o)
+            else:
+                Y_o, R_o = np.linalg.qr(V_o)
         prior = self._state.bound.combine(prior)
         return self._run(
-            lambda: plan_merge(self._state, U_o, R_o, V_o, m_o, prior, self._opts, t0=t0),
+            lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, self._opts, t0=t0),
             self.source_offset + m_o,
         )
 

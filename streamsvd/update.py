@@ -2,8 +2,15 @@
 
 State. ``U = Q Gu`` with ``Q`` the stored basis (a :class:`~streamsvd.basis.BasisBackend`,
 ``n x w``) and ``Gu`` small (``w x p``); ``H = Q^T M Q`` (small) measures orthogonality;
-``R`` (``k x p``) is the core of the right factor, ``V^T V = R^T R``; the right vectors
-themselves, when kept, are ``V = V0 Vp`` (:class:`~streamsvd.rows.RowFactor`).
+``R`` (``k x p``, ``k <= p``) is the core of the right factor: ``V = Y R`` with ``Y``
+(``m x k``) orthonormal, so ``V^T V = R^T R``. When the right vectors are kept, ``Y`` is
+stored, as ``Y = V0 Vp`` (:class:`~streamsvd.rows.RowFactor`), never ``V`` itself: ``V``
+carries the amplitudes, and rounding relative to the largest one would leave the right
+vectors of amplitudes below ``eps sigma_1`` far from orthogonal, where every product
+with ``Y`` is rounded relative to 1. Each update replaces ``Y`` by
+``blockdiag(Y, Y_new) P`` with ``P`` orthonormal (a Householder QR of the core), so
+``||Y^T Y - I||`` stays at rounding level, and at convergence the right singular vectors
+``Y R diag(1 / ||r_i||)`` are orthonormal to the Jacobi tolerance ``sqrt(m) eps``.
 
 Every update is planned first (:func:`plan_absorb`, :func:`plan_add`,
 :func:`plan_merge`): the new directions are orthonormalised in the backend's workspace,
@@ -103,7 +110,7 @@ class Plan:
     record: UpdateRecord
     rows_appended: int = 0
     Vp: np.ndarray | None = None
-    V_replace: np.ndarray | None = None
+    Y_replace: np.ndarray | None = None
 
     def stored_basis(self, state: State) -> tuple[dict[str, np.ndarray], dict]:
         """Return what a commit of the basis this plan leads to writes (arrays, attrs)."""
@@ -113,8 +120,8 @@ class Plan:
         """Return ``(V0, Vp)`` this plan leads to (views, for a commit); None without rows."""
         if state.rows is None:
             return None
-        if self.V_replace is not None:
-            return self.V_replace, np.eye(self.V_replace.shape[1])
+        if self.Y_replace is not None:
+            return self.Y_replace, np.eye(self.Y_replace.shape[1])
         assert self.Vp is not None
         return state.rows.planned(self.rows_appended, self.Vp), self.Vp
 
@@ -126,8 +133,8 @@ def apply_plan(state: State, plan: Plan) -> None:
     else:
         state.basis.accept(plan.new_directions)
     if state.rows is not None:
-        if plan.V_replace is not None:
-            state.rows.replace(plan.V_replace)
+        if plan.Y_replace is not None:
+            state.rows.replace(plan.Y_replace)
         else:
             assert plan.Vp is not None
             state.rows.commit(plan.Vp, plan.rows_appended)
@@ -139,7 +146,12 @@ def apply_plan(state: State, plan: Plan) -> None:
 def plan_absorb(
     state: State, X: np.ndarray, opts: StepOptions, *, t0: float
 ) -> Plan:
-    """Plan the absorption of a block of snapshots ``X`` (``n x b``)."""
+    """Plan the absorption of a block of snapshots ``X`` (``n x b``).
+
+    The right factor grows to ``blockdiag(Y, I_b) K`` with the core
+    ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
+    ``R_new`` its residual's triangular factor).
+    """
     ext = extend_basis(
         state.basis, state.Gu, X, inner=opts.inner, reject_tol=opts.reject_tol, H=state.H
     )
@@ -152,8 +164,7 @@ def plan_absorb(
     d_rej = ext.rejected_norm()
     block_norm = ext.block_norm
     return _plan(
-        state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0,
-        new_rows=np.hstack([ext.coeffs.T, ext.R_new.T]), d_rej=d_rej,
+        state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0, d_rej=d_rej,
         extra_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
     )
 
@@ -167,20 +178,26 @@ def plan_add(
     *,
     t0: float,
 ) -> Plan:
-    """Plan the increment ``U dV^T + U_k V_k^T`` (``dV`` in the internal term order)."""
+    """Plan the increment ``U dV^T + U_k V_k^T`` (``dV`` in the internal term order).
+
+    The increment spans every row, so the right factor is formed whole (``O(m p^2)``)
+    and replaced by its Householder QR.
+    """
     assert state.rows is not None
     ref = _energy_reference(_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.Gu, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, H=state.H,
     )
-    V_old = state.rows.value() if state.rank else np.zeros((V_k.shape[0], 0))
+    V_old = (state.rows.value() @ state.R if state.rank
+             else np.zeros((V_k.shape[0], 0)))
     if dV is not None:
         V_old = V_old + dV
     V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
+    Y_new, K = np.linalg.qr(V_new)
     return _plan(
-        state, ext, r_factor(V_new), opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
-        t0=t0, V_full=V_new, d_rej=ext.rejected_norm(V_k), extra_root=0.0,
+        state, ext, K, opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
+        t0=t0, Y_replace=Y_new, d_rej=ext.rejected_norm(V_k), extra_root=0.0,
         prior=state.bound, overlapping=True,
     )
 
@@ -189,7 +206,7 @@ def plan_merge(
     state: State,
     U_o: np.ndarray,
     R_o: np.ndarray,
-    V_o: np.ndarray | None,
+    Y_o: np.ndarray | None,
     m_o: int,
     prior: Bound,
     opts: StepOptions,
@@ -198,7 +215,7 @@ def plan_merge(
 ) -> Plan:
     """Plan appending ``m_o`` later snapshots represented by ``U_o V_o^T``.
 
-    ``R_o`` is the core of ``V_o`` (``V_o^T V_o = R_o^T R_o``); ``V_o`` itself is needed
+    ``V_o = Y_o R_o`` with ``Y_o`` orthonormal (``m_o x k_o``); ``Y_o`` itself is needed
     only when the right vectors are kept. A term is rejected when its residual carries
     ``||r_j||_M ||v_j|| <= reject_tol * max_i ||u_i||_M ||v_i||``: relative to the energy
     of the expansion merged, as a snapshot's residual is relative to the snapshot.
@@ -214,16 +231,13 @@ def plan_merge(
     K[:k, :p] = state.R
     K[k:, :p] = R_o @ ext.coeffs.T
     K[k:, p:] = R_o @ ext.R_new.T
-    new_rows = None
-    if state.rows is not None:
-        assert V_o is not None
-        new_rows = V_o @ np.hstack([ext.coeffs.T, ext.R_new.T])
+    assert state.rows is None or Y_o is not None
     d_rej = ext.rejected_norm(R_o)
     # the merged columns are new ones, as an absorbed block's: their rejected part meets
     # later cuts only through their own data, of norm ||R_o|| (module bound.py)
     return _plan(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
-        new_rows=new_rows, d_rej=d_rej,
+        Y_appended=Y_o, d_rej=d_rej,
         extra_root=math.sqrt(d_rej) * math.sqrt(_norm(R_o)), prior=prior,
     )
 
@@ -239,7 +253,7 @@ def plan_finalize(state: State, opts: StepOptions, *, t0: float) -> Plan:
     ext = BasisExtension.empty(p, state.basis.width)
     return _plan(
         state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
-        new_rows=np.zeros((0, p)), d_rej=0.0, extra_root=0.0, prior=state.bound,
+        d_rej=0.0, extra_root=0.0, prior=state.bound,
     )
 
 
@@ -256,14 +270,22 @@ def _plan(
     d_rej: float,
     extra_root: float,
     prior: Bound,
-    new_rows: np.ndarray | None = None,
-    V_full: np.ndarray | None = None,
+    Y_appended: np.ndarray | None = None,
+    Y_replace: np.ndarray | None = None,
     overlapping: bool = False,
 ) -> Plan:
+    """Rotate and truncate the core ``K`` and plan the new factors.
+
+    The right factor is ``blockdiag(Y, Y_appended) K`` (``Y_appended`` the identity for an
+    absorbed block, absent after ``finalize``), or ``Y_replace K`` after ``add``.
+    """
+    keep_rows = state.rows is not None
+    Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
         spent=math.hypot(prior.bound, d_rej),
     )
+    Q_R, R = _core_qr(step.R, want_q=keep_rows)
     p, r = state.rank, ext.rank
     w = state.basis.width
     T = step.T
@@ -284,29 +306,29 @@ def _plan(
     else:
         H = _extended_gram(state, ext)
         state.basis.stage_new(r)
-    R = step.R
-    L = None
     orth = _orthogonality(Gu, H)
     if orth > opts.reorth_tol:
-        # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged
+        # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged (V = Y R, so
+        # only R changes)
         G = Gu.T @ H @ Gu
         L = np.linalg.cholesky(0.5 * (G + G.T))
         Gu = scipy.linalg.solve_triangular(L, Gu.T, lower=True).T
         R = R @ L
         orth = _orthogonality(Gu, H)
-    Vp = V_replace = None
+    Vp = Y_full = None
     appended = 0
     if state.rows is not None:
-        if V_full is not None:
-            V_replace = V_full @ T if L is None else (V_full @ T) @ L
+        # Y <- blockdiag(Y, Y_appended) P, P = Q_K Q_R orthonormal
+        P = np.eye(K.shape[0]) if Q_K is None else Q_K
+        if Q_R is not None:
+            P = P @ Q_R
+        if Y_replace is not None:
+            Y_full = Y_replace @ P
         else:
-            assert new_rows is not None
+            k = state.R.shape[0]
             state.rows.rebase_if_wide()
-            Vp_old = state.rows.Vp @ T[:p]
-            N = new_rows @ T
-            if L is not None:
-                Vp_old, N = Vp_old @ L, N @ L
-            Vp = state.rows.stage(Vp_old, N)
+            N = P[k:] if Y_appended is None else Y_appended @ P[k:]
+            Vp = state.rows.stage(state.rows.Vp @ P[:k], N)
             appended = N.shape[0]
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
@@ -319,7 +341,7 @@ def _plan(
     )
     return Plan(
         new_directions=r, compact=compact, Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound,
-        record=record, rows_appended=appended, Vp=Vp, V_replace=V_replace,
+        record=record, rows_appended=appended, Vp=Vp, Y_replace=Y_full,
     )
 
 
@@ -352,6 +374,20 @@ def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     H[w:, :w] = ext.cross.T
     H[w:, w:] = ext.gram_new
     return H
+
+
+def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ``(Q, R)`` with ``K = Q R``, ``R`` no taller than wide (``Q = None``: ``I``).
+
+    A core taller than wide is reduced by a Householder QR, whose ``Q`` (formed only when
+    the right vectors are kept) is orthonormal to rounding level.
+    """
+    if K.shape[0] <= K.shape[1]:
+        return None, K
+    if not want_q:
+        return None, r_factor(K)
+    Q, R = np.linalg.qr(K)
+    return Q, R
 
 
 def _orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:

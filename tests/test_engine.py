@@ -70,17 +70,17 @@ def test_row_factor_extends_instead_of_inverting_an_ill_conditioned_vp(rng):
 
 
 def test_streamed_right_vectors_match_their_core(rng):
-    """V kept in row-append form is the right factor the small core describes:
-    V^T V = R^T R to rounding, after a long stream with truncations."""
+    """The right factor is kept as V = Y R, Y in row-append form: Y stays orthonormal to
+    rounding after a long stream with truncations (150 updates), so V^T V = R^T R."""
     n, b, k = 120, 6, 10
     sc = ss.StreamCompressor(n, max_rank=k, rule="paper", sweeps=1)
     A = rng.standard_normal((n, 900)) * np.logspace(0, -2, 900)
     for j in range(0, 900, b):
         sc.absorb(A[:, j : j + b])
     s = sc._state
-    V = s.rows.value()
-    R = s.R
-    assert np.linalg.norm(V.T @ V - R.T @ R) <= 1e3 * EPS * np.linalg.norm(R) ** 2
+    Y = s.rows.value()
+    # rounding accumulates as a random walk: about 7 eps sqrt(updates) here
+    assert np.linalg.norm(Y.T @ Y - np.eye(Y.shape[1]), 2) <= 50 * EPS * np.sqrt(len(sc.history))
     err = np.linalg.norm(A - sc.expansion.to_dense())
     assert err <= sc.error_bound * (1 + 1e-9)
 

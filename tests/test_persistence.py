@@ -296,10 +296,10 @@ def test_store_of_the_previous_layout_is_refused_naming_both(tmp_path, rng):
     meta.write_text(json.dumps(doc))
     with pytest.raises(ss.StoreFormatError, match=r"format version 1; .*reads format version 2"):
         StreamCompressor.open(path)
-    other = tmp_path / "layout2.zarr"
+    other = tmp_path / "layout3.zarr"
     BasisStore.create(other, n=8, inner_fingerprint=ss.as_inner(None, 8).fingerprint,
-                      attrs={"kind": StreamCompressor.KIND, "layout": 2}).close()
-    with pytest.raises(ss.StoreFormatError, match=r"of layout 2, .* reads layout 3"):
+                      attrs={"kind": StreamCompressor.KIND, "layout": 3}).close()
+    with pytest.raises(ss.StoreFormatError, match=r"of layout 3, .* reads layout 4"):
         StreamCompressor.open(other)
 
 
