@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -273,6 +274,7 @@ def core_step(
     truncation: Truncation,
     kind: str,
     spent: float = 0.0,
+    on_sweep: Callable[[int, float], None] | None = None,
 ) -> CoreStep:
     """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
 
@@ -295,6 +297,9 @@ def core_step(
     truncation : Truncation
     kind : str
         Name of the update, for the log.
+    on_sweep : callable, optional
+        Called after every sweep with the number of sweeps run and the largest pair
+        cosine of the last one (progress of long final sweeps).
     """
     p = K.shape[1]
     R = r_factor(K) if K.shape[0] > p else K
@@ -313,6 +318,8 @@ def core_step(
         done += 1
         max_cos = s.max_cosine
         converged = s.rotations == 0
+        if on_sweep is not None:
+            on_sweep(done, max_cos)
     amps_scaled = safe_column_norms(Rt.T)
     if not converged and truncation.needs_convergence(
         np.ldexp(amps_scaled, e), spent=spent, m=m
@@ -326,6 +333,8 @@ def core_step(
                            tol=math.sqrt(m) * _EPS)
             done += 1
             max_cos = s.max_cosine
+            if on_sweep is not None:
+                on_sweep(done, max_cos)
             if s.rotations == 0:
                 break
         amps_scaled = safe_column_norms(Rt.T)

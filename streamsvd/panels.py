@@ -283,6 +283,15 @@ class PanelBasis:
                     f"expected {(self.n, width)}. Restore the store from a copy."
                 )
 
+    def adopt(self, other: PanelBasis) -> None:
+        """Hold a copy of ``other``'s stored columns, written as one panel of this root."""
+        Q = other._q()
+        if Q is None:
+            self.panels, self.widths = [], []
+            return
+        name, width = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
+        self.panels, self.widths = [name], [width]
+
     def collect(self, keep: set[str]) -> None:
         """Delete the panels that neither the state nor ``keep`` refers to."""
         live = set(self.panels) | keep

@@ -375,7 +375,7 @@ def ingest(
                                progress=progress, **options)
         try:
             if finalize and not sc.finalized:
-                sc.finalize()
+                sc.finalize(progress=progress)
             summary = summary_of(sc)
             summary.update(mode="tall" if tall else "tree", scheduler=scheduler or "threads")
         finally:

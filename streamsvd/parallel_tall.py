@@ -28,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from ._scaling import safe_column_norms
 from ._validation import check_positive_int
+from .basis import BasisBackend
 from .errors import InputError, ShapeMismatchError, SourceError
 from .inner import DiagonalInner, InnerProduct, as_inner
 from .panels import PanelBasis
@@ -247,19 +249,36 @@ class TallCompressor(StreamCompressor):
     def factors(self) -> tuple[Any, np.ndarray]:
         """Return the expansion as ``(U, V)``: ``U`` lazy (dask, over the panels), ``V`` in memory.
 
-        Terms are sorted by decreasing amplitude and signed as in :attr:`expansion`;
-        computing ``U`` chunk by chunk never holds ``n x p``.
+        Terms are sorted by decreasing amplitude and signed as in :attr:`expansion` (the
+        largest-modulus entry of each ``u_i`` positive, found by a reduction over the
+        row chunks), so neither this call nor computing ``U`` chunk by chunk holds
+        ``n x p``; :attr:`left_vectors` and :attr:`expansion` do gather ``U``. Needs
+        ``right_vectors=True``.
         """
-        e_perm, signs, V = self._sorted_right()
         s = self._state
-        U = self._panels.lazy(s.Gu[:, e_perm] * signs)
-        return U, V
+        V = self.right_factor()
+        perm = np.argsort(-safe_column_norms(V), kind="stable")
+        U = self._panels.lazy(s.Gu[:, perm])
+        top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client)
+        signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
+        self._exposure = (self._version, perm, signs)  # the coordinates of `add`
+        return U * signs, V[:, perm] * signs
 
-    def _sorted_right(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        e = self.expansion  # signs need U's largest entries; n x p is formed once here
-        assert self._exposure is not None
-        _, perm, signs = self._exposure
-        return perm, signs, np.asarray(e.V)
+    def _empty_copy(self) -> TallCompressor:
+        return TallCompressor(
+            self.n, chunk_rows=self.chunk_rows, client=self.client, inner=self.inner,
+            source_record=self.source_record, threads=self.threads, **self._options(),
+        )
+
+    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
+        """Return the panels copied into the copy's own work directory, as one panel.
+
+        The copy is written chunk by chunk (``O(n w)`` on disk, never in memory), so the
+        copy outlives the original and its store.
+        """
+        assert isinstance(blank, PanelBasis)
+        blank.adopt(self._panels)
+        return blank
 
     def __repr__(self) -> str:
         return (

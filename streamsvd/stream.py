@@ -18,13 +18,15 @@ class is the facade: options, properties, persistence.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import functools
 import logging
 import math
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -408,12 +410,21 @@ class StreamCompressor:
 
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
-        out = StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
-                               threads=self.threads, **self._options())
-        out._state = copy.deepcopy(self._state)
+        out = self._empty_copy()
+        basis = self._copied_basis(out._state.basis)
+        out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)
         out.source_offset = self.source_offset
         return out
+
+    def _empty_copy(self) -> StreamCompressor:
+        """Return a compressor with these options and nothing absorbed (no store)."""
+        return StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
+                                threads=self.threads, **self._options())
+
+    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
+        """Return the stored basis copied for :meth:`copy` (``blank``: the copy's own)."""
+        return copy.deepcopy(self._state.basis)
 
     def save(self, path: Any) -> None:
         """Write the compressor into a new store at ``path`` and keep committing there.
@@ -622,16 +633,25 @@ class StreamCompressor:
         each ``u_i`` is positive; ``add(..., coefficients=dV)`` takes ``dV`` in the
         coordinates of this ``U``. Needs ``right_vectors=True``.
         """
+        V = self.right_factor()
+        U, perm, signs = self._order(V)
+        self._exposure = (self._version, perm, signs)  # the coordinates of `add`
+        return Expansion(U, V[:, perm] * signs, inner=self.inner)
+
+    def right_factor(self) -> np.ndarray:
+        """``V = Y R`` (``m x p``) in the stored term order, unsorted and unsigned.
+
+        ``Y`` is kept orthonormal (:mod:`streamsvd.update`), so the right vectors
+        ``v_i / ||v_i||`` are orthonormal to rounding at convergence, whatever the spread
+        of the amplitudes. Needs ``right_vectors=True``.
+        """
         rows = self._state.rows
         if rows is None:
             raise InputError(
                 "this StreamCompressor keeps no right vectors (`right_vectors=False`); use "
                 "`left_vectors` and `amplitudes`, or create it with `right_vectors=True`."
             )
-        V = rows.value() @ self._state.R if self.rank else np.zeros((self.n_seen, 0))
-        U, perm, signs = self._order(V)
-        self._exposure = (self._version, perm, signs)  # the coordinates of `add`
-        return Expansion(U, V[:, perm] * signs, inner=self.inner)
+        return rows.value() @ self._state.R if self.rank else np.zeros((self.n_seen, 0))
 
     @property
     def amplitudes(self) -> np.ndarray:
@@ -816,7 +836,9 @@ class StreamCompressor:
             self.source_offset + m_o,
         )
 
-    def finalize(self, *, rule: str = "jacobi", max_rank: int | None = None) -> UpdateRecord:
+    def finalize(
+        self, *, rule: str = "jacobi", max_rank: int | None = None, progress: bool = False
+    ) -> UpdateRecord:
         """Converge the small core to the SVD of the current expansion, then truncate.
 
         Rotation sweeps of ``rule`` (``"jacobi"`` by default: quadratic convergence) run
@@ -826,7 +848,10 @@ class StreamCompressor:
         (Eckart-Young) truncation of the expansion. Costs one compaction of the basis at
         most, nothing in the number of snapshots; recorded in :attr:`history` (kind
         ``"finalize"``) and committed like any update. :meth:`close` calls it. The stream
-        may continue afterwards (with the compressor's options).
+        may continue afterwards (with the compressor's options). ``progress=True`` shows
+        the sweeps on stderr (tqdm). An interrupt (Ctrl-C) or an error during the sweeps
+        leaves the compressor and its store at the last commit: calling ``finalize``
+        again starts the sweeps over from it.
         """
         t0 = time.perf_counter()
         cap = check_positive_int(max_rank, "max_rank", allow_none=True)
@@ -837,7 +862,11 @@ class StreamCompressor:
                 self.error_measure, 1.0,
             ),
         )
-        record = self._run(lambda: plan_finalize(self._state, opts, t0=t0), self.source_offset)
+        with _sweep_bar(self.rank, progress) as on_sweep:
+            record = self._run(
+                lambda: plan_finalize(self._state, opts, t0=t0, on_sweep=on_sweep),
+                self.source_offset,
+            )
         if self.target_met is False:
             logger.warning(
                 "the target error %.3g (%s) is not met: the bound is %.3g in that measure "
@@ -886,3 +915,20 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),
     }
+
+
+@contextlib.contextmanager
+def _sweep_bar(rank: int, show: bool) -> Iterator[Callable[[int, float], None] | None]:
+    """Yield the ``on_sweep`` callback of a progress bar of the final sweeps (or None)."""
+    if not show:
+        yield None
+        return
+    from tqdm import tqdm
+
+    with tqdm(desc=f"final sweeps ({rank} terms)", unit="sweep", file=sys.stderr,
+              dynamic_ncols=True) as bar:
+        def on_sweep(done: int, max_cosine: float) -> None:
+            bar.set_postfix(max_cosine=f"{max_cosine:.1e}", refresh=False)
+            bar.update(done - bar.n)
+
+        yield on_sweep

@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -242,18 +243,25 @@ def plan_merge(
     )
 
 
-def plan_finalize(state: State, opts: StepOptions, *, t0: float) -> Plan:
+def plan_finalize(
+    state: State,
+    opts: StepOptions,
+    *,
+    t0: float,
+    on_sweep: Callable[[int, float], None] | None = None,
+) -> Plan:
     """Plan sweeps of the core to convergence and the truncation (no new snapshot).
 
     ``opts`` carries the rule and ``sweeps=None``; the result is the SVD of the current
     expansion, truncated by the compressor's rules (Eckart-Young: what is cut is
     orthogonal to what is kept, so the bound grows by the Pythagorean rule).
+    ``on_sweep`` is called after every sweep (:func:`streamsvd._core.core_step`).
     """
     p = state.rank
     ext = BasisExtension.empty(p, state.basis.width)
     return _plan(
         state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
-        d_rej=0.0, extra_root=0.0, prior=state.bound,
+        d_rej=0.0, extra_root=0.0, prior=state.bound, on_sweep=on_sweep,
     )
 
 
@@ -273,6 +281,7 @@ def _plan(
     Y_appended: np.ndarray | None = None,
     Y_replace: np.ndarray | None = None,
     overlapping: bool = False,
+    on_sweep: Callable[[int, float], None] | None = None,
 ) -> Plan:
     """Rotate and truncate the core ``K`` and plan the new factors.
 
@@ -283,7 +292,7 @@ def _plan(
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
-        spent=math.hypot(prior.bound, d_rej),
+        spent=math.hypot(prior.bound, d_rej), on_sweep=on_sweep,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
     p, r = state.rank, ext.rank
