@@ -273,7 +273,7 @@ def _merge_pair(
     """
     out = left.copy()
     with threadpool_limits(limits=blas_threads, user_api="blas"):
-        out.merge(right)
+        out.merge(right, spend_target=False)
     logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
                 out.rank, out.error_bound)
     return out
@@ -477,7 +477,7 @@ def tree_compress(
             target.save(path)
         elif root is not None:
             target.source_record = record
-            target.merge(root)
+            target.merge(root, spend_target=False)
     except BaseException:
         if target is not None:
             target.close(finalize=False)

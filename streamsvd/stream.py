@@ -72,6 +72,9 @@ logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 KIND = "streamsvd.StreamCompressor"
+# the target error's budget spent while streaming: HAPOD's split at omega = 0.9, whose
+# root (here: finalize) spends omega of the budget and the updates before it the rest
+STREAMING_SHARE = math.sqrt(1.0 - 0.9**2)
 # version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
 # is the orthonormal factor Y of V = Y R)
 LAYOUT = 4
@@ -180,8 +183,12 @@ class StreamCompressor:
         target_error``, the measure of pyMOR's HAPOD; ``"absolute"``:
         ``||A - U V^T||_F <= target_error``. Norms are those of ``M``.
     streaming_share : float
-        The share of the budget the stream may spend (0 < share <= 1, default 0.9, as
-        HAPOD's ``omega``); the rest is left to the final optimal cut.
+        The share of the budget the stream may spend (0 < share <= 1); the rest,
+        ``sqrt(1 - share^2)``, is left to the final optimal cut. The default,
+        ``sqrt(1 - 0.9^2) = 0.436``, is the split of pyMOR's HAPOD at its ``omega = 0.9``
+        (``omega`` is the root's share there): on pyMOR's Burgers demo it keeps the
+        optimal number of modes, where a share of 0.9 kept up to one more in memory
+        and up to four more in the tree (``bench/README.md``).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).
         One thread is never much slower than all cores and is much faster on a machine
@@ -239,7 +246,7 @@ class StreamCompressor:
         threads: int | None = 1,
         target_error: float | None = None,
         error_measure: str = "relative",
-        streaming_share: float = 0.9,
+        streaming_share: float = STREAMING_SHARE,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.threads = check_threads(threads)
@@ -791,7 +798,9 @@ class StreamCompressor:
         out[:, perm] = dV * signs
         return out
 
-    def merge(self, other: StreamCompressor | Expansion) -> UpdateRecord:
+    def merge(
+        self, other: StreamCompressor | Expansion, *, spend_target: bool = True
+    ) -> UpdateRecord:
         """Append the snapshots represented by ``other`` (they come after the current ones).
 
         ``other`` is a compressor fed with later columns (for instance on another worker)
@@ -803,6 +812,11 @@ class StreamCompressor:
         Error bounds compose: the two parts cover disjoint columns, so before the merge's
         own truncation the bound is ``sqrt(b_self^2 + b_other^2)``, as in the hierarchical
         POD of Himpe, Leibner and Rave (2018).
+
+        With ``spend_target=False`` the merge cuts nothing for the target error (``eps``,
+        ``rtol`` and the rank cap still apply): the tree of :func:`streamsvd.parallel.
+        tree_compress` merges so, and the budget its leaves left is spent by one optimal
+        cut in the root's :meth:`finalize`, as pyMOR's ``dist_vectorarray_hapod`` does.
         """
         t0 = time.perf_counter()
         if not isinstance(other, StreamCompressor | Expansion):
@@ -831,8 +845,13 @@ class StreamCompressor:
             else:
                 Y_o, R_o = np.linalg.qr(V_o)
         prior = self._state.bound.combine(prior)
+        opts = self._opts
+        if not spend_target:
+            opts = dataclasses.replace(
+                opts, truncation=dataclasses.replace(opts.truncation, target=None)
+            )
         return self._run(
-            lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, self._opts, t0=t0),
+            lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, opts, t0=t0),
             self.source_offset + m_o,
         )
 
