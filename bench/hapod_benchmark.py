@@ -27,7 +27,8 @@ Contenders at a target mean-l2 error ``eps`` (``burgers``, ``heat``):
 ``inc_vectorarray_hapod(steps, U, eps, omega, product=l2)`` and
 ``dist_vectorarray_hapod(steps, U, eps, omega, product=l2)`` as the demo calls them,
 ``pod(U, l2_err=eps*sqrt(m), product=l2)`` (the optimum: the fewest modes; one run,
-not timed against the others), and streamsvd (:func:`run_streamsvd`). For each the true
+not timed against the others), streamsvd (:func:`run_streamsvd`) and its tree mode
+(:func:`run_streamsvd_tree`, one trajectory per leaf, against ``dist_hapod``). For each the true
 error ``sqrt(sum_j ||a_j - P a_j||_M^2 / m)`` with ``P`` the M-orthogonal projection on
 the returned modes (through their Gram matrix: exact also for modes that are not quite
 orthonormal), the modes and the time.
@@ -90,6 +91,21 @@ def run_streamsvd(blocks: Any, opts: dict[str, Any]) -> tuple[np.ndarray, float]
         sc.absorb(block)
     sc.finalize()
     return sc.left_vectors, sc.error_bound
+
+
+def run_streamsvd_tree(X: np.ndarray, leaf: int, opts: dict[str, Any]) -> tuple[np.ndarray, float]:
+    """``tree_compress`` with one trajectory (``leaf`` columns) per leaf, then ``finalize``.
+
+    As ``dist_vectorarray_hapod``: the leaves spend the streaming share of the target,
+    the merges none, the root's final cut the rest (dask's threaded scheduler).
+    """
+    from streamsvd.parallel import tree_compress
+
+    root = tree_compress(X, block=leaf, leaf_columns=leaf, inner=opts.get("inner"),
+                            target_error=opts["target"], error_measure="mean_l2",
+                            rule="jacobi", sweeps=None)
+    root.finalize()
+    return root.left_vectors, root.error_bound
 
 
 # --------------------------------------------------------------------------- data
@@ -179,7 +195,7 @@ def _init_worker(threads: int | None, contender: str) -> None:
     rng = np.random.default_rng(1)
     X = rng.standard_normal((50, 12)) @ np.diag(np.logspace(0, -6, 12))
     M = sp.identity(50, format="csr")
-    if contender == "streamsvd":
+    if contender in ("streamsvd", "streamsvd_tree"):
         for opts in ({"n": 50, "m": 12, "inner": M, "target": 1e-3},
                      {"n": 50, "max_rank": 4}):
             run_streamsvd((X[:, j : j + 4] for j in range(0, 12, 4)), opts)
@@ -236,7 +252,11 @@ def task_target(names: dict[str, str], contender: str, target: float,
     n, m = X.shape
     steps = len(lengths)
     bound = None
-    if contender == "streamsvd":
+    if contender == "streamsvd_tree":
+        t0 = time.perf_counter()
+        Q, bound = run_streamsvd_tree(X, int(lengths[0]), {"inner": M, "target": target})
+        seconds = time.perf_counter() - t0
+    elif contender == "streamsvd":
         starts = np.concatenate([[0], np.cumsum(lengths)])
         opts = {"n": n, "m": m, "inner": M, "target": target}
         t0 = time.perf_counter()
@@ -393,7 +413,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_target_case(case: str, names: dict[str, str], workers: Workers, targets: tuple,
                     repeat: int) -> dict[str, Any]:
-    timed = ("inc_hapod", "dist_hapod", "streamsvd")
+    timed = ("inc_hapod", "dist_hapod", "streamsvd", "streamsvd_tree")
     runs: dict[str, list] = {f"{c}@{t:g}": [] for c in timed for t in targets}
     workers.start([(c, 1) for c in (*timed, "pod")])
     load0 = os.getloadavg()
@@ -476,7 +496,7 @@ def _print_tables(data: dict[str, Any]) -> None:
         rows = []
         for t in data["targets"]:
             hap = c["results"][f"inc_hapod@{t:g}"]["seconds"]
-            for name in ("pod", "inc_hapod", "dist_hapod", "streamsvd"):
+            for name in ("pod", "inc_hapod", "dist_hapod", "streamsvd", "streamsvd_tree"):
                 r = c["results"][f"{name}@{t:g}"]
                 rows.append([f"{t:g}", name, r["seconds"], r["seconds"] / hap, r["modes"],
                              r.get("error"), r.get("bound_mean_l2") or float("nan")])

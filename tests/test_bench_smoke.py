@@ -123,3 +123,19 @@ def test_final_benchmark_tiny(bench, tmp_path):
             assert by[mode, "os 10"]["err_over_opt"] < by[mode, "os 0"]["err_over_opt"]
         assert by["tall", "os 10"]["err_over_opt"] == pytest.approx(
             by["memory", "os 10"]["err_over_opt"], rel=1e-9)
+
+
+def test_target_benchmark_quick(bench, tmp_path):
+    """Every mode meets every relative target with the optimal modes (+1), and the bound
+    holds after every update."""
+    mod = bench("target_benchmark")
+    mod.main(["--quick", "--out", str(tmp_path)])
+    assert_drawn(tmp_path / "target_benchmark.png")
+    rows = _read(tmp_path / "target_benchmark.json")["results"]
+    assert len(rows) == 15
+    for r in rows:
+        assert r["true_error"] <= r["target"]
+        assert r["modes"] <= r["optimum"] + 1
+        assert 1.0 - 1e-9 <= r["bound_over_true"] <= 1.5
+        if r["mode"] == "memory":
+            assert r["worst_true_over_bound"] <= 1.0 + 1e-9
