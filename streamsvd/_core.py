@@ -71,6 +71,12 @@ class UpdateRecord:
         The guaranteed bound on ``||A - U V^T||_F`` after the update.
     seconds : float
         Wall time of the update.
+    passes : int
+        Passes over the stored basis (products with ``Q`` or ``M Q``, and the compaction
+        that writes a new one): 2 for an absorb by the snapshots' Gram
+        (:mod:`streamsvd.update_gram`), 2 to 4 for the exact path on a well-conditioned
+        block, more for nearly collinear blocks (rounds of
+        :func:`streamsvd.gram_schmidt.extend_basis`).
     """
 
     kind: str
@@ -85,11 +91,12 @@ class UpdateRecord:
     orthogonality: float
     error_bound: float
     seconds: float
+    passes: int = 0
 
 
 HISTORY_FIELDS = (
     "kind", "columns", "rank", "new_directions", "rejected", "cut", "discarded", "sweeps",
-    "max_cosine", "orthogonality", "error_bound", "seconds",
+    "max_cosine", "orthogonality", "error_bound", "seconds", "passes",
 )
 _KINDS = ("absorb", "add", "merge", "finalize")
 
@@ -108,7 +115,7 @@ def record_from_row(row: np.ndarray) -> UpdateRecord:
     """Decode one row of :func:`history_array`."""
     vals: dict[str, Any] = dict(zip(HISTORY_FIELDS, row.tolist(), strict=True))
     vals["kind"] = _KINDS[int(vals["kind"])]
-    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps"):
+    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps", "passes"):
         vals[k] = int(vals[k])
     return UpdateRecord(**vals)
 

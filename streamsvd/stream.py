@@ -65,6 +65,7 @@ from .update import (
     plan_finalize,
     plan_merge,
 )
+from .update_gram import plan_absorb_by_gram
 
 __all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
@@ -741,7 +742,11 @@ class StreamCompressor:
         t0 = time.perf_counter()
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
-        return self._run(lambda: plan_absorb(self._state, B, self._opts, t0=t0), offset)
+        return self._run(
+            lambda: plan_absorb_by_gram(self._state, B, self._opts, t0=t0)
+            or plan_absorb(self._state, B, self._opts, t0=t0),
+            offset,
+        )
 
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
         """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from ._core import CoreStep, Truncation, UpdateRecord, core_step, r_factor
+from ._core import Truncation, UpdateRecord, core_step, r_factor
 from ._scaling import pow2_exponent, safe_column_norms
 from .basis import BasisBackend
 from .bound import Bound
@@ -49,7 +49,7 @@ from .rows import RowFactor
 
 __all__ = [
     "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_finalize",
-    "plan_merge",
+    "gram_orthogonality", "plan_merge", "stage_rows",
 ]
 
 logger = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ class State:
 
     def orthogonality(self) -> float:
         """``||U^T M U - I||_2`` from the small Gram matrices."""
-        return _orthogonality(self.Gu, self.H)
+        return gram_orthogonality(self.Gu, self.H)
 
 
 @dataclass(frozen=True)
@@ -315,7 +315,7 @@ def _plan(
     else:
         H = _extended_gram(state, ext)
         state.basis.stage_new(r)
-    orth = _orthogonality(Gu, H)
+    orth = gram_orthogonality(Gu, H)
     if orth > opts.reorth_tol:
         # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged (V = Y R, so
         # only R changes)
@@ -323,7 +323,7 @@ def _plan(
         L = np.linalg.cholesky(0.5 * (G + G.T))
         Gu = scipy.linalg.solve_triangular(L, Gu.T, lower=True).T
         R = R @ L
-        orth = _orthogonality(Gu, H)
+        orth = gram_orthogonality(Gu, H)
     Vp = Y_full = None
     appended = 0
     if state.rows is not None:
@@ -334,16 +334,18 @@ def _plan(
         if Y_replace is not None:
             Y_full = Y_replace @ P
         else:
-            k = state.R.shape[0]
-            state.rows.rebase_if_wide()
-            N = P[k:] if Y_appended is None else Y_appended @ P[k:]
-            Vp = state.rows.stage(state.rows.Vp @ P[:k], N)
-            appended = N.shape[0]
+            Vp, appended = stage_rows(state, P, Y_appended)
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
         discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
     )
-    record = _record(kind, columns, p_new, ext, step, discarded, orth, bound, t0)
+    record = UpdateRecord(
+        kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,
+        rejected=ext.rejected, cut=step.cut, discarded=discarded,
+        sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
+        error_bound=bound.bound, seconds=time.perf_counter() - t0,
+        passes=ext.passes + int(compact),
+    )
     logger.debug(
         "%s of %d columns: %d passes over the basis, %d sweeps, rank %d", kind, columns,
         ext.passes, step.sweeps, p_new,
@@ -354,23 +356,19 @@ def _plan(
     )
 
 
-def _record(
-    kind: str,
-    columns: int,
-    rank: int,
-    ext: BasisExtension,
-    step: CoreStep,
-    discarded: float,
-    orth: float,
-    bound: Bound,
-    t0: float,
-) -> UpdateRecord:
-    return UpdateRecord(
-        kind=kind, columns=columns, rank=rank, new_directions=ext.rank,
-        rejected=ext.rejected, cut=step.cut, discarded=discarded,
-        sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
-        error_bound=bound.bound, seconds=time.perf_counter() - t0,
-    )
+def stage_rows(
+    state: State, P: np.ndarray, Y_appended: np.ndarray | None
+) -> tuple[np.ndarray, int]:
+    """Stage ``Y <- blockdiag(Y, Y_appended) P``; return the new ``Vp`` and the rows added.
+
+    ``P`` (``(k + k_a) x k_new``) is orthonormal; ``Y_appended`` (the identity when None)
+    holds the new rows' own orthonormal factor.
+    """
+    assert state.rows is not None
+    k = state.R.shape[0]
+    state.rows.rebase_if_wide()
+    N = P[k:] if Y_appended is None else Y_appended @ P[k:]
+    return state.rows.stage(state.rows.Vp @ P[:k], N), N.shape[0]
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -399,7 +397,7 @@ def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndar
     return Q, R
 
 
-def _orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
+def gram_orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
     """``||Gu^T H Gu - I||_2``: the largest eigenvalue modulus of a symmetric matrix."""
     p = Gu.shape[1]
     if p == 0:

@@ -1,0 +1,159 @@
+"""The absorb through the snapshots' Gram matrix (streamsvd.update_gram): taken when a
+target error allows it, as certified as the exact path, never taken where it would lose
+digits the target needs."""
+
+import numpy as np
+import pytest
+
+import streamsvd as ss
+import streamsvd.stream as stream_module
+from streamsvd.parallel import tall_compress
+
+EPS = np.finfo(float).eps
+
+
+def _pulses(n=600, m=360):
+    """A travelling, spreading pulse: neighbouring snapshots nearly collinear."""
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 1.0, m)[np.newaxis, :]
+    return np.exp(-((x - 0.2 - 0.6 * t) / (0.05 + 0.05 * t)) ** 2)
+
+
+def _weights(n):
+    return np.linspace(0.5, 1.5, n) / n
+
+
+def _by_gram(record):
+    return record.sweeps == 0 and record.passes == 2
+
+
+def _stream(A, block=40, **kw):
+    sc = ss.StreamCompressor(A.shape[0], **kw)
+    for j in range(0, A.shape[1], block):
+        sc.absorb(A[:, j : j + block])
+    return sc
+
+
+def _mean_l2(A, U, V, w):
+    R = A - U @ V.T
+    return np.sqrt(np.sum(w[:, np.newaxis] * R * R) / A.shape[1])
+
+
+@pytest.fixture
+def exact_only(monkeypatch):
+    """Force the exact path (for comparisons)."""
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+
+
+@pytest.mark.parametrize("target", [1e-2, 1e-3, 1e-4])
+def test_nearly_collinear_snapshots_take_the_gram_path_with_a_bound_that_holds(target):
+    A = _pulses()
+    w = _weights(A.shape[0])
+    kw = dict(inner=w, target_error=target, error_measure="mean_l2")
+    sc = ss.StreamCompressor(A.shape[0], **kw)
+    for j in range(0, A.shape[1], 40):
+        rec = sc.absorb(A[:, j : j + 40])
+        assert _by_gram(rec)
+        E = sc.expansion
+        err = _mean_l2(A[:, : j + 40], E.U, E.V, w)
+        assert err <= sc.error_in_measure * (1 + 1e-9)
+        U = E.U
+        assert np.linalg.norm(U.T @ (w[:, np.newaxis] * U) - np.eye(U.shape[1]), 2) <= (
+            50 * A.shape[0] * EPS)
+    sc.finalize()
+    E = sc.expansion
+    err = _mean_l2(A, E.U, E.V, w)
+    assert err <= sc.error_in_measure <= target
+    assert sc.error_in_measure <= 1.5 * err
+    # the optimum: the fewest modes of the weighted SVD within the target
+    s = np.linalg.svd(np.sqrt(w)[:, np.newaxis] * A, compute_uv=False)
+    tail = np.sqrt(np.append(np.cumsum((s * s)[::-1])[::-1], 0.0) / A.shape[1])
+    assert sc.rank <= int(np.flatnonzero(tail <= target)[0]) + 1
+    Vh = E.V / np.linalg.norm(E.V, axis=0)
+    assert np.linalg.norm(Vh.T @ Vh - np.eye(sc.rank), 2) <= 50 * A.shape[1] * EPS
+
+
+def test_the_gram_path_keeps_the_exact_paths_modes_and_bound(monkeypatch):
+    A = _pulses()
+    kw = dict(target_error=1e-3, error_measure="mean_l2")
+    fast = _stream(A, **kw)
+    assert all(_by_gram(r) for r in fast.history)
+    fast.finalize()
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    exact = _stream(A, **kw)
+    assert not any(_by_gram(r) for r in exact.history)
+    exact.finalize()
+    assert abs(fast.rank - exact.rank) <= 1
+    assert fast.error_bound == pytest.approx(exact.error_bound, rel=0.05)
+    np.testing.assert_allclose(fast.amplitudes[:10], exact.amplitudes[:10], rtol=1e-9)
+
+
+@pytest.mark.parametrize("kw", [
+    {"target_error": 1e-9, "error_measure": "relative"},  # below the Gram's rounding
+    {"target_error": 1e-3, "error_measure": "absolute"},  # a budget that does not grow
+    {"max_rank": 10},  # no target
+])
+def test_the_exact_path_runs_where_the_gram_would_lose_needed_digits(kw):
+    A = _pulses()
+    sc = _stream(A, **kw)
+    assert not any(_by_gram(r) for r in sc.history)
+
+
+@pytest.mark.parametrize("scale", [2.0**-664, 2.0**664])
+def test_the_gram_path_on_extreme_scales(scale):
+    """Data scaled by 2^-664 or 2^664 (about 1e-200 and 1e200): the same decisions and
+    a bound scaled exactly (powers of two scale without rounding)."""
+    A = _pulses()
+    kw = dict(target_error=1e-4, error_measure="relative")
+    ref = _stream(A, **kw)
+    sc = _stream(scale * A, **kw)
+    assert all(_by_gram(r) for r in sc.history)
+    assert sc.rank == ref.rank
+    assert sc.error_bound == pytest.approx(scale * ref.error_bound, rel=1e-12)
+    E = sc.expansion
+    err = np.linalg.norm(A - E.U @ (E.V / scale).T)  # scaled back: no overflow here
+    assert err <= (sc.error_bound / scale) * (1 + 1e-9)
+
+
+def test_the_tall_mode_takes_the_same_gram_path(rng):
+    A = _pulses()
+    kw = dict(target_error=1e-3, error_measure="relative")
+    mem = _stream(A, **kw)
+    tall = tall_compress(A, block=40, chunk_rows=256, **kw)
+    assert all(_by_gram(r) for r in tall.history)
+    assert tall.rank == mem.rank
+    U, V = tall.factors()
+    E = mem.expansion
+    # the chunked products round differently; the difference is far below the bound
+    diff = np.linalg.norm(np.asarray(U) @ V.T - E.U @ E.V.T)
+    assert diff <= 1e-6 * mem.error_bound
+    tall.close()
+
+
+def test_an_interrupted_gram_absorb_changes_nothing(tmp_path, monkeypatch):
+    A = _pulses()
+    path = tmp_path / "s.zarr"
+    kw = dict(target_error=1e-3, error_measure="mean_l2")
+    with ss.StreamCompressor(A.shape[0], store=path, **kw) as sc:
+        for j in range(0, 200, 40):
+            sc.absorb(A[:, j : j + 40])
+        sc.flush()
+        before = sc.expansion
+        basis = sc._state.basis
+
+        def interrupt(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        with monkeypatch.context() as mp:
+            mp.setattr(basis, "compact_planned", interrupt)
+            with pytest.raises(KeyboardInterrupt):
+                sc.absorb(A[:, 200:240])
+        after = sc.expansion
+        np.testing.assert_array_equal(after.U, before.U)
+        np.testing.assert_array_equal(after.V, before.V)
+        assert sc.n_seen == 200
+        sc.absorb(A[:, 200:240])
+        assert sc.n_seen == 240
+        sc.close(finalize=False)
+    with ss.StreamCompressor.open(path) as back:
+        assert back.n_seen == 240
