@@ -241,13 +241,8 @@ def extend_basis(
     n, b = X.shape
     w = basis.width
     q = w if G is None else G.shape[1]
-    peak = np.maximum(X.max(axis=0), -X.min(axis=0)) if n else np.zeros(b)
-    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
     Y, MY = basis.workspace(b)
-    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
-        np.multiply(X, np.ldexp(1.0, -exps), out=Y)
-    else:  # exact for any exponent, subnormal peaks included
-        np.ldexp(X, -exps[np.newaxis, :], out=Y)
+    exps = scale_into(X, Y)[0]
     C = np.zeros((q, b))
     passes = 0
     if w:
@@ -345,6 +340,26 @@ def extend_basis(
         gram_new=gram_new,
         passes=passes,
     )
+
+
+def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Write ``X 2^-e`` into ``Y``, ``e`` per column, so that its peak lies in [1/2, 1).
+
+    Returns the exponents (0 for a zero column) and the mask of the zero columns. The
+    copy is made first and the peaks
+    are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
+    the scaling is exact, subnormal peaks included.
+    """
+    Y[...] = X
+    if Y.shape[0] == 0:
+        return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
+    peak = np.max(np.abs(Y), axis=0)
+    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
+    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
+        Y *= np.ldexp(1.0, -exps)
+    else:
+        np.ldexp(Y, -exps[np.newaxis, :], out=Y)
+    return exps, peak == 0
 
 
 def _apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray:

@@ -300,13 +300,16 @@ def _plan(
     T = step.T
     p_new = T.shape[1]
     # the basis [Q, Q_new] with Gu_ext = blockdiag(Gu, I_r); compact when it pays, or
-    # when the next block of this width would not fit in the buffer (a compaction is
-    # cheaper than growing the buffer, and keeps the memory at about two bases)
+    # when the next block of this width would not fit in a buffer that holds two bases
+    # and a block (a compaction is then cheaper than growing it); a smaller buffer grows
+    # (geometrically, when the next block's workspace is taken), else a tight buffer
+    # would compact at every update
     waste = state.waste + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1)
+    room, block = state.basis.room, ext.accepted.size
     compact = (
         waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
         or p_new == 0
-        or w + r + ext.accepted.size > state.basis.room
+        or (w + r + block > room and room >= 2 * p_new + block)
     )
     Gu = np.vstack([state.Gu @ T[:p], T[p:]])
     if compact:

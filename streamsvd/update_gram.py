@@ -1,10 +1,10 @@
-"""Absorb a block through the Gram matrix of the snapshots, when a target error allows it.
+"""Absorb a block through the Gram matrix of the snapshots, when the cut allows it.
 
 The exact path (:func:`streamsvd.update.plan_absorb`) orthonormalises the block's residual
 to working accuracy, which takes several passes when the snapshots are nearly collinear
-(time steps), and then cuts most of what it orthonormalised. When the user asks for a
-target error (``relative`` or ``mean_l2``), the directions below the cut carry nothing
-the user needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
+(time steps), and then cuts most of what it orthonormalised. When the update cuts (a
+target error, or a rank cap), the directions far below the cut carry nothing the user
+needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
 
 * the expansion and the block are ``F = [Q, X] Z`` (``Z`` holds ``Gu R^T`` and the
   block's scaling); one product ``[M Q, M X]^T X`` gives the Gram ``B`` of ``[Q, X]`` (the
@@ -31,9 +31,13 @@ energy, so the bound still holds. The path is taken only when the allowance is b
 of the growth of the error budget in this update (the bound then stays within 0.5% of
 the exact path's), when the smallest kept eigenvalue is above 64 times the rounding of
 ``Phi`` (``4 (sqrt(n) + k + b) eps trace(Phi)``, Weyl's bound), and when the kept
-vectors' Gram is within 1/4 of the identity; otherwise the
-exact path runs (it also runs for ``absolute`` targets, whose budget does not grow, for
-every update without a target, and for ``add`` and ``merge``).
+vectors' Gram is within 1/4 of the identity. "The growth of the budget" is, for a
+``relative`` or ``mean_l2`` target, what this update adds to the squared streaming
+budget; for an ``absolute`` target or a rank cap, the energy this update cuts (the
+allowance then adds at most 0.5% to the discarded norm). Otherwise the exact path runs:
+for updates that cut nothing, for ``eps`` and ``rtol`` alone (they act after the rule's
+sweeps, as in the paper's Algorithm 3), for blocks so narrow that writing a new basis
+costs more than twice the exact path's products, and for ``add`` and ``merge``.
 """
 
 from __future__ import annotations
@@ -44,9 +48,9 @@ import time
 import numpy as np
 import scipy.linalg
 
-from ._core import UpdateRecord
+from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
-from .gram_schmidt import _apply_into, _gram
+from .gram_schmidt import _apply_into, _gram, scale_into
 from .update import Plan, State, StepOptions, gram_orthogonality, stage_rows
 
 __all__ = ["plan_absorb_by_gram"]
@@ -58,6 +62,34 @@ _ROUNDING_LAMBDA = 4.0  # Higham and Mary's constant of the probabilistic model
 _SMALLEST_KEPT = 64.0  # kept eigenvalues above this many times their rounding
 _MAX_DRIFT = 0.25  # largest ||H' - I|| of the new basis
 _MAX_SPREAD = 900  # largest spread of the block's binary exponents
+_COMPACTION_RATIO = 2.0  # largest compaction flops over the exact path's products
+
+
+def _compaction_pays(w: int, b: int, keep: int) -> bool:
+    """Whether writing ``keep`` columns from ``w + b`` costs at most twice the exact path.
+
+    The exact path's products cost about ``3 w b + 2 b^2`` per row; a narrow block takes
+    it, appending its directions and compacting only when that pays.
+    """
+    return (w + b) * keep <= _COMPACTION_RATIO * (3 * w * b + 2 * b * b)
+
+
+def _room(
+    trunc: Truncation, cut: np.ndarray, S: np.ndarray, exps: np.ndarray, top: int, b: int
+) -> float:
+    """Return the energy (scaled by ``4^-top``) the rounding allowance is measured against.
+
+    With a ``relative`` or ``mean_l2`` target: the growth of the squared streaming budget
+    in this update (the block's energy, or ``b``, times ``(share target)^2``); otherwise
+    the energy this update cuts (``cut``: the eigenvalues not kept).
+    """
+    if trunc.target is not None and trunc.measure in GRAM_MEASURES:
+        share_eps = trunc.share * trunc.target
+        if trunc.measure == "mean_l2":
+            return share_eps**2 * math.ldexp(float(b), -2 * top)
+        block = float(np.sum(np.diag(S) * np.ldexp(1.0, 2 * (exps - top))))
+        return share_eps**2 * block
+    return float(np.sum(cut))
 
 
 def plan_absorb_by_gram(
@@ -69,21 +101,23 @@ def plan_absorb_by_gram(
     and the basis as they were (the caller then plans the exact update).
     """
     trunc = opts.truncation
-    if trunc.target is None or trunc.measure not in GRAM_MEASURES:
+    if trunc.target is None and trunc.max_rank is None:
+        # nothing is cut but by eps and rtol, which act after the rule's sweeps (the
+        # paper's Algorithm 3), or nothing at all: every digit is the user's
         return None
     n, b = X.shape
     basis, inner = state.basis, opts.inner
     w = basis.width
     k = state.R.shape[0]
-    peak = np.maximum(X.max(axis=0), -X.min(axis=0)) if n else np.zeros(b)
-    if not np.all(peak > 0):
-        return None  # a zero column: the exact path counts it
-    exps = np.frexp(peak)[1].astype(np.int64)
+    if not _compaction_pays(w, b, state.rank):
+        return None
+    Y, MY = basis.workspace(b)
+    exps, zero = scale_into(X, Y)
+    if zero.any():
+        return None  # an empty or zero column: the exact path counts it
     top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
     if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return None
-    Y, MY = basis.workspace(b)
-    np.multiply(X, np.ldexp(1.0, -exps), out=Y)
     MYv = _apply_into(Y, MY, inner)
     C = basis.project(Y, None) if w else np.zeros((0, b))
     S = _gram(Y, inner, MYv)
@@ -100,14 +134,6 @@ def plan_absorb_by_gram(
         return None
     size = k + b
     allowance = _ROUNDING_LAMBDA * (math.sqrt(size * n) + size) * _EPS * total
-    share_eps = trunc.share * trunc.target
-    if trunc.measure == "mean_l2":
-        growth = share_eps**2 * math.ldexp(float(b), -2 * top)
-    else:  # relative: the budget grows with the block's energy
-        block = float(np.sum(np.diag(S) * np.ldexp(1.0, 2 * (exps - top))))
-        growth = share_eps**2 * block
-    if allowance > _ALLOWANCE_SHARE * growth:
-        return None
     amps = np.ldexp(np.sqrt(lam), top)
     spent = math.hypot(state.bound.bound, math.ldexp(math.sqrt(allowance), top))
     m = state.m + b
@@ -115,6 +141,10 @@ def plan_absorb_by_gram(
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one
     perturbation = _ROUNDING_LAMBDA * (math.sqrt(n) + size) * _EPS * total
     if keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation:
+        return None
+    if allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], S, exps, top, b):
+        return None
+    if not _compaction_pays(w, b, keep):
         return None
     G = Z @ (W[:, :keep] / np.sqrt(lam[:keep]))
     H = basis.compact_planned(G, b)

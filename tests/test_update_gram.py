@@ -8,6 +8,7 @@ import pytest
 import streamsvd as ss
 import streamsvd.stream as stream_module
 from streamsvd.parallel import tall_compress
+from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps
 
@@ -88,15 +89,41 @@ def test_the_gram_path_keeps_the_exact_paths_modes_and_bound(monkeypatch):
     np.testing.assert_allclose(fast.amplitudes[:10], exact.amplitudes[:10], rtol=1e-9)
 
 
-@pytest.mark.parametrize("kw", [
-    {"target_error": 1e-9, "error_measure": "relative"},  # below the Gram's rounding
-    {"target_error": 1e-3, "error_measure": "absolute"},  # a budget that does not grow
-    {"max_rank": 10},  # no target
+@pytest.mark.parametrize("kw, block", [
+    ({"target_error": 1e-9, "error_measure": "relative"}, 40),  # below the Gram's rounding
+    ({}, 40),  # nothing is cut: every digit is the user's
+    ({"rtol": 1e-3}, 40),  # a threshold after the rule's sweeps (Algorithm 3)
+    ({"max_rank": 20}, 1),  # single columns: the compaction would cost more than it saves
 ])
-def test_the_exact_path_runs_where_the_gram_would_lose_needed_digits(kw):
+def test_the_exact_path_runs_where_the_gram_would_lose_needed_digits_or_time(kw, block):
     A = _pulses()
-    sc = _stream(A, **kw)
+    sc = _stream(A, block=block, **kw)
     assert not any(_by_gram(r) for r in sc.history)
+
+
+@pytest.mark.parametrize("kw", [
+    {"max_rank": 12},
+    {"target_error": 1e-2, "error_measure": "absolute"},
+])
+def test_a_cut_by_rank_threshold_or_absolute_target_takes_the_gram_path(
+    kw, monkeypatch, rng
+):
+    """On a spectrum decaying to 1e-5, what the rounding of the Gram can lose is below
+    1% of what each cut drops: the Gram path runs and keeps the exact path's modes,
+    amplitudes and bound."""
+    A = with_spectrum(np.logspace(0, -5, 200), 600, 360, rng)
+    fast = _stream(A, **kw)
+    assert any(_by_gram(r) for r in fast.history)
+    fast.finalize()
+    E = fast.expansion
+    assert np.linalg.norm(A - E.U @ E.V.T) <= fast.error_bound * (1 + 1e-9)
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    exact = _stream(A, **kw)
+    exact.finalize()
+    assert abs(fast.rank - exact.rank) <= 1
+    assert fast.error_bound <= 1.01 * exact.error_bound
+    k = min(fast.rank, exact.rank)
+    np.testing.assert_allclose(fast.amplitudes[:k], exact.amplitudes[:k], rtol=1e-6)
 
 
 @pytest.mark.parametrize("scale", [2.0**-664, 2.0**664])
