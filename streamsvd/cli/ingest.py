@@ -234,7 +234,6 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
     return options
 
 
-
 def _source_record(args: Any) -> Any:
     """Open SOURCE (checking it) and return its record."""
     from ..provenance import SourceRecord
@@ -247,7 +246,6 @@ def _source_record(args: Any) -> Any:
                               f"(shape {src.shape}); a snapshot needs at least one entry.")
         return SourceRecord.of(source, dataset=dataset, shape=src.shape,
                                description=src.description)
-
 
 
 def _check_resume(args: Any, sc: Any, record: Any) -> None:
