@@ -78,8 +78,8 @@ _LAZY = {
 _SUBMODULES = frozenset({
     "basis", "bound", "cli", "compress", "errors", "estimator", "expansion",
     "gram_schmidt", "inner", "locks", "panels", "parallel", "parallel_tall",
-    "parallel_tree", "provenance", "rotations", "rows", "sources", "storage", "store",
-    "stream", "testing", "update",
+    "parallel_tree", "plotting", "provenance", "rotations", "rows", "sources", "storage",
+    "store", "stream", "testing", "update",
 })
 
 

@@ -13,62 +13,28 @@ of samples seen: the compressor is created with ``right_vectors=False`` and only
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 
-from ._scaling import safe_column_norms
-from ._validation import (
-    as_float_array,
-    check_choice,
-    check_finite,
-    check_nonnegative,
-    check_positive_int,
+from . import _pca_math
+from ._pca_model import (
+    FittedPCA,
+    NotFittedError,
+    check_bool,
+    check_samples,
+    features_error,
 )
-from .compress import fix_signs
-from .errors import InputError, ShapeMismatchError, SparseInputError
+from ._validation import check_choice, check_nonnegative, check_positive_int
+from .errors import InputError, SparseInputError
 from .inner import InnerProduct, as_inner
 from .rotations import RULES
 from .stream import StreamCompressor
 
 __all__ = ["NotFittedError", "StreamingSVD"]
-
-try:  # scikit-learn is optional: use its base classes when present
-    from sklearn.base import BaseEstimator as _Base
-    from sklearn.base import TransformerMixin as _Mixin
-    from sklearn.exceptions import NotFittedError as _NotFitted
-except ImportError:  # pragma: no cover - exercised only without scikit-learn
-
-    class _Base:  # type: ignore[no-redef]
-        """``get_params`` / ``set_params`` from the ``__init__`` signature."""
-
-        def get_params(self, deep: bool = True) -> dict[str, Any]:
-            import inspect
-
-            names = [p for p in inspect.signature(type(self).__init__).parameters if p != "self"]
-            return {k: getattr(self, k) for k in names}
-
-        def set_params(self, **params: Any) -> Any:
-            for k, v in params.items():
-                setattr(self, k, v)
-            return self
-
-    class _Mixin:  # type: ignore[no-redef]
-        def fit_transform(self, X: Any, y: Any = None, **kw: Any) -> np.ndarray:
-            return self.fit(X, y, **kw).transform(X)  # type: ignore[attr-defined]
-
-    class _NotFitted(ValueError, AttributeError):  # type: ignore[no-redef]
-        pass
-
-
-class NotFittedError(_NotFitted, InputError):
-    """The estimator is used before ``fit`` or ``partial_fit``."""
-
 
 # learned state, removed by ``fit`` before it starts again
 _LEARNED = (
@@ -100,12 +66,6 @@ class _Options:
         return self.n_components if isinstance(self.n_components, int) else None
 
 
-def _check_bool(value: Any, name: str) -> bool:
-    if not isinstance(value, bool | np.bool_):
-        raise InputError(f"`{name}` must be True or False; got {value!r}.")
-    return bool(value)
-
-
 def _validate_options(est: StreamingSVD, n_features: int) -> _Options:
     """Validate every option of ``est`` for data with ``n_features`` features."""
     k = est.n_components
@@ -128,8 +88,8 @@ def _validate_options(est: StreamingSVD, n_features: int) -> _Options:
     return _Options(
         n_components=k,
         tol=None if est.tol is None else check_nonnegative(est.tol, "tol"),
-        center=_check_bool(est.center, "center"),
-        whiten=_check_bool(est.whiten, "whiten"),
+        center=check_bool(est.center, "center"),
+        whiten=check_bool(est.whiten, "whiten"),
         batch_size=check_positive_int(est.batch_size, "batch_size", allow_none=True),
         rule=check_choice(est.rule, "rule", RULES),
         sweeps=check_positive_int(est.sweeps, "sweeps", allow_none=True),
@@ -153,49 +113,44 @@ def _gen_batches(n: int, batch_size: int, min_batch_size: int) -> Iterator[slice
         yield slice(start, n)
 
 
-def _condition(B: np.ndarray) -> np.ndarray:
-    """Return a block with the Gram matrix ``B B^T`` of ``B`` and at most ``n`` columns.
-
-    Without right vectors the compressor's directions and amplitudes depend on the
-    absorbed columns only through ``B B^T`` (the SVD of ``[U S, B]`` does), so a block of
-    more samples than features is replaced by ``R^T`` with ``B^T = Q R`` (Householder):
-    ``n`` columns instead of ``b``, at ``O(b n^2)``, the cost of ``IncrementalPCA``'s SVD.
-    """
-    n, b = B.shape
-    if b > n:
-        B = scipy.linalg.qr(B.T, mode="r", check_finite=False)[0][:n].T  # R is b x n
-    return B
-
-
-def _complement(U: np.ndarray, count: int, inner: InnerProduct) -> np.ndarray:
-    """``count`` ``M``-orthonormal directions ``M``-orthogonal to the columns of ``U``.
-
-    With ``W = M U``, the directions ``Z`` with ``W^T Z = 0`` are the columns ``r, r+1,
-    ...`` of the Householder factor of ``W`` (``Q e_j``, applied by LAPACK ``dormqr``,
-    ``O(n r count)``, never the ``n x n`` ``Q``); they are then ``M``-orthonormalised by
-    the Cholesky factor of ``Z^T M Z`` and signed so that their largest entry is positive.
-    Deterministic, so the width of ``transform`` depends on the shapes only.
-    """
-    n, r = U.shape
-    Z = np.zeros((n, count))
-    Z[r + np.arange(count), np.arange(count)] = 1.0
-    if r:
-        W = np.asarray(inner.apply(U), dtype=np.float64)
-        (qr, tau), _ = scipy.linalg.qr(W, mode="raw")
-        Z, _, info = scipy.linalg.lapack.dormqr(
-            "L", "N", qr, tau, Z, max(1, 64 * count), overwrite_c=1
+def _new_compressor(opts: _Options, *, n_features: int, inner: InnerProduct,
+                    n_samples: int) -> StreamCompressor:
+    """Return the compressor of a first batch of ``n_samples`` samples (no right vectors)."""
+    if opts.max_rank is not None and opts.max_rank > n_samples:
+        raise InputError(
+            "`n_components` must be at most the number of samples of the first "
+            f"batch (n_components={opts.max_rank} must be less or equal to the "
+            f"batch number of samples {n_samples} for the first partial_fit call); got "
+            f"n_samples={n_samples}. Pass at least {opts.max_rank} samples first, or a "
+            "smaller `n_components`."
         )
-        if info != 0:  # pragma: no cover - LAPACK argument errors only
-            raise RuntimeError(f"LAPACK dormqr failed with info={info}")
-    if not inner.is_euclidean:
-        G = inner.gram(Z, Z)
-        L = np.linalg.cholesky(0.5 * (G + G.T))
-        Z = scipy.linalg.solve_triangular(L, Z.T, lower=True).T
-    fix_signs(Z, np.zeros((0, count)))
-    return Z
+    return StreamCompressor(
+        n_features, inner=inner, rtol=opts.tol, max_rank=opts.max_rank,
+        oversampling=0, rule=opts.rule, sweeps=opts.sweeps, right_vectors=False,
+    )
 
 
-class StreamingSVD(_Mixin, _Base):
+def _check_unchanged(est: StreamingSVD, opts: _Options) -> None:
+    """Refuse a change of an option the state was built with (see the class notes)."""
+    for name in _STATEFUL:
+        old, new = getattr(est._options, name), getattr(opts, name)
+        if old != new:
+            raise InputError(
+                f"`{name}` must stay {old!r} between calls to partial_fit (the fitted "
+                f"state was built with it); got {new!r}. Set it back, or call `fit` to "
+                "start again with the new value."
+            )
+    if est.inner is not est._inner_arg:
+        new_inner = as_inner(est.inner, est.n_features_in_)
+        if new_inner.fingerprint != est._inner.fingerprint:
+            raise InputError(
+                f"`inner` must stay {est._inner!r} between calls to partial_fit (the "
+                f"fitted state was built with it); got {new_inner!r}. Set it back, or "
+                "call `fit` to start again with the new value."
+            )
+
+
+class StreamingSVD(FittedPCA):
     """PCA / truncated SVD fitted incrementally by rotation sweeps (``IncrementalPCA``).
 
     Parameters
@@ -286,19 +241,12 @@ class StreamingSVD(_Mixin, _Base):
 
     compressor_: StreamCompressor
     n_samples_seen_: int
-    n_features_in_: int
-    n_components_: int
-    mean_: np.ndarray
     var_: np.ndarray
-    components_: np.ndarray
-    explained_variance_: np.ndarray
-    noise_variance_: float
     _options: _Options
     _inner: InnerProduct
     _energy: float
     _mu: np.ndarray
     _m2: np.ndarray
-    _projection: np.ndarray
 
     def __init__(
         self,
@@ -337,7 +285,7 @@ class StreamingSVD(_Mixin, _Base):
             Every learned attribute is reset first (``n_features_in_`` included), so
             data with another number of features can be fitted.
         """
-        X = self._check_X(X, allow_sparse=True)
+        X = check_samples(X, allow_sparse=True)
         opts = _validate_options(self, X.shape[1])
         for name in _LEARNED:
             if name in self.__dict__:
@@ -378,9 +326,9 @@ class StreamingSVD(_Mixin, _Base):
                 f"StreamingSVD.fit to do so in batches. Got a {type(X).__name__} of shape "
                 f"{X.shape}."
             )
-        X = self._check_X(X, allow_sparse=False)
+        X = check_samples(X, allow_sparse=False)
         if hasattr(self, "n_features_in_") and X.shape[1] != self.n_features_in_:
-            raise self._features_error(X.shape[1])
+            raise features_error(self.n_features_in_, X.shape[1])
         opts = _validate_options(self, X.shape[1])
         self._absorb(X, opts)
         return self
@@ -394,261 +342,44 @@ class StreamingSVD(_Mixin, _Base):
         n_b, n_features = X.shape
         first = not hasattr(self, "compressor_")
         if not first:
-            self._check_unchanged(opts)
+            _check_unchanged(self, opts)
             sc, inner = self.compressor_, self._inner
             n_old, mu, m2 = self.n_samples_seen_, self._mu, self._m2
         else:
-            if opts.max_rank is not None and opts.max_rank > n_b:
-                raise InputError(
-                    "`n_components` must be at most the number of samples of the first "
-                    f"batch (n_components={opts.max_rank} must be less or equal to the "
-                    f"batch number of samples {n_b} for the first partial_fit call); got "
-                    f"n_samples={n_b}. Pass at least {opts.max_rank} samples first, or a "
-                    "smaller `n_components`."
-                )
             inner = as_inner(self.inner, n_features)
-            sc = StreamCompressor(
-                n_features, inner=inner, rtol=opts.tol, max_rank=opts.max_rank,
-                oversampling=0, rule=opts.rule, sweeps=opts.sweeps, right_vectors=False,
-            )
+            sc = _new_compressor(opts, n_features=n_features, inner=inner, n_samples=n_b)
             n_old, mu, m2 = 0, np.zeros(n_features), np.zeros(n_features)
-        n_new = n_old + n_b
-        mu_b = X.mean(axis=0)
-        Xc = X - mu_b
-        m2_b = np.sum(Xc**2, axis=0)
-        delta = mu_b - mu
-        if opts.center:
-            block = Xc
-            if n_old:
-                corr = math.sqrt(n_old * n_b / n_new) * (mu - mu_b)
-                block = np.vstack([Xc, corr])
-            energy = float(np.sum(m2_b)) + (n_old * n_b / n_new) * float(delta @ delta)
-        else:
-            block = X
-            energy = float(np.sum(safe_column_norms(X.T) ** 2))
-        sc.absorb(_condition(block.T))
+        batch = _pca_math.absorbed_batch(X, n_seen=n_old, mean=mu, m2=m2, center=opts.center)
+        sc.absorb(batch.columns)
         if first:
             self.compressor_, self._options = sc, opts
             self._inner_arg, self._inner = self.inner, inner
             self.n_features_in_, self._energy = n_features, 0.0
-        # running moments: Chan, Golub and LeVeque's pairwise update
-        self._m2 = m2 + m2_b + (n_old * n_b / n_new) * delta**2
-        self._mu = mu + (n_b / n_new) * delta
+        self._m2, self._mu = batch.m2, batch.mean
         self.mean_ = self._mu if opts.center else np.zeros(n_features)
-        self._energy += energy
-        self.n_samples_seen_ = n_new
+        self._energy += batch.energy
+        self.n_samples_seen_ = batch.n_samples
         self._publish()
-
-    def _check_unchanged(self, opts: _Options) -> None:
-        """Refuse a change of an option the state was built with (see the class notes)."""
-        for name in _STATEFUL:
-            old, new = getattr(self._options, name), getattr(opts, name)
-            if old != new:
-                raise InputError(
-                    f"`{name}` must stay {old!r} between calls to partial_fit (the fitted "
-                    f"state was built with it); got {new!r}. Set it back, or call `fit` to "
-                    "start again with the new value."
-                )
-        if self.inner is not self._inner_arg:
-            new_inner = as_inner(self.inner, self.n_features_in_)
-            if new_inner.fingerprint != self._inner.fingerprint:
-                raise InputError(
-                    f"`inner` must stay {self._inner!r} between calls to partial_fit (the "
-                    f"fitted state was built with it); got {new_inner!r}. Set it back, or "
-                    "call `fit` to start again with the new value."
-                )
 
     def _publish(self) -> None:
         """Expose the first ``n_components_`` directions (small arrays only)."""
         sc = self.compressor_
-        U, s = sc.left_vectors, sc.amplitudes
-        n, p = self.n_samples_seen_, self.n_features_in_
-        q = int(min(n, p))
-        total = self._energy
-        ratio = s**2 / total if total > 0 else np.zeros_like(s)
-        k_opt = self._options.n_components
-        if isinstance(k_opt, int):
-            k = k_opt
-        elif isinstance(k_opt, float):
-            # scikit-learn's PCA: the smallest k whose cumulative ratio exceeds the fraction
-            k = int(np.searchsorted(np.cumsum(ratio), k_opt, side="right")) + 1
-            k = min(k, max(s.size, 1), q)
-        else:
-            k = q
-        r = min(k, s.size)
-        U, s, ratio = U[:, :r], s[:r], ratio[:r]
-        if r < k:
-            U = np.hstack([U, _complement(U, k - r, self._inner)])
-            s = np.concatenate([s, np.zeros(k - r)])
-            ratio = np.concatenate([ratio, np.zeros(k - r)])
-        denom = max(n - 1, 1)
-        self.components_ = np.ascontiguousarray(U.T)
-        self._projection = U if self._inner.is_euclidean else self._inner.apply(U)
-        self.singular_values_ = s
-        self.explained_variance_ = s**2 / denom
-        self.explained_variance_ratio_ = ratio
-        self.noise_variance_ = (
-            max(total / denom - float(np.sum(self.explained_variance_)), 0.0) / (q - k)
-            if k < q
-            else 0.0
+        found = _pca_math.pca_components(
+            sc.left_vectors, sc.amplitudes, n_components=self._options.n_components,
+            n_samples=self.n_samples_seen_, energy=self._energy, inner=self._inner,
         )
-        self.var_ = self._m2 / n
-        self.n_components_ = k
+        self.components_ = found.components
+        self._projection = found.projection
+        self.singular_values_ = found.singular_values
+        self.explained_variance_ = found.explained_variance
+        self.explained_variance_ratio_ = found.explained_variance_ratio
+        self.noise_variance_ = found.noise_variance
+        self.var_ = self._m2 / self.n_samples_seen_
+        self.n_components_ = found.n_components
         self.error_bound_ = sc.error_bound
-
-    # ------------------------------------------------------------------ using the model
-    def transform(self, X: Any) -> np.ndarray:
-        """Project ``X`` on the components.
-
-        ``Z = (X - mean_) M components_.T`` (``M = I`` unless ``inner``), divided
-        column-wise by ``max(sqrt(explained_variance_), eps)`` when ``whiten``.
-
-        Parameters
-        ----------
-        X : array_like or scipy.sparse matrix, shape (n_samples, n_features)
-
-        Returns
-        -------
-        ndarray, shape (n_samples, n_components_)
-        """
-        self._check_fitted()
-        X = self._check_X(X, allow_sparse=True)
-        if X.shape[1] != self.n_features_in_:
-            raise self._features_error(X.shape[1])
-        P = self._projection
-        if sp.issparse(X):
-            Z = np.asarray(X @ P) - self.mean_ @ P
-        else:
-            Z = (X - self.mean_) @ P
-        if _check_bool(self.whiten, "whiten"):
-            Z /= np.maximum(np.sqrt(self.explained_variance_), np.finfo(np.float64).eps)
-        return Z
-
-    def inverse_transform(self, X: Any) -> np.ndarray:
-        """Map coordinates back to feature space.
-
-        ``X @ components_ + mean_``, with ``components_`` scaled row-wise by
-        ``sqrt(explained_variance_)`` when ``whiten``.
-
-        Parameters
-        ----------
-        X : array_like, shape (n_samples, n_components_)
-
-        Returns
-        -------
-        ndarray, shape (n_samples, n_features)
-        """
-        self._check_fitted()
-        Z = as_float_array(X, "X", ndim=2, cols=self.n_components_)
-        C = self.components_
-        if _check_bool(self.whiten, "whiten"):
-            C = np.sqrt(self.explained_variance_)[:, None] * C
-        return Z @ C + self.mean_
-
-    def get_covariance(self) -> np.ndarray:
-        """Covariance of the probabilistic-PCA model (Tipping and Bishop, 1999).
-
-        ``C^T diag(max(explained_variance_ - noise_variance_, 0)) C + noise_variance_ I``
-        with ``C = components_``.
-
-        Returns
-        -------
-        ndarray, shape (n_features, n_features)
-        """
-        self._check_fitted()
-        C, nv = self.components_, self.noise_variance_
-        diff = np.maximum(self.explained_variance_ - nv, 0.0)
-        cov = (C.T * diff) @ C
-        cov.flat[:: cov.shape[0] + 1] += nv
-        return cov
-
-    def get_precision(self) -> np.ndarray:
-        """Inverse of :meth:`get_covariance`, by the matrix inversion lemma.
-
-        ``(I - C^T (C C^T + nv diag(1/d))^{-1} C) / nv`` with ``d = max(explained_variance_
-        - nv, 0)`` and ``nv = noise_variance_`` (scikit-learn's formula, a ``k x k``
-        inverse); ``inv(get_covariance())`` when ``nv == 0``.
-
-        Returns
-        -------
-        ndarray, shape (n_features, n_features)
-        """
-        self._check_fitted()
-        nv = self.noise_variance_
-        if nv == 0.0:
-            return scipy.linalg.inv(self.get_covariance())
-        C = self.components_
-        diff = np.maximum(self.explained_variance_ - nv, 0.0)
-        with np.errstate(divide="ignore"):
-            inv_diff = 1.0 / diff
-        small = C @ C.T / nv
-        small.flat[:: small.shape[0] + 1] += inv_diff
-        precision = C.T @ scipy.linalg.inv(small) @ C
-        precision /= -(nv**2)
-        precision.flat[:: precision.shape[0] + 1] += 1.0 / nv
-        return precision
-
-    def get_feature_names_out(self, input_features: Any = None) -> np.ndarray:
-        """Names of the output columns: ``streamingsvd0``, ``streamingsvd1``, ...
-
-        Parameters
-        ----------
-        input_features : array_like of str, optional
-            Checked only: it must have ``n_features_in_`` entries.
-
-        Returns
-        -------
-        ndarray of object, shape (n_components_,)
-        """
-        self._check_fitted()
-        if input_features is not None:
-            names = np.asarray(input_features, dtype=object)
-            if names.ndim != 1 or len(names) != self.n_features_in_:
-                raise ShapeMismatchError(
-                    "input_features should have length equal to number of features: "
-                    f"`input_features` must have {self.n_features_in_} names; got "
-                    f"{names.size}. Pass one name per column of X, or None."
-                )
-        prefix = type(self).__name__.lower()
-        return np.asarray([f"{prefix}{i}" for i in range(self.n_components_)], dtype=object)
 
     def __sklearn_tags__(self) -> Any:
         """Declare sparse input (accepted by :meth:`fit` and :meth:`transform`)."""
         tags = super().__sklearn_tags__()
         tags.input_tags.sparse = True
         return tags
-
-    # ------------------------------------------------------------------ internals
-    def _check_X(self, X: Any, *, allow_sparse: bool) -> Any:
-        """Return ``X`` as a finite float64 array (or CSR matrix when allowed)."""
-        if allow_sparse and sp.issparse(X):
-            arr = sp.csr_matrix(X)
-            if arr.dtype.kind not in "biuf":
-                raise InputError(
-                    f"`X` must hold real numbers; got a sparse matrix of dtype {arr.dtype}."
-                )
-            arr = arr.astype(np.float64)
-            check_finite(arr.data, "X.data")
-        else:
-            arr = as_float_array(X, "X", ndim=2)
-        if arr.shape[0] == 0 or arr.shape[1] == 0:
-            axis = "feature" if arr.shape[0] else "sample"
-            raise InputError(
-                f"`X` must not be empty; got 0 {axis}(s) (shape={arr.shape}) while a minimum "
-                "of 1 is required."
-            )
-        return arr
-
-    def _features_error(self, got: int) -> ShapeMismatchError:
-        return ShapeMismatchError(
-            f"`X` must have {self.n_features_in_} columns (samples are rows): X has "
-            f"{got} features, but StreamingSVD is expecting {self.n_features_in_} features "
-            "as input."
-        )
-
-    def _check_fitted(self) -> None:
-        if not hasattr(self, "components_"):
-            raise NotFittedError(
-                "This StreamingSVD instance is not fitted yet. Call 'fit' or 'partial_fit' "
-                "with appropriate arguments before using this estimator."
-            )

@@ -28,15 +28,13 @@ import contextlib
 import logging
 import os
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, cast
 
-import numpy as np
-
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreMismatchError
+from .formats import as_dask_array
 from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
 from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
 from .provenance import SourceRecord
@@ -235,23 +233,6 @@ def tall_compress(
     return tc
 
 
-class _LazyFile:
-    """A picklable array-like over an HDF5 dataset or a ``.npy`` file, opened per read."""
-
-    def __init__(self, path: str, dataset: str | None, shape: tuple[int, ...],
-                 dtype: Any) -> None:
-        self.path, self.dataset = path, dataset
-        self.shape, self.dtype, self.ndim = tuple(shape), np.dtype(dtype), 2
-
-    def __getitem__(self, key: Any) -> np.ndarray:
-        if self.dataset is None:
-            return np.array(np.load(self.path, mmap_mode="r", allow_pickle=False)[key])
-        import h5py
-
-        with h5py.File(self.path, "r") as h5:
-            return np.asarray(h5[self.dataset][key])
-
-
 def _as_dask(spec: SourceSpec, chunk_rows: int | None) -> Any:
     """Return the source as a dask array, chunked by rows, that workers can read."""
     import dask.array as da
@@ -263,30 +244,8 @@ def _as_dask(spec: SourceSpec, chunk_rows: int | None) -> Any:
         return da.from_zarr(spec.obj)
     if spec.kind == "array":
         return da.from_array(spec.obj, chunks=(rows, -1))
-    path = str(spec.obj)  # a path, already checked by open_source
-    tag = uuid.uuid4().hex
-    suffix = Path(path).suffix.lower()
-    if suffix == ".npy":
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-        lazy = _LazyFile(path, None, arr.shape, arr.dtype)
-    elif suffix in (".h5", ".hdf5", ".he5"):
-        import h5py
-
-        with h5py.File(path, "r") as h5:
-            names: list[str] = []
-            h5.visititems(lambda k, v: names.append(k) if isinstance(v, h5py.Dataset) else None)
-            name = spec.dataset.strip("/") if spec.dataset else names[0]
-            lazy = _LazyFile(path, name, h5[name].shape, h5[name].dtype)
-    else:
-        import zarr
-
-        node = zarr.open(store=path, mode="r")
-        if not isinstance(node, zarr.Array):
-            arrays = sorted(k for k, v in node.members(max_depth=None)
-                            if isinstance(v, zarr.Array))
-            node = node[spec.dataset.strip("/") if spec.dataset else arrays[0]]
-        return da.from_zarr(node)
-    return da.from_array(lazy, chunks=(rows, -1), name=f"streamsvd-file-{tag}")
+    # a path, already checked by open_source
+    return as_dask_array(Path(spec.obj), spec.dataset, chunk_rows=rows)
 
 
 def _uniform_rows(x: Any) -> int | None:

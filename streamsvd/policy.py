@@ -8,6 +8,9 @@
 * :func:`removed_on_failure`: a STORE that this command created is removed again if the
   command fails before committing a snapshot; a STORE that existed before, or holds
   committed snapshots, never is.
+* :func:`check_resume`: a STORE is continued with the options it was created with and
+  from the SOURCE it was built from (:class:`~streamsvd.provenance.SourceRecord`); an
+  option given again with another value, or another SOURCE, is refused.
 """
 
 from __future__ import annotations
@@ -16,15 +19,27 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from datetime import datetime
 from typing import Any
 
-from .errors import StoreError, StreamSVDError
+from .errors import InputError, ShapeMismatchError, StoreError, StreamSVDError
 
-__all__ = ["removed_on_failure", "resuming"]
+__all__ = ["check_resume", "removed_on_failure", "resuming"]
 
 logger = logging.getLogger(__name__)
+
+# the options a store records at creation (``--resume`` reuses them), with their flags
+_RECORDED_OPTIONS = (
+    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"),
+    ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
+    ("commit_every", "--commit-every"), ("target_error", "--target-error"),
+    ("error_measure", "--error-measure"), ("streaming_share", "--streaming-share"),
+    ("chunk_rows", "--chunk-rows"),
+)
+
+# how a difference of SourceRecord.differences is named on the command line
+_SOURCE_PARTS = {"path": "SOURCE", "dataset": "--dataset", "shape": "SOURCE of shape"}
 
 
 def resuming(store: Any, *, resume: bool) -> bool:
@@ -87,3 +102,85 @@ def _remove_new_store(store: Any, *, since: float) -> None:
     if history(store) == "empty":
         with contextlib.suppress(OSError):
             store.delete("")
+
+
+def check_resume(compressor: Any, record: Any, *, given: Mapping[str, Any],
+                 source_changed_ok: bool, store: Any) -> None:
+    """Refuse to continue ``compressor`` with other options or from another SOURCE.
+
+    A store keeps the options it was created with; giving the same value again (the
+    first command line with --resume added) is accepted, another value is refused rather
+    than silently ignored. SOURCE's snapshot size must be the store's; its path, dataset
+    and number of columns are checked against the source the store records (a store
+    written before stores recorded it is not checked), unless ``source_changed_ok``. On
+    success the store will record ``record``.
+
+    Parameters
+    ----------
+    compressor : StreamCompressor or TallCompressor
+        The store's compressor, open for writing.
+    record : SourceRecord
+        SOURCE as given.
+    given : mapping
+        The options given on the command line, by option name, in the compressor's
+        values (``--sweeps converge`` is ``sweeps=None``); an option not given is absent.
+    source_changed_ok : bool
+        Whether ``--source-changed-ok`` was given.
+    store : Storage
+        STORE, as named in messages.
+
+    Raises
+    ------
+    InputError
+        An option differs from the store's, or SOURCE differs from the recorded one.
+    ShapeMismatchError
+        SOURCE's snapshots are not of the store's size.
+    """
+    recorded = compressor._options()
+    if hasattr(compressor, "chunk_rows"):  # a tall store keeps the row chunks of its panels
+        recorded["chunk_rows"] = compressor.chunk_rows
+    _check_options(given, recorded)
+    n = record.shape[0]
+    if n != compressor.n:
+        raise ShapeMismatchError(
+            f"SOURCE has snapshots of size {n}; STORE {store} holds a basis of size "
+            f"{compressor.n}. Pass the source the store was built from."
+        )
+    source = compressor.source_record
+    differ = [] if source is None else source.differences(record)
+    if differ and not source_changed_ok:
+        said = ", ".join(f"{_SOURCE_PARTS[what]} {new} (STORE has {had})"
+                         for what, new, had in differ)
+        raise InputError(
+            f"{said}: STORE {store} was built from another source. Pass the SOURCE "
+            "(and --dataset) it was built from, or add --source-changed-ok to continue it "
+            "from this one."
+        )
+    if differ:
+        logger.warning("continuing STORE %s from another source (%s)", store,
+                       ", ".join(f"{what} {had} -> {new}" for what, new, had in differ))
+    compressor.source_record = record
+
+
+def _check_options(given: Mapping[str, Any], recorded: dict[str, Any]) -> None:
+    """Refuse an option of ``given`` that differs from the one the store records."""
+    differ = []
+    for name, flag in _RECORDED_OPTIONS:
+        if name not in given or name not in recorded:
+            continue
+        if given[name] != recorded[name]:
+            differ.append(f"{flag} {_shown(name, given[name])} "
+                          f"(STORE has {_shown(name, recorded[name])})")
+    if differ:
+        raise InputError(
+            f"{', '.join(differ)}: --resume continues STORE with the options it was created "
+            "with (`streamsvd info STORE` shows them). Drop the option, or give the store's "
+            "value."
+        )
+
+
+def _shown(name: str, value: Any) -> str:
+    """Say an option's value as the command line spells it (``sweeps=None`` is converge)."""
+    if value is None:
+        return "converge" if name == "sweeps" else "none"
+    return str(value)

@@ -16,6 +16,9 @@
 * a dask array, of which each block is computed on its own with ``.compute()`` (the
   whole array is never materialised).
 
+Files and URLs are opened by :mod:`streamsvd.formats`, the one place that knows their
+formats.
+
 ``Source.blocks`` can read the next block in a background thread while the caller works
 on the current one (one block ahead, so at most two blocks are in memory), which hides
 the read time of compressed on-disk data behind the update of the basis. Every block read
@@ -37,15 +40,12 @@ import numpy as np
 
 from ._validation import check_positive_int
 from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
-from .storage import ObjectStorage, is_url, open_storage
+from .formats import no_dataset, open_file, open_zarr_url
+from .storage import is_url
 
 __all__ = ["Source", "open_source", "open_zarr_url"]
 
 logger = logging.getLogger(__name__)
-
-_HDF5_SUFFIXES = (".h5", ".hdf5", ".he5")
-_NPY_SUFFIXES = (".npy",)
-_ZARR_SUFFIXES = (".zarr",)
 
 
 class Source:
@@ -311,165 +311,6 @@ def _is_zarr_array(obj: Any) -> bool:
     return isinstance(obj, zarr.Array)
 
 
-def _no_dataset(dataset: Any, what: str) -> None:
-    if dataset is not None:
-        raise InputError(
-            f"`dataset` only applies to HDF5 files and zarr groups; got dataset="
-            f"{dataset!r} for {what}. Drop the `dataset` argument."
-        )
-
-
-def _choose(names: list[str], dataset: str | None, kind: str, where: str) -> str:
-    """Pick the dataset name to open among ``names``."""
-    if dataset is not None:
-        wanted = dataset.strip("/")
-        if wanted not in names:
-            raise SourceError(
-                f"`dataset` {dataset!r} is not in {where}; it holds the {kind}s "
-                f"{names}. Pass one of these names."
-            )
-        return wanted
-    if len(names) == 1:
-        return names[0]
-    if not names:
-        raise SourceError(f"`source` {where} holds no {kind}. Pass a file holding the snapshots.")
-    raise InputError(
-        f"`dataset` must be given because {where} holds {len(names)} {kind}s: {names}. "
-        f"Pass dataset=<one of them>."
-    )
-
-
-def _open_hdf5(path: Path, dataset: str | None) -> Source:
-    import h5py
-
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise SourceError(
-            f"`source` {path} cannot be opened as an HDF5 file ({exc}). Check the file."
-        ) from exc
-    try:
-        names: list[str] = []
-
-        def visit(name: str, obj: Any) -> None:
-            if isinstance(obj, h5py.Dataset):
-                names.append(name)
-
-        f.visititems(visit)
-        name = _choose(names, dataset, "dataset", f"HDF5 file {path}")
-        return Source(f[name], f"HDF5 dataset '/{name}' in {path}", on_close=f.close)
-    except BaseException:
-        f.close()
-        raise
-
-
-def _zarr_node(store: Any, dataset: str | None, path: Any) -> tuple[Any, str]:
-    """Open the zarr array to read in ``store``; return it and its description."""
-    import zarr
-
-    try:
-        node = zarr.open(store=store, mode="r")
-    except (OSError, ValueError, KeyError) as exc:
-        raise SourceError(
-            f"`source` {path} cannot be opened as a zarr array or group ({exc}). Check the path."
-        ) from exc
-    if isinstance(node, zarr.Array):
-        _no_dataset(dataset, f"the zarr array {path}")
-        return node, f"zarr array {path}"
-    names = sorted(
-        name for name, member in node.members(max_depth=None) if isinstance(member, zarr.Array)
-    )
-    name = _choose(names, dataset, "array", f"zarr group {path}")
-    return node[name], f"zarr array '{name}' in {path}"
-
-
-def _open_zarr(store: Any, dataset: str | None, path: Any) -> Source:
-    node, description = _zarr_node(store, dataset, path)
-    return Source(node, description)
-
-
-def open_zarr_url(
-    url: str, *, dataset: str | None = None, storage_options: Any = None
-) -> Any:
-    """Open the zarr array (or the array ``dataset`` of the group) at an fsspec URL.
-
-    The array pickles with its URL and ``storage_options``, so dask workers reopen it
-    where they run.
-
-    Parameters
-    ----------
-    url : str
-        ``s3://bucket/run.zarr`` or any fsspec URL of a zarr v2/v3 array or group.
-    dataset : str, optional
-        Name of the array in a group; may be omitted when there is exactly one.
-    storage_options : dict, optional
-        Options of the fsspec file system (``s3://``: ``key``, ``secret``,
-        ``endpoint_url``, ...).
-
-    Returns
-    -------
-    zarr.Array
-
-    Raises
-    ------
-    SourceError
-        Nothing is stored at the URL, or it is not a zarr array or group.
-    InputError
-        The URL names a ``.npy`` or HDF5 file, or ``dataset`` is needed or misplaced.
-    OptionalDependencyError
-        The URL needs a package of the ``s3`` extra that is not installed.
-    """
-    storage = open_storage(url, storage_options=storage_options, argument="source")
-    if not isinstance(storage, ObjectStorage):  # file://
-        return _zarr_node(str(storage.root), dataset, storage.url)[0]
-    suffix = Path(url.rstrip("/")).suffix.lower()
-    if suffix in _NPY_SUFFIXES + _HDF5_SUFFIXES:
-        raise InputError(
-            f"`source` {url} is a {suffix} file at a URL; .npy and HDF5 sources are read "
-            "from local paths only. Copy it to a local path, or convert it to a zarr array."
-        )
-    if not storage.exists():
-        raise SourceError(
-            f"`source` {url} does not exist (no object under that prefix). Check the URL, "
-            "the credentials (AWS_* variables, `storage_options`) and the endpoint."
-        )
-    return _zarr_node(storage.zarr_store(read_only=True), dataset, url)[0]
-
-
-def _open_path(path: Path, dataset: str | None) -> Source:
-    if not path.exists():
-        raise SourceError(
-            f"`source` {path} does not exist. Check the path (relative paths start in "
-            f"{Path.cwd()})."
-        )
-    suffix = path.suffix.lower()
-    if suffix in _NPY_SUFFIXES:
-        _no_dataset(dataset, f"the .npy file {path}")
-        try:
-            arr = np.load(path, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise SourceError(
-                f"`source` {path} cannot be read as a .npy file ({exc}). Check the file."
-            ) from exc
-        return Source(arr, f".npy file {path}")
-    if suffix in _HDF5_SUFFIXES:
-        return _open_hdf5(path, dataset)
-    if suffix in _ZARR_SUFFIXES or (
-        path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zarray", ".zgroup"))
-    ):
-        return _open_zarr(str(path), dataset, path)
-    if path.is_dir():
-        raise InputError(
-            f"`source` {path} is a directory but not a zarr array or group (no zarr.json, "
-            ".zarray or .zgroup in it). Pass the path of the zarr array or of a file."
-        )
-    raise InputError(
-        f"`source` {path} has an unknown extension {path.suffix!r}; expected .npy, "
-        f"{', '.join(_HDF5_SUFFIXES)}, .zarr or a zarr directory. Convert the data to one "
-        "of these formats (if it already is one, give the file its extension)."
-    )
-
-
 def open_source(
     obj: Any, *, dataset: str | None = None, storage_options: Any = None
 ) -> Source:
@@ -515,20 +356,21 @@ def open_source(
             f"{storage_options!r} with a {type(obj).__name__}. Drop them."
         )
     if isinstance(obj, Source):
-        _no_dataset(dataset, "a Source")
+        no_dataset(dataset, "a Source")
         return obj
     if isinstance(obj, str | os.PathLike):
-        return _open_path(Path(obj), dataset)
+        opened = open_file(Path(obj), dataset)
+        return Source(opened.data, opened.description, on_close=opened.close)
     if _is_dask_array(obj):
-        _no_dataset(dataset, "a dask array")
+        no_dataset(dataset, "a dask array")
         return Source(obj, f"dask array of shape {obj.shape}", compute=True)
     if _is_h5py_dataset(obj):
-        _no_dataset(dataset, "an h5py dataset")
+        no_dataset(dataset, "an h5py dataset")
         return Source(obj, f"HDF5 dataset '{obj.name}' in {obj.file.filename}")
     if _is_zarr_array(obj):
-        _no_dataset(dataset, "a zarr array")
+        no_dataset(dataset, "a zarr array")
         return Source(obj, f"zarr array {obj.store_path}")
-    _no_dataset(dataset, f"a {type(obj).__name__}")
+    no_dataset(dataset, f"a {type(obj).__name__}")
     if hasattr(obj, "toarray") and not isinstance(obj, np.ndarray):
         raise InputError(
             f"`source` must be a dense array; got a sparse matrix of shape "

@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 import zarr
 
-from streamsvd import cli
 from streamsvd.cli import main
+from streamsvd.cli.parsing import build_parser
+from streamsvd.cli.reading import open_readonly
+from streamsvd.cli.wording import in_cli_words
+from streamsvd.plotting import compressor_figure
 from streamsvd.stream import StreamCompressor
 from streamsvd.testing import with_spectrum
 
@@ -234,7 +237,7 @@ def test_one_resume_command_starts_and_restarts_in_every_mode(tmp_path, matrix, 
                "--sweeps", "converge", "--resume", "--quiet", *MODES[mode]]
     np.save(src, matrix[:, :30])
     assert main(command) == 0  # the first run: STORE does not exist yet
-    with cli._open(store) as sc:
+    with open_readonly(store) as sc:
         assert sc.n_seen == 30 and sc.rule == "jacobi" and sc.sweeps is None
     np.save(src, matrix)  # the solver appended snapshots: the same SOURCE, continued
     assert main(command) == 0
@@ -523,7 +526,7 @@ def test_a_locked_store_is_reported_without_python_advice(tmp_path, npy, capsys)
 
 def test_advice_the_command_line_does_not_know_is_dropped_not_shown():
     """A library message with Python advice that no rewrite knows keeps only its facts."""
-    text = cli._in_cli_words(
+    text = in_cli_words(
         "`path` /x/b.zarr holds a store of kind 'other'.\nOpen it with `other.open(path)`. "
         "Or pass resume=True and `block` 5."
     )
@@ -562,7 +565,7 @@ def test_options_of_another_mode_are_refused(tmp_path, npy, capsys, extra, match
 def _subparsers():
     import argparse
 
-    parser = cli._parser()
+    parser = build_parser()
     (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
     return parser, sub.choices
 
@@ -797,7 +800,7 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     assert 0.01 < ink.mean() < 0.5  # drawn on, not blank, not a black square
 
     with StreamCompressor.open(store, mode="r") as sc:
-        fig = cli._figure(sc, name="tree.zarr")
+        fig = compressor_figure(sc, name="tree.zarr")
         rank, amps, orth = sc.rank, sc.amplitudes, sc.history[0].orthogonality
         relative = sc.error_in_measure  # no target: the relative measure
     assert fig._suptitle.get_text().startswith(f"tree.zarr: n = 80, rank {rank}, 60 snapshots")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from _store_writer import CHUNK_BYTES, CREATE_ATTRS, N, expected_generation
 
-import streamsvd.storage as storage_mod
+import streamsvd.storage.local as storage_mod
 import streamsvd.store.commit as store_mod
 from streamsvd.errors import (
     InputError,

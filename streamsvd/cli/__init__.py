@@ -1,0 +1,77 @@
+"""Command line: ``streamsvd ingest | info | export | plot | check``.
+
+Output. A command's result (the JSON summary of ``ingest``, the report of ``info``, the
+``wrote ...`` line of ``export`` and ``plot``) is the only thing written to stdout;
+progress bars and log messages go to stderr, and ``ingest --quiet`` silences the bar and
+the summary. ``streamsvd ingest ... > summary.json`` and ``streamsvd info STORE --json``
+therefore give pure JSON.
+
+Errors. A user mistake (missing file, locked or foreign store, bad option, an option of
+another mode, bad data) prints one line ``streamsvd: error: ...`` in the words of the
+command line (its arguments, options and commands, never a Python call) and exits with
+status 2; nothing prints a traceback unless ``--debug`` is given.
+
+Start-up. At module level the package imports only the standard library and
+:mod:`streamsvd.errors`; numpy, zarr, dask, numba and matplotlib are imported by the
+command that needs them, so ``streamsvd --help`` answers at once.
+
+Modules. :mod:`~streamsvd.cli.parsing` (the arguments), :mod:`~streamsvd.cli.ingest`
+(``ingest``), :mod:`~streamsvd.cli.reading` (``info``, ``export``, ``plot``,
+``check``), :mod:`~streamsvd.cli.printing` (results on stdout) and
+:mod:`~streamsvd.cli.wording` (errors in the words of the command line); :func:`main`
+runs a command.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+
+from ..errors import StreamSVDError
+from . import ingest, reading
+from .parsing import CONVERGE, build_parser, locate
+from .wording import in_cli_words, interrupted
+
+__all__ = ["CONVERGE", "main"]
+
+_COMMANDS = {"ingest": ingest.run, "info": reading.info, "export": reading.export,
+             "plot": reading.plot, "check": reading.check}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``streamsvd`` command.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments after the command name; ``sys.argv[1:]`` when omitted.
+
+    Returns
+    -------
+    int
+        The exit status: 0 on success (and after ``--help``), 2 after a user mistake
+        (reported on one line of stderr as ``streamsvd: error: ...``), 130 after Ctrl-C
+        (one line saying what the store holds and the command that continues).
+    """
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) or a usage error (2), already printed
+        return int(exc.code or 0)
+    logging.basicConfig(level=logging.WARNING, format="streamsvd: %(message)s")
+    if not args.debug:
+        # dask.distributed sets its loggers to INFO from its config when first imported
+        # (here, lazily); the config can be given by environment, which workers inherit
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    try:
+        locate(args)
+        return int(_COMMANDS[args.command](args))
+    except KeyboardInterrupt:
+        print(interrupted(args, argv), file=sys.stderr)
+        return 130
+    except (StreamSVDError, OSError, ValueError) as err:
+        if args.debug:
+            raise
+        print(f"streamsvd: error: {in_cli_words(str(err))}", file=sys.stderr)
+        return 2

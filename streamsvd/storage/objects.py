@@ -1,0 +1,255 @@
+"""A basis store's storage under a prefix of an object store (see :mod:`streamsvd.storage`).
+
+An object store has no rename: an overwrite is a single ``PUT``. Writing needs
+conditional writes (``If-None-Match: *``, ``If-Match: <ETag>``), implemented for
+``s3://`` through s3fs; other fsspec protocols can be read but not written. A failure to
+reach the store is reported as a :class:`~streamsvd.errors.StoreError` naming it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, TypeVar, cast
+
+from ..errors import InputError, OptionalDependencyError, StoreError
+
+__all__ = ["ObjectStorage", "remote_errors"]
+
+logger = logging.getLogger(__name__)
+
+_EXTRA_HINT = "Install the object-store extra: pip install 'streamsvd[s3]'."
+
+
+def remote_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions an object-store client raises besides :class:`OSError` (botocore's)."""
+    try:
+        from botocore.exceptions import BotoCoreError
+    except ImportError:
+        return ()
+    return (BotoCoreError,)
+
+
+@contextlib.contextmanager
+def _reaching(named: str) -> Iterator[None]:
+    """Report a failure to reach the object store as a StoreError naming it."""
+    errors = remote_errors()
+    try:
+        yield
+    except errors as exc:
+        raise StoreError(
+            f"{named} cannot be reached ({type(exc).__name__}: {exc}). Check the "
+            "endpoint, the network and the credentials (AWS_* variables, "
+            "`storage_options`)."
+        ) from exc
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _reached(method: _F) -> _F:
+    """Run an :class:`ObjectStorage` method under :func:`_reaching`."""
+
+    @functools.wraps(method)
+    def wrapper(self: ObjectStorage, *args: Any, **kwargs: Any) -> Any:
+        with _reaching(self.named):
+            return method(self, *args, **kwargs)
+
+    return cast(_F, wrapper)
+
+
+def _precondition_failed(exc: BaseException) -> bool:
+    """Whether ``exc`` (as s3fs translates it) is an HTTP 412 or 409 refusal."""
+    text = str(exc)
+    return isinstance(exc, FileExistsError) or any(
+        word in text
+        for word in ("PreconditionFailed", "pre-conditions", "precondition",
+                     "ConditionalRequestConflict")
+    )
+
+
+class ObjectStorage:
+    """A prefix in an object store reached through fsspec (see the module docstring).
+
+    Parameters
+    ----------
+    url : str
+        ``protocol://bucket/prefix``.
+    storage_options : dict
+        Passed to the fsspec file system (for s3fs: ``key``, ``secret``,
+        ``endpoint_url``, ``client_kwargs``, ...).
+    argument : str
+        How the location is named in messages (``"store"``, ``"source"``, ...).
+    """
+
+    def __init__(
+        self, url: str, storage_options: Mapping[str, Any], *, argument: str = "store"
+    ) -> None:
+        import fsspec
+
+        self.url = url.rstrip("/")
+        self.storage_options = dict(storage_options)
+        self.argument = argument
+        self.named = f"`{argument}` {self.url}"
+        try:
+            fs, path = fsspec.url_to_fs(self.url, **self.storage_options)
+        except ImportError as exc:
+            raise OptionalDependencyError(
+                f"`{argument}` {url} needs a package that is not installed ({exc}). {_EXTRA_HINT}"
+            ) from None
+        except (ValueError, TypeError) as exc:
+            raise InputError(
+                f"`{argument}` {url!r} is not a URL fsspec can open ({exc}). Pass a local path "
+                "or a URL such as s3://bucket/basis.zarr, and valid `storage_options`."
+            ) from None
+        self.fs = fs
+        self.path = str(path).rstrip("/")
+        protocols = fs.protocol if isinstance(fs.protocol, tuple | list) else (fs.protocol,)
+        self.conditional = "s3" in protocols
+
+    def __repr__(self) -> str:
+        return f"ObjectStorage({self.url!r})"
+
+    def __str__(self) -> str:
+        return self.url
+
+    def __reduce__(self) -> Any:
+        return (_rebuild, (self.url, self.storage_options, self.argument))
+
+    def _full(self, key: str) -> str:
+        return f"{self.path}/{key}" if key else self.path
+
+    def _bucket_key(self, key: str) -> tuple[str, str]:
+        bucket, _, rest = self._full(key).partition("/")
+        return bucket, rest
+
+    @_reached
+    def exists(self) -> bool:
+        """Whether an object exists below the prefix (or the prefix is an object)."""
+        self.fs.invalidate_cache(self.path)
+        return bool(self.fs.exists(self.path))
+
+    @_reached
+    def is_file(self) -> bool:
+        """Whether the prefix names an object."""
+        self.fs.invalidate_cache(self.path)
+        return bool(self.fs.isfile(self.path))
+
+    @_reached
+    def get(self, key: str) -> bytes:
+        """Return the bytes of the object ``key``."""
+        return cast(bytes, self.fs.cat_file(self._full(key)))
+
+    @_reached
+    def get_tagged(self, key: str) -> tuple[bytes, str] | None:
+        """Return the bytes of ``key`` and its ETag from one ``GET``, or None if absent."""
+        from fsspec.asyn import sync
+
+        bucket, name = self._bucket_key(key)
+
+        async def fetch() -> tuple[bytes, str]:
+            out = await self.fs._call_s3("get_object", Bucket=bucket, Key=name)
+            body = out["Body"]
+            try:
+                data = await body.read()
+            finally:
+                body.close()
+            return data, str(out["ETag"])
+
+        try:
+            return sync(self.fs.loop, fetch)
+        except FileNotFoundError:
+            return None
+
+    @_reached
+    def put(self, key: str, data: bytes) -> None:
+        """Write the object ``key`` with one ``PUT``."""
+        self.fs.pipe_file(self._full(key), data)
+
+    @_reached
+    def _conditional_put(self, key: str, data: bytes, condition: dict[str, str]) -> str | None:
+        if not self.conditional:
+            raise StoreError(
+                f"{self.named}: writing needs conditional writes (If-None-Match, "
+                "If-Match), which streamsvd implements for s3:// only. Write to an s3:// "
+                "URL or a local directory; other URLs can be read."
+            )
+        bucket, name = self._bucket_key(key)
+        try:
+            out = self.fs.call_s3(
+                "put_object", Bucket=bucket, Key=name, Body=data, **condition
+            )
+        except OSError as exc:
+            if _precondition_failed(exc):
+                return None
+            if isinstance(exc, FileNotFoundError) and "IfMatch" in condition:
+                return None  # If-Match on an object deleted meanwhile: not matched either
+            raise
+        return str(out["ETag"])
+
+    def create(self, key: str, data: bytes) -> None:
+        """``PUT`` with ``If-None-Match: *``; :class:`FileExistsError` if ``key`` exists."""
+        if self.put_if_absent(key, data) is None:
+            raise FileExistsError(f"{self.url}/{key} exists already")
+
+    def sync_dir(self, key: str) -> None:
+        """Nothing to do: an object is durable when its ``PUT`` returns."""
+
+    def put_if_absent(self, key: str, data: bytes) -> str | None:
+        """``PUT`` with ``If-None-Match: *``; None when the object already exists."""
+        return self._conditional_put(key, data, {"IfNoneMatch": "*"})
+
+    def put_if_match(self, key: str, data: bytes, tag: str) -> str | None:
+        """``PUT`` with ``If-Match: tag``; None when the object changed or is gone."""
+        return self._conditional_put(key, data, {"IfMatch": tag})
+
+    @_reached
+    def list(self, prefix: str = "") -> list[str]:
+        """Return the names directly below ``prefix``."""
+        full = self._full(prefix)
+        self.fs.invalidate_cache(full)
+        try:
+            entries = self.fs.ls(full, detail=False)
+        except FileNotFoundError:
+            return []
+        return sorted({str(e).rstrip("/").rsplit("/", 1)[-1] for e in entries} - {""})
+
+    @_reached
+    def delete(self, key: str) -> None:
+        """Delete the object ``key`` and every object below ``key/``."""
+        full = self._full(key)
+        self.fs.invalidate_cache(full)
+        try:
+            self.fs.rm(full, recursive=True)  # one listing, then a batched delete
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            logger.warning("could not delete %s: %s", full, exc)
+        self.fs.invalidate_cache(full)
+
+    def flush(self, key: str) -> None:
+        """Nothing to do: an object is durable when its ``PUT`` returns."""
+
+    def prepare(self) -> None:
+        """Nothing to do: prefixes need not be created."""
+
+    def zarr_store(self, *, read_only: bool) -> Any:
+        """Return a :class:`zarr.storage.FsspecStore` on the prefix."""
+        from zarr.storage import FsspecStore
+
+        return FsspecStore.from_url(
+            self.url, storage_options=dict(self.storage_options), read_only=read_only
+        )
+
+    def lock(self, key: str) -> Any:
+        """Return the :class:`~streamsvd.locks.Lease` of the object ``key``."""
+        from ..locks import Lease
+
+        return Lease(self, key)
+
+
+def _rebuild(url: str, storage_options: dict[str, Any], argument: str) -> ObjectStorage:
+    """Unpickle an :class:`ObjectStorage` (its file system is opened anew)."""
+    return ObjectStorage(url, storage_options, argument=argument)
