@@ -99,7 +99,7 @@ def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any
                                     refresh=False)
                     bar.update(X.shape[1])
             if _final(args) and not sc.finalized:
-                sc.finalize()
+                sc.finalize(progress=not args.quiet)
             return summary_of(sc)
         finally:
             sc.close(finalize=False)
@@ -218,6 +218,8 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
     """Return the options of a new store, with the command's defaults (to resume: inner)."""
     if resume:
         return {} if inner is None else {"inner": inner}
+    from ..stream import STREAMING_SHARE
+
     sweeps = DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
     options: dict[str, Any] = {
         "inner": inner, "eps": 0.0 if args.eps is None else args.eps, "rtol": args.rtol,
@@ -227,7 +229,8 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
                          else args.oversampling),
         "target_error": args.target_error,
         "error_measure": args.error_measure or "relative",
-        "streaming_share": 0.9 if args.streaming_share is None else args.streaming_share,
+        "streaming_share": (STREAMING_SHARE if args.streaming_share is None
+                            else args.streaming_share),
     }
     if mode != "tree":
         options["commit_every"] = args.commit_every or DEFAULT_COMMIT_EVERY

@@ -272,7 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "'absolute': ||A - U V^T||_F <= T; norms in --inner (default: relative)")
     ing.add_argument("--streaming-share", metavar="S", type=float,
                      help="share of the --target-error budget spent while streaming, the "
-                     "rest by the final cut (default: 0.9)")
+                     "rest by the final cut (default: 0.436 = sqrt(1 - 0.9^2), pyMOR "
+                     "HAPOD's split at omega = 0.9)")
     ing.add_argument("--max-rank", metavar="K", type=_positive_int,
                      help="keep K terms in the end: K + --oversampling while streaming, "
                      "cut to K by the final sweeps (default: no limit)")
