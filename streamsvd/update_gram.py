@@ -50,7 +50,9 @@ import scipy.linalg
 
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
+from .basis import BasisBackend
 from .gram_schmidt import _apply_into, _gram, scale_into
+from .inner import InnerProduct
 from .update import Plan, State, StepOptions, gram_orthogonality, stage_rows
 
 __all__ = ["plan_absorb_by_gram"]
@@ -63,6 +65,18 @@ _SMALLEST_KEPT = 64.0  # kept eigenvalues above this many times their rounding
 _MAX_DRIFT = 0.25  # largest ||H' - I|| of the new basis
 _MAX_SPREAD = 900  # largest spread of the block's binary exponents
 _COMPACTION_RATIO = 2.0  # largest compaction flops over the exact path's products
+# squared column norms within which the block is used unscaled (no product of its
+# entries can overflow or lose digits to underflow in the Gram)
+_SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
+
+
+def _block_products(
+    basis: BasisBackend, Y: np.ndarray, MY: np.ndarray, inner: InnerProduct
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(M Q)^T Y`` and ``Y^T M Y`` (``M Y`` written into ``MY``)."""
+    MYv = _apply_into(Y, MY, inner)
+    C = basis.project(Y, None) if basis.width else np.zeros((0, Y.shape[1]))
+    return C, _gram(Y, inner, MYv)
 
 
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
@@ -112,15 +126,20 @@ def plan_absorb_by_gram(
     if not _compaction_pays(w, b, state.rank):
         return None
     Y, MY = basis.workspace(b)
-    exps, zero = scale_into(X, Y)
-    if zero.any():
-        return None  # an empty or zero column: the exact path counts it
+    Y[...] = X
+    exps = np.zeros(b, dtype=np.int64)
+    C, S = _block_products(basis, Y, MY, inner)
+    norms2 = np.diag(S)
+    if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
+        # squares near the ends of the range (or a zero column): scale each column by a
+        # power of two first, exactly, and measure again
+        exps, zero = scale_into(X, Y)
+        if zero.any():
+            return None  # an empty or zero column: the exact path counts it
+        C, S = _block_products(basis, Y, MY, inner)
     top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
     if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return None
-    MYv = _apply_into(Y, MY, inner)
-    C = basis.project(Y, None) if w else np.zeros((0, b))
-    S = _gram(Y, inner, MYv)
     B = np.block([[state.H, C], [C.T, S]])
     # F = [Q, Y] Z 2^top, every entry of Z at most about 1
     Z = np.zeros((w + b, k + b))
