@@ -264,10 +264,11 @@ class TallCompressor(StreamCompressor):
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`
         return U * signs, V[:, perm] * signs
 
-    def _empty_copy(self) -> TallCompressor:
+    def _empty_copy(self, **changes: Any) -> TallCompressor:
         return TallCompressor(
             self.n, chunk_rows=self.chunk_rows, client=self.client, inner=self.inner,
-            source_record=self.source_record, threads=self.threads, **self._options(),
+            source_record=self.source_record, threads=self.threads,
+            **{**self._options(), **changes},
         )
 
     def _copied_basis(self, blank: BasisBackend) -> BasisBackend:

@@ -418,17 +418,21 @@ class StreamCompressor:
 
     def copy(self) -> StreamCompressor:
         """Return an independent copy of the compressor (without its store)."""
-        out = self._empty_copy()
+        return self._copy_with()
+
+    def _copy_with(self, **changes: Any) -> StreamCompressor:
+        """Return an independent copy whose options differ by ``changes``."""
+        out = self._empty_copy(**changes)
         basis = self._copied_basis(out._state.basis)
         out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)
         out.source_offset = self.source_offset
         return out
 
-    def _empty_copy(self) -> StreamCompressor:
-        """Return a compressor with these options and nothing absorbed (no store)."""
+    def _empty_copy(self, **changes: Any) -> StreamCompressor:
+        """Return a compressor with these options (but ``changes``), nothing absorbed."""
         return StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
-                                threads=self.threads, **self._options())
+                                threads=self.threads, **{**self._options(), **changes})
 
     def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
         """Return the stored basis copied for :meth:`copy` (``blank``: the copy's own)."""

@@ -306,7 +306,10 @@ def test_tall_is_the_in_memory_stream(rng, opts):
         np.testing.assert_allclose(e.amplitudes, r.amplitudes, rtol=1e-12, atol=1e-13)
         top = r.amplitudes > 1e-6  # well-separated terms: vectors to rounding
         assert rel_diff(e.U[:, top], r.U[:, top]) < 1e-8
-        assert tc.error_bound == pytest.approx(ref.error_bound, rel=1e-8, abs=1e-14)
+        # with a rank cap both absorb through the snapshots' Gram, whose discarded energy
+        # is computed to about sqrt(n) eps ||A||^2: the bound to about 1e-11 ||A|| here
+        assert tc.error_bound == pytest.approx(
+            ref.error_bound, rel=1e-8, abs=1e-10 * np.linalg.norm(A))
         assert tc.orthogonality_error() == pytest.approx(e.orthogonality_error(), abs=20 * EPS)
         assert e.orthogonality_error() <= 50 * 300 * EPS
         assert [h.rank for h in tc.history] == [h.rank for h in ref.history]
@@ -352,7 +355,11 @@ def test_tall_extreme_scales(rng, scale):
         for j in range(0, 40, 10):
             a.absorb(A[:, j : j + 10])
             b.absorb(A[:, j : j + 10] * scale)
-        np.testing.assert_allclose(b.amplitudes / scale, a.amplitudes, rtol=1e-12)
+        # a rank cap absorbs through the snapshots' Gram (streamsvd.update_gram), which
+        # gives an amplitude s_i to about eps (s_1 / s_i)^2: the kept six to rounding, the
+        # oversampled noise terms (s_i ~ 1e-5) to 1e-6
+        np.testing.assert_allclose(b.amplitudes[:6] / scale, a.amplitudes[:6], rtol=1e-12)
+        np.testing.assert_allclose(b.amplitudes / scale, a.amplitudes, rtol=1e-6)
         # the 6 kept directions (the oversampled ones are noise, determined only up to
         # eps / their gaps, in any algorithm)
         a.finalize()
