@@ -48,10 +48,10 @@ import time
 import numpy as np
 import scipy.linalg
 
+from ._blocks import apply_into, gram, scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
 from .basis import BasisBackend
-from .gram_schmidt import _apply_into, _gram, scale_into
 from .inner import InnerProduct
 from .update import Plan, State, StepOptions, gram_orthogonality, stage_rows
 
@@ -74,9 +74,9 @@ def _block_products(
     basis: BasisBackend, Y: np.ndarray, MY: np.ndarray, inner: InnerProduct
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(M Q)^T Y`` and ``Y^T M Y`` (``M Y`` written into ``MY``)."""
-    MYv = _apply_into(Y, MY, inner)
+    MYv = apply_into(Y, MY, inner)
     C = basis.project(Y, None) if basis.width else np.zeros((0, Y.shape[1]))
-    return C, _gram(Y, inner, MYv)
+    return C, gram(Y, inner, MYv)
 
 
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
@@ -128,7 +128,8 @@ def plan_absorb_by_gram(
     Y, MY = basis.workspace(b)
     Y[...] = X
     exps = np.zeros(b, dtype=np.int64)
-    C, S = _block_products(basis, Y, MY, inner)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        C, S = _block_products(basis, Y, MY, inner)
     norms2 = np.diag(S)
     if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
         # squares near the ends of the range (or a zero column): scale each column by a
