@@ -67,6 +67,9 @@ _EPS = np.finfo(np.float64).eps
 # own norm) is projected a second time; a smaller one is measured and kept in the basis
 # Gram, where the compressor's orthogonality check accounts for it
 _LOSS_MAX = 2.0**-26
+# a basis whose Gram departs from the identity by more than this times n eps is
+# orthonormalised by its Cholesky factor (as the compressors' reorth_tol)
+_REORTH = 10.0
 
 
 def default_reject_tol(n: int) -> float:
@@ -396,25 +399,44 @@ def orthonormalize(
     block = int(check_positive_int(block, "block"))  # type: ignore[arg-type]
     basis = MemoryBasis(n, ip, capacity=min(p, n) + min(block, p))
     R = np.zeros((min(p, n), p))
+    # the basis Gram Q^T M Q, from what each extension measured: a direction keeps the
+    # component along the basis a first projection left when it is tiny (`cross`)
+    H = np.zeros((min(p, n), min(p, n)))
     rejected: list[int] = []
     for start in range(0, p, block):
         stop = min(start + block, p)
         q = basis.width
-        ext = extend_basis(basis, None, U[:, start:stop], inner=ip, reject_tol=tol)
+        ext = extend_basis(basis, None, U[:, start:stop], inner=ip, reject_tol=tol,
+                           H=H[:q, :q])
         r = ext.rank
         R[:q, start:stop] = ext.coeffs
         R[q : q + r, start:stop] = ext.R_new
+        H[:q, q : q + r] = ext.cross
+        H[q : q + r, :q] = ext.cross.T
+        H[q : q + r, q : q + r] = ext.gram_new
         basis.accept(r)
         rejected.extend(int(start + k) for k in np.flatnonzero(~ext.accepted))
     q = basis.width
     Uo = basis.Q.copy()
-    Vo = V @ R[:q].T
+    Rq = R[:q]
+    if q and _gram_departure(H[:q, :q]) > _REORTH * n * _EPS:
+        # Q = Qo L^T with Qo = Q L^(-T) orthonormal (Q^T M Q = L L^T): Q R = Qo (L^T R)
+        L = np.linalg.cholesky(H[:q, :q])
+        Uo = scipy.linalg.solve_triangular(L, Uo.T, lower=True).T
+        Rq = L.T @ Rq
+    Vo = V @ Rq.T
     # the discarded part is what the rejected columns keep outside the basis, whatever
     # block rejected them: its energy is exact even where their residuals combine
     rej = np.asarray(rejected, dtype=np.int64)
-    res = U[:, rej] - Uo @ R[:q, rej]
+    res = U[:, rej] - Uo @ Rq[:, rej]
     energy = _residual_norm(res, V[:, rej], ip) ** 2
     return GramSchmidtResult(Expansion(Uo, Vo, inner=ip), tuple(rejected), energy)
+
+
+def _gram_departure(H: np.ndarray) -> float:
+    """``||H - I||_2`` of a symmetric Gram matrix."""
+    E = H - np.eye(H.shape[0])
+    return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
 
 
 def _residual_norm(res: np.ndarray, V: np.ndarray, inner: InnerProduct) -> float:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 import streamsvd as ss
@@ -19,6 +19,9 @@ def _spd(n, rng, cond=1e3):
 
 @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.integers(1, 25), st.integers(1, 12),
        st.sampled_from([1, 3, 64]))
+# a square full-rank U column by column: the small components a first projection leaves
+# along the basis must be removed before U is returned (they were: 6.3e-13 = 260 eps)
+@example(seed=27, n=11, m=1, p=11, block=1)
 def test_orthonormalize_keeps_the_product_and_orthonormalises(seed, n, m, p, block):
     rng = np.random.default_rng(seed)
     U = rng.standard_normal((n, p)) * np.logspace(0, -3, p)
