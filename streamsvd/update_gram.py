@@ -53,8 +53,6 @@ import scipy.linalg
 from ._blocks import apply_into, gram, scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
-from .basis import BasisBackend
-from .inner import InnerProduct
 from .update import Plan, State, StepOptions, gram_orthogonality, stage_rows
 
 __all__ = ["plan_absorb_by_gram"]
@@ -72,13 +70,9 @@ _COMPACTION_RATIO = 4.0  # largest compaction flops over the exact path's produc
 _SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
 
 
-def _block_products(
-    basis: BasisBackend, Y: np.ndarray, MY: np.ndarray, inner: InnerProduct
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(M Q)^T Y`` and ``Y^T M Y`` (``M Y`` written into ``MY``)."""
-    MYv = apply_into(Y, MY, inner)
-    C = basis.project(Y, None) if basis.width else np.zeros((0, Y.shape[1]))
-    return C, gram(Y, inner, MYv)
+def _allowance(energy: float, size: int, n: int) -> float:
+    """Return the bound on the rounding of ``trace(Phi) = energy`` (``Phi`` of order ``size``)."""
+    return _ROUNDING_LAMBDA * (math.sqrt(size * n) + size) * _EPS * energy
 
 
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
@@ -131,7 +125,7 @@ def plan_absorb_by_gram(
     Y[...] = X
     exps = np.zeros(b, dtype=np.int64)
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        C, S = _block_products(basis, Y, MY, inner)
+        S = gram(Y, inner, apply_into(Y, MY, inner))
     norms2 = np.diag(S)
     if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
         # squares near the ends of the range (or a zero column): scale each column by a
@@ -139,10 +133,21 @@ def plan_absorb_by_gram(
         exps, zero = scale_into(X, Y)
         if zero.any():
             return None  # an empty or zero column: the exact path counts it
-        C, S = _block_products(basis, Y, MY, inner)
+        S = gram(Y, inner, apply_into(Y, MY, inner))
+        norms2 = np.diag(S)
     top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
     if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return None
+    size = k + b
+    if trunc.target is not None and trunc.measure in GRAM_MEASURES:
+        # the budget's growth is known before the projection: with ||F||^2 = ||R||^2 +
+        # ||X||^2 (U orthonormal), a target the rounding cannot meet skips it
+        energy = (float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2
+                  + float(np.sum(norms2 * np.ldexp(1.0, 2 * (exps - top)))))
+        if _allowance(energy, size, n) > _ALLOWANCE_SHARE * _room(
+                trunc, np.zeros(0), S, exps, top, b):
+            return None
+    C = basis.project(Y, None) if w else np.zeros((0, b))
     B = np.block([[state.H, C], [C.T, S]])
     # F = [Q, Y] Z 2^top, every entry of Z at most about 1
     Z = np.zeros((w + b, k + b))
@@ -154,8 +159,7 @@ def plan_absorb_by_gram(
     total = float(np.sum(lam))
     if total <= 0.0:
         return None
-    size = k + b
-    allowance = _ROUNDING_LAMBDA * (math.sqrt(size * n) + size) * _EPS * total
+    allowance = _allowance(total, size, n)
     amps = np.ldexp(np.sqrt(lam), top)
     spent = math.hypot(state.bound.bound, math.ldexp(math.sqrt(allowance), top))
     m = state.m + b
