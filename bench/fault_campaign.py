@@ -51,6 +51,7 @@ from streamsvd._core import HISTORY_FIELDS
 from streamsvd.cli import main as cli
 from streamsvd.storage import open_storage
 from streamsvd.store import CRASH_POINTS, POINTER_NAME, check_store, open_store
+from streamsvd.testing.damage import GENERATION_DAMAGE, damage_generation
 
 # a writer run as `python -c WRAPPER <point> <signal> <nth> <lease seconds> -- <cli args>`
 WRAPPER = r"""
@@ -323,17 +324,8 @@ class Campaign:
 def _damage(store: Path, kind: str) -> None:
     pointer = json.loads((store / POINTER_NAME).read_text())
     gen = store / "generations" / f"g{pointer['generation']:08d}"
-    if kind == "flip":
-        chunk = gen / "c.0"
-        data = bytearray(chunk.read_bytes())
-        data[len(data) // 2] ^= 0xFF
-        chunk.write_bytes(bytes(data))
-    elif kind == "missing-chunk":
-        (gen / "c.0").unlink()
-    elif kind == "attrs":
-        doc = json.loads((gen / "zarr.json").read_text())
-        doc["attributes"]["attrs"]["n_seen"] += 1
-        (gen / "zarr.json").write_text(json.dumps(doc))
+    if kind in GENERATION_DAMAGE:
+        damage_generation(gen, kind)
     elif kind == "pointer-garbled":
         (store / POINTER_NAME).write_text("{not json")
     elif kind == "pointer-missing":

@@ -38,6 +38,7 @@ from streamsvd.store import (
     check_store,
     open_store,
 )
+from streamsvd.testing.damage import GENERATION_DAMAGE, damage_generation
 
 FP = "f" * 64
 BEFORE_SWITCH = CRASH_POINTS[: CRASH_POINTS.index("switched")]
@@ -467,18 +468,8 @@ def test_each_damage_is_reported_naming_what_and_the_last_readable_generation(
         tmp_path, capsys, damage):
     path = tmp_path / "s.zarr"
     committed(path, 3)
-    g3 = path / GENERATIONS / "g00000003"
-    if damage == "flip":
-        chunk = g3 / "c.0"
-        data = bytearray(chunk.read_bytes())
-        data[len(data) // 2] ^= 0xFF
-        chunk.write_bytes(bytes(data))
-    elif damage == "missing-chunk":
-        (g3 / "c.0").unlink()
-    elif damage == "attrs":
-        doc = json.loads((g3 / "zarr.json").read_text())
-        doc["attributes"]["attrs"]["k"] = 99
-        (g3 / "zarr.json").write_text(json.dumps(doc))
+    if damage in GENERATION_DAMAGE:
+        damage_generation(path / GENERATIONS / "g00000003", damage, attr="k", value=99)
     else:
         (path / POINTER_NAME).write_text("{not json")
     before = tree(path)

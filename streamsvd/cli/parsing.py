@@ -85,34 +85,27 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"streamsvd: error: {message} (see `{self.prog} --help`).\n")
 
 
-def _nonnegative_int(text: str) -> int:
+def _number(text: str, kind: type, low: float, expected: str) -> Any:
+    """Parse ``text`` as a finite ``kind`` (int or float) at least ``low``, for argparse."""
     try:
-        value = int(text)
+        value = kind(text)
     except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0; got {text!r}")
+        value = None
+    if value is None or not math.isfinite(value) or value < low:
+        raise argparse.ArgumentTypeError(f"must be {expected}; got {text!r}")
     return value
+
+
+def _nonnegative_int(text: str) -> int:
+    return int(_number(text, int, 0, "an integer >= 0"))
 
 
 def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer; got {text!r}")
-    return value
+    return int(_number(text, int, 1, "a positive integer"))
 
 
 def _nonnegative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0; got {text!r}")
-    return value
+    return float(_number(text, float, 0.0, "a finite number >= 0"))
 
 
 def _threads(text: str) -> int | str:
