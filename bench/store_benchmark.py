@@ -141,8 +141,8 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     sc.save(path)
     save_seconds = time.perf_counter() - t0
-    assert sc._store is not None
-    store = sc._store
+    assert sc._persistence is not None
+    store = sc._persistence.handle
     blocks = [_columns(Q1, s, args.block, rng) for _ in range(args.updates)]
     with_store, in_memory, written = [], [], []
     with timed_commits(store) as commit_times:

@@ -33,10 +33,11 @@ from ._validation import check_positive_int
 from .basis import BasisBackend
 from .errors import InputError, ShapeMismatchError, SourceError
 from .inner import DiagonalInner, InnerProduct, as_inner
+from .options import CompressorOptions
 from .panels import PanelBasis
 from .parallel_tree import check_client, execute
 from .storage import LocalStorage, ObjectStorage, open_storage
-from .stream import StreamCompressor, UpdateRecord, stored_options
+from .stream import StreamCompressor, UpdateRecord
 
 __all__ = ["DEFAULT_CHUNK_ROWS", "KIND", "TallCompressor"]
 
@@ -169,11 +170,10 @@ class TallCompressor(StreamCompressor):
                          storage_options=storage_options)
 
     @classmethod
-    def _reopen(
-        cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
-    ) -> Any:
+    def _reopen(cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, *,
+                options: CompressorOptions, **backend: Any) -> Any:
         return cls(n, inner=inner, workdir=path, client=backend.get("client"),
-                   chunk_rows=int(attrs["basis"]["chunk_rows"]), **stored_options(attrs))
+                   chunk_rows=int(attrs["basis"]["chunk_rows"]), **options.as_dict())
 
     def _reopened(self, mode: str) -> None:
         self._commits = (set(self._panels.panels), set())
@@ -227,7 +227,7 @@ class TallCompressor(StreamCompressor):
                 (columns,) = execute([columns.astype(np.float64)], client=self.client)
             except Exception as exc:
                 a = self.source_offset
-                kept = "" if self._store is None else " and the store holds its last commit"
+                kept = "" if self._persistence is None else " and the store holds its last commit"
                 raise SourceError(
                     f"absorbing columns {a}:{a + columns.shape[1]} (offset {a}) failed: "
                     f"{type(exc).__name__}: {exc}. The basis is unchanged{kept}; fix the "
@@ -268,7 +268,7 @@ class TallCompressor(StreamCompressor):
         return TallCompressor(
             self.n, chunk_rows=self.chunk_rows, client=self.client, inner=self.inner,
             source_record=self.source_record, threads=self.threads,
-            **{**self._options(), **changes},
+            **{**self.options.as_dict(), **changes},
         )
 
     def _copied_basis(self, blank: BasisBackend) -> BasisBackend:

@@ -40,6 +40,8 @@ from threadpoolctl import threadpool_limits
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
 from .inner import as_inner
+from .options import TREE_OPTIONS as COMPRESSOR_OPTIONS
+from .options import CompressorOptions
 from .provenance import SourceRecord
 from .sources import Source, open_source, open_zarr_url
 from .storage import is_url, open_storage
@@ -49,11 +51,7 @@ __all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
 
 logger = logging.getLogger(__name__)
 
-COMPRESSOR_OPTIONS = (
-    "inner", "eps", "rtol", "max_rank", "oversampling", "rule", "sweeps", "reject_tol",
-    "reorth_tol", "target_error", "error_measure", "streaming_share",
-)
-"""Keyword options forwarded to every :class:`~streamsvd.StreamCompressor` of a tree."""
+
 
 
 # ----------------------------------------------------------------------- scheduling
@@ -303,7 +301,7 @@ def blas_threads_per_task(client: Any) -> int:
 
 
 def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
-    """Validate compressor options by building one compressor; return them normalised."""
+    """Validate a tree's compressor options (:class:`~streamsvd.options.CompressorOptions`)."""
     unknown = sorted(set(options) - set(COMPRESSOR_OPTIONS))
     if unknown:
         raise InputError(
@@ -311,27 +309,19 @@ def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
             "Pass the store with `store=` and the other options by their names."
         )
     opts = dict(options)
-    opts["inner"] = as_inner(opts.get("inner"), n)
-    probe = StreamCompressor(n, **opts)
-    return {
-        "inner": probe.inner, "eps": probe.eps, "rtol": probe.rtol,
-        "max_rank": probe.max_rank, "oversampling": probe.oversampling, "rule": probe.rule,
-        "sweeps": probe.sweeps,
-        "reject_tol": probe.reject_tol,
-        "reorth_tol": probe.reorth_tol, "target_error": probe.target_error,
-        "error_measure": probe.error_measure, "streaming_share": probe.streaming_share,
-    }
+    inner = as_inner(opts.pop("inner", None), n)
+    return {"inner": inner, **_tree_options(CompressorOptions.validated(n, **opts))}
 
 
 def options_of(sc: StreamCompressor) -> dict[str, Any]:
     """Return the options of an existing compressor, as :func:`check_options` does."""
-    return {
-        "inner": sc.inner, "eps": sc.eps, "rtol": sc.rtol, "max_rank": sc.max_rank,
-        "oversampling": sc.oversampling, "rule": sc.rule, "sweeps": sc.sweeps,
-        "reject_tol": sc.reject_tol,
-        "reorth_tol": sc.reorth_tol, "target_error": sc.target_error,
-        "error_measure": sc.error_measure, "streaming_share": sc.streaming_share,
-    }
+    return {"inner": sc.inner, **_tree_options(sc.options)}
+
+
+def _tree_options(options: CompressorOptions) -> dict[str, Any]:
+    """Return the options a tree forwards (:data:`COMPRESSOR_OPTIONS`) of ``options``."""
+    return {name: value for name, value in options.as_dict().items()
+            if name in COMPRESSOR_OPTIONS}
 
 
 def default_leaf_columns(columns: int, block: int) -> int:

@@ -136,7 +136,7 @@ def check_resume(compressor: Any, record: Any, *, given: Mapping[str, Any],
     ShapeMismatchError
         SOURCE's snapshots are not of the store's size.
     """
-    recorded = compressor._options()
+    recorded = compressor.options.as_dict()
     if hasattr(compressor, "chunk_rows"):  # a tall store keeps the row chunks of its panels
         recorded["chunk_rows"] = compressor.chunk_rows
     _check_options(given, recorded)

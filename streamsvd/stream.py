@@ -13,17 +13,38 @@ far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each u
 
 The step is written once (:mod:`streamsvd.update`) over the n-sized basis
 (:mod:`streamsvd.basis`) and the m-sized right vectors (:mod:`streamsvd.rows`); this
-class is the facade: options, properties, persistence.
+class is the facade: its options are :class:`~streamsvd.options.CompressorOptions`, its
+store a :class:`~streamsvd.stream_store.StreamStore`, and what it exposes of the
+expansion :class:`~streamsvd.expansion_view.ExpansionView`.
+
+Store contents: besides the state, the first commit writes the data of the inner
+product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
+keep unchanged, so :meth:`StreamCompressor.open` needs no ``inner`` (an inner product of another
+class than the three of :mod:`streamsvd.inner` is recorded by fingerprint only).
+
+Error bound: :attr:`StreamCompressor.error_bound` is guaranteed, ``||A - U V^T||_F <= error_bound``
+in the norm of ``M`` after every update (theorem in :mod:`streamsvd.bound`); at
+convergence (``sweeps=None``) it is the Pythagorean ``sqrt(sum of discarded
+energies)``.
+
+Cost: an update costs nothing in the number of snapshots already absorbed: the
+right vectors are kept as ``V = Y R`` with ``Y`` orthonormal, appended in Brand's form
+``Y = V0 Vp`` (:mod:`streamsvd.rows`), the
+basis lives in a buffer grown geometrically (:mod:`streamsvd.basis`), and the
+rotations act on small matrices (:mod:`streamsvd.update` has the flop count).
+
+Orthogonality: ``H = Q^T M Q`` of the stored basis is kept (exactly, by a Gram of
+the stored columns at each compaction), so ``||U^T M U - I||_2`` is measured after
+every update and recorded in :attr:`StreamCompressor.history`; above ``reorth_tol`` the basis is
+re-orthonormalised through the Cholesky factor of that small Gram
+(``U <- U L^{-T}``, ``V <- V L``, which leaves ``U V^T`` unchanged).
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import functools
-import logging
-import math
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -31,34 +52,24 @@ from typing import Any
 
 import numpy as np
 
-from ._core import Truncation, UpdateRecord, r_factor, record_from_row
-from ._scaling import safe_column_norms
+from ._core import UpdateRecord, r_factor
 from ._threads import blas_threads, check_threads
-from ._validation import (
-    as_float_array,
-    check_choice,
-    check_nonnegative,
-    check_nonnegative_int,
-    check_positive_int,
-    check_target,
-)
+from ._validation import as_float_array, check_choice, check_positive_int
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
-from .commits import CommitTracker
-from .compress import fix_signs
-from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
+from .errors import InputError
 from .expansion import Expansion
-from .gram_schmidt import default_reject_tol
-from .inner import InnerProduct, as_inner, check_same_inner, inner_arrays, inner_from_arrays
+from .expansion_view import ExpansionView
+from .inner import InnerProduct, as_inner, check_same_inner, inner_arrays
+from .options import CompressorOptions, option_properties
 from .provenance import SourceRecord
 from .rotations import RULES
 from .rows import RowFactor
-from .storage import open_storage
-from .store import BasisStore, open_store
+from .stream_lifecycle import StoreLifecycle
+from .stream_store import KIND, StreamStore
 from .update import (
     Plan,
     State,
-    StepOptions,
     apply_plan,
     plan_absorb,
     plan_add,
@@ -69,51 +80,10 @@ from .update_gram import plan_absorb_by_gram
 
 __all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
-logger = logging.getLogger(__name__)
-
-_EPS = np.finfo(np.float64).eps
-KIND = "streamsvd.StreamCompressor"
-# the target error's budget spent while streaming: HAPOD's split at omega = 0.9, whose
-# root (here: finalize) spends omega of the budget and the updates before it the rest
-STREAMING_SHARE = math.sqrt(1.0 - 0.9**2)
-# version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
-# is the orthonormal factor Y of V = Y R)
-LAYOUT = 4
 
 
-def _norm(x: np.ndarray) -> float:
-    """``||x||_2`` without overflow."""
-    top = float(np.max(np.abs(x))) if x.size else 0.0
-    if top == 0.0:
-        return 0.0
-    return top * float(np.linalg.norm(x / top))
-
-
-def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
-    """Return the compressor options recorded in a store's attributes.
-
-    Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
-    update: they continue so; stores written before ``target_error`` existed have none.
-    """
-    defaults = {
-        "oversampling": 0, "target_error": None, "error_measure": "relative",
-        "streaming_share": 0.9,
-    }
-    return {**defaults, **attrs["options"]}
-def _stored_inner(path: Any, state: Any) -> InnerProduct:
-    """Return the inner product a store keeps; Euclidean when it keeps none."""
-    stored = inner_from_arrays(state.arrays)
-    if stored is None:
-        return as_inner(None)
-    if stored.fingerprint != state.inner_fingerprint:
-        raise StoreFormatError(
-            f"`path` {path!s} is damaged: the inner product it keeps does not match its "
-            f"fingerprint {state.inner_fingerprint[:12]}... Restore the store from a copy."
-        )
-    return stored
-
-
-class StreamCompressor:
+@option_properties
+class StreamCompressor(StoreLifecycle, ExpansionView):
     """Absorb snapshots (columns) and low-rank increments into an orthonormal expansion.
 
     Parameters
@@ -200,30 +170,6 @@ class StreamCompressor:
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
     optimally, then commits. Call ``close(finalize=False)`` to keep the streamed state
     as it is.
-
-    Notes
-    -----
-    Store contents: besides the state, the first commit writes the data of the inner
-    product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
-    keep unchanged, so :meth:`open` needs no ``inner`` (an inner product of another
-    class than the three of :mod:`streamsvd.inner` is recorded by fingerprint only).
-
-    Error bound: :attr:`error_bound` is guaranteed, ``||A - U V^T||_F <= error_bound``
-    in the norm of ``M`` after every update (theorem in :mod:`streamsvd.bound`); at
-    convergence (``sweeps=None``) it is the Pythagorean ``sqrt(sum of discarded
-    energies)``.
-
-    Cost: an update costs nothing in the number of snapshots already absorbed: the
-    right vectors are kept as ``V = Y R`` with ``Y`` orthonormal, appended in Brand's form
-    ``Y = V0 Vp`` (:mod:`streamsvd.rows`), the
-    basis lives in a buffer grown geometrically (:mod:`streamsvd.basis`), and the
-    rotations act on small matrices (:mod:`streamsvd.update` has the flop count).
-
-    Orthogonality: ``H = Q^T M Q`` of the stored basis is kept (exactly, by a Gram of
-    the stored columns at each compaction), so ``||U^T M U - I||_2`` is measured after
-    every update and recorded in :attr:`history`; above ``reorth_tol`` the basis is
-    re-orthonormalised through the Cholesky factor of that small Gram
-    (``U <- U L^{-T}``, ``V <- V L``, which leaves ``U V^T`` unchanged).
     """
 
     def __init__(
@@ -231,23 +177,11 @@ class StreamCompressor:
         n: int,
         *,
         inner: Any = None,
-        eps: float = 0.0,
-        rtol: float | None = None,
-        max_rank: int | None = None,
-        oversampling: int = 10,
-        rule: str = "paper",
-        sweeps: int | None = 1,
-        reject_tol: float | None = None,
-        reorth_tol: float | None = None,
-        right_vectors: bool = True,
         store: Any = None,
-        commit_every: int = 1,
         source_record: SourceRecord | None = None,
         storage_options: dict[str, Any] | None = None,
         threads: int | None = 1,
-        target_error: float | None = None,
-        error_measure: str = "relative",
-        streaming_share: float = STREAMING_SHARE,
+        **options: Any,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.threads = check_threads(threads)
@@ -258,66 +192,22 @@ class StreamCompressor:
                 f"{type(source_record).__name__}. Build one with `SourceRecord.of(...)`."
             )
         self.source_record = source_record
-        self.eps = check_nonnegative(eps, "eps")
-        self.rtol = None if rtol is None else check_nonnegative(rtol, "rtol")
-        self.max_rank = check_positive_int(max_rank, "max_rank", allow_none=True)
-        self.oversampling = check_nonnegative_int(oversampling, "oversampling")
-        self.rule = check_choice(rule, "rule", RULES)
-        self.sweeps = check_positive_int(sweeps, "sweeps", allow_none=True)
-        self.target_error, self.error_measure, self.streaming_share = check_target(
-            target_error, error_measure, streaming_share, eps=self.eps, rtol=self.rtol
-        )
-        self.reject_tol = (
-            default_reject_tol(self.n)
-            if reject_tol is None
-            else check_nonnegative(reject_tol, "reject_tol")
-        )
-        self.reorth_tol = (
-            10 * self.n * _EPS
-            if reorth_tol is None
-            else check_nonnegative(reorth_tol, "reorth_tol")
-        )
-        if not isinstance(right_vectors, bool | np.bool_):
-            raise InputError(f"`right_vectors` must be True or False; got {right_vectors!r}.")
-        self.right_vectors = bool(right_vectors)
-        self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
-        self._opts = StepOptions(
-            inner=self.inner, rule=self.rule, sweeps=self.sweeps,
-            truncation=Truncation(
-                self.eps, self.rtol, self.streaming_rank, self.target_error,
-                self.error_measure, self.streaming_share,
-            ),
-            reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
-        )
+        self.options = CompressorOptions.validated(self.n, **options)
+        self._opts = self.options.step_options(self.inner)
         self._state = State(
             basis=self._new_basis(),
-            rows=RowFactor() if self.right_vectors else None,
+            rows=RowFactor() if self.options.right_vectors else None,
         )
         self._history: list[UpdateRecord] = []
         self._version = 0  # increases with every state change (for the exposure cache)
         self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
         self.source_offset = 0
-        self._store: BasisStore | None = None
-        self._uncommitted = 0
-        self._tracker = CommitTracker()
+        self._persistence: StreamStore | None = None
         if store is not None:
-            self._store = BasisStore.create(
-                store, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
-                attrs=self._attrs(None), storage_options=storage_options,
-            )
-            try:
-                self._commit(None, self.source_offset)
-            except BaseException:
-                self._store.close()  # release the lock of the store left at generation 0
-                self._store = None
-                raise
+            self._start_store(store, storage_options)
 
     KIND = KIND
 
-    @property
-    def streaming_rank(self) -> int | None:
-        """Most terms kept between updates: ``max_rank + oversampling`` (None: no cap)."""
-        return None if self.max_rank is None else self.max_rank + self.oversampling
     @functools.cached_property
     def _inner_data(self) -> dict[str, np.ndarray]:
         """The inner product's arrays that the store keeps (none for an unknown class)."""
@@ -327,399 +217,11 @@ class StreamCompressor:
         """Return the n-sized backend of this facade (in memory)."""
         return MemoryBasis(self.n, self.inner)
 
-    # ------------------------------------------------------------------ persistence
-    @classmethod
-    def open(
-        cls, path: Any, *, inner: Any = None, mode: str = "a",
-        storage_options: dict[str, Any] | None = None,
-    ) -> StreamCompressor:
-        """Reopen a compressor from its store, exactly as it was at the last commit.
-
-        Parameters
-        ----------
-        path : str or path-like
-            The store written with ``StreamCompressor(..., store=path)``.
-        inner : optional
-            The inner product the store was written with (checked by fingerprint). When
-            omitted, the one the store keeps (Euclidean if none); a store written before
-            stores kept it, with another inner product than the Euclidean one, needs it.
-        mode : {"a", "r"}
-            ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
-        storage_options : dict, optional
-            Options of the object store of a URL ``path`` (``s3://``: ``key``,
-            ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
-        """
-        return cls._open(path, inner=inner, mode=mode, backend={},
-                         storage_options=storage_options)
-
-    @classmethod
-    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any],
-              storage_options: dict[str, Any] | None = None) -> Any:
-        """Open a store and restore the compressor it holds (``backend``: for ``_reopen``)."""
-        mode = check_choice(mode, "mode", ("a", "r"))
-        path = open_storage(path, storage_options=storage_options)
-        st = open_store(path, mode)  # type: ignore[arg-type]
-        try:
-            state = st.read()
-            attrs = state.attrs
-            if attrs.get("kind") != cls.KIND:
-                raise StoreMismatchError(
-                    f"`path` {path!s} holds a basis store that was not written by a "
-                    f"{cls.__name__} (its kind is {attrs.get('kind')!r}); open any "
-                    "compressor's store with "
-                    "`streamsvd.parallel.open_compressor`, any other with "
-                    "`streamsvd.store.open_store`."
-                )
-            if attrs.get("layout") != LAYOUT:
-                raise StoreFormatError(
-                    f"`path` {path!s} holds a StreamCompressor of layout "
-                    f"{attrs.get('layout', 1)!r}, written by another version of streamsvd; "
-                    f"this version reads layout {LAYOUT}. Ingest the snapshots again into a "
-                    "new store."
-                )
-            ip = _stored_inner(path, state) if inner is None else as_inner(inner, state.n)
-            if inner is None and ip.fingerprint != state.inner_fingerprint:
-                raise StoreMismatchError(
-                    f"`inner` must be given: the store {path!s} was written with an inner "
-                    f"product (fingerprint {state.inner_fingerprint[:12]}...) that it does not "
-                    "keep (an earlier version of streamsvd, or an inner product of another "
-                    "class). Pass the same matrix or weights."
-                )
-            if ip.fingerprint != state.inner_fingerprint:
-                raise StoreMismatchError(
-                    f"`inner` must be the inner product the store {path!s} was written with "
-                    f"(fingerprint {state.inner_fingerprint[:12]}...); got {ip!r}. Pass the "
-                    "same matrix or weights."
-                )
-            sc = cls._reopen(state.n, ip, attrs, path, **backend)
-            sc._restore(state.arrays, attrs)
-            sc.source_record = SourceRecord.from_attrs(attrs.get("source"))
-            sc._store = st
-            if state.arrays:
-                sc._tracker.restored(
-                    state.generation, sc._state, state.arrays["history"],
-                    inner=all(name in state.arrays for name in sc._inner_data),
-                )
-            sc._reopened(mode)
-        except BaseException:
-            st.close()
-            raise
-        return sc
-
-    @classmethod
-    def _reopen(
-        cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, **backend: Any
-    ) -> Any:
-        """Return a compressor with a store's options, before its state is restored."""
-        return cls(n, inner=inner, **stored_options(attrs))
-
-    def _reopened(self, mode: str) -> None:
-        """Run once a store was reopened (a backend may clean what it left)."""
-
-    def copy(self) -> StreamCompressor:
-        """Return an independent copy of the compressor (without its store)."""
-        return self._copy_with()
-
-    def _copy_with(self, **changes: Any) -> StreamCompressor:
-        """Return an independent copy whose options differ by ``changes``."""
-        out = self._empty_copy(**changes)
-        basis = self._copied_basis(out._state.basis)
-        out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
-        out._history = list(self._history)
-        out.source_offset = self.source_offset
-        return out
-
     def _empty_copy(self, **changes: Any) -> StreamCompressor:
         """Return a compressor with these options (but ``changes``), nothing absorbed."""
         return StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
-                                threads=self.threads, **{**self._options(), **changes})
-
-    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
-        """Return the stored basis copied for :meth:`copy` (``blank``: the copy's own)."""
-        return copy.deepcopy(self._state.basis)
-
-    def save(self, path: Any) -> None:
-        """Write the compressor into a new store at ``path`` and keep committing there.
-
-        One commit of the current state, bit for bit (no update is run). The compressor
-        must not have a store already.
-        """
-        if self._store is not None:
-            raise StoreError(
-                f"this compressor already commits to {self._store.path}; `save` writes a "
-                "compressor that has no store."
-            )
-        self._store = BasisStore.create(
-            path, n=self.n, dtype="float64", inner_fingerprint=self.inner.fingerprint,
-            attrs=self._attrs(None),
-        )
-        try:
-            self._commit(None, self.source_offset)
-        except BaseException:
-            self._store.close()
-            self._store = None
-            raise
-        self._uncommitted = 0
-
-    def flush(self) -> None:
-        """Commit the current state to the store now (no-op without a store)."""
-        if self._store is not None and self._uncommitted:
-            self._commit(None, self.source_offset)
-            self._uncommitted = 0
-
-    def close(self, *, finalize: bool = True) -> None:
-        """Finalise the expansion, commit what is pending and release the store's lock.
-
-        Parameters
-        ----------
-        finalize : bool
-            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
-            closed expansion is the SVD, truncated to ``max_rank``. A store opened
-            read-only is never finalised.
-        """
-        writable = self._store is None or self._store.mode == "a"
-        if finalize and writable and not self.finalized:
-            self.finalize()
-        if self._store is not None:
-            if writable:
-                self.flush()
-            self._store.close()
-            self._store = None
-
-    @property
-    def finalized(self) -> bool:
-        """Whether the expansion is its own SVD, truncated by the rules without oversampling.
-
-        True when the last update was :meth:`finalize`, or nothing was absorbed yet.
-        """
-        return not self._history or self._history[-1].kind == "finalize"
-
-    def __enter__(self) -> StreamCompressor:
-        return self
-
-    def __exit__(self, exc_type: object, *exc: object) -> None:
-        # a block that raised keeps its streamed state: what was committed stays as it was
-        self.close(finalize=exc_type is None)
-
-    @property
-    def store_path(self) -> str | None:
-        """Path of the store, or None."""
-        return None if self._store is None else str(self._store.path)
-
-    def _options(self) -> dict[str, Any]:
-        return {
-            "eps": self.eps, "rtol": self.rtol, "max_rank": self.max_rank,
-            "oversampling": self.oversampling, "rule": self.rule, "sweeps": self.sweeps,
-            "reject_tol": self.reject_tol,
-            "reorth_tol": self.reorth_tol, "right_vectors": self.right_vectors,
-            "commit_every": self.commit_every, "target_error": self.target_error,
-            "error_measure": self.error_measure, "streaming_share": self.streaming_share,
-        }
-
-    def _attrs(self, plan: Plan | None) -> dict[str, Any]:
-        s = self._state
-        bound = s.bound if plan is None else plan.bound
-        rank = s.rank if plan is None else plan.Gu.shape[1]
-        return {
-            "kind": self.KIND, "layout": LAYOUT, "options": self._options(),
-            "n_seen": s.m if plan is None else plan.m, "rank": rank,
-            "source_offset": self.source_offset, "updates": len(self._history),
-            "error_bound": bound.bound, "discarded_norm": bound.discarded,
-            "source": None if self.source_record is None else self.source_record.to_attrs(),
-        }
-
-    def _commit(self, plan: Plan | None, source_offset: int) -> None:
-        """Write the current state, or the state ``plan`` leads to, as a new generation."""
-        assert self._store is not None
-        if self._store.mode != "a":
-            raise StoreError(
-                f"the store {self._store.path} is open read-only; reopen it with "
-                "`StreamCompressor.open(path, mode='a')` to continue the stream."
-            )
-        s = self._state
-        if plan is None:
-            basis, basis_attrs = s.basis.persisted(0, compacted=False)
-            rows = None if s.rows is None else (s.rows.V0, s.rows.Vp)
-            compact = replaced = False
-            Gu, H, R, m, waste, bound = s.Gu, s.H, s.R, s.m, s.waste, s.bound
-        else:
-            basis, basis_attrs = plan.stored_basis(s)
-            rows = plan.stored_rows(s)
-            compact, replaced = plan.compact, plan.Y_replace is not None
-            Gu, H, R, m, waste, bound = plan.Gu, plan.H, plan.R, plan.m, plan.waste, plan.bound
-        # the bound's norms are >= 0; an infinite one (the coupling after `add`) is stored
-        # as -1, since a store holds finite numbers only
-        norms = np.where(np.isinf(bound.to_array()), -1.0, bound.to_array())
-        scalars = np.concatenate([norms, [float(source_offset), float(m), waste]])
-        small = [Gu, H, R, scalars]
-        if rows is not None:
-            small.insert(3, rows[1])
-        # only what changed since the previous commit is written (streamsvd.commits)
-        appended = self._tracker.appended(
-            self._store.generation, s, basis=dict(basis), compact=compact,
-            V0=None if rows is None else rows[0], replaced=replaced, history=self._history,
-            inner=self._inner_data,
-        )
-        attrs = self._attrs(plan)
-        attrs.update(
-            source_offset=int(source_offset), updates=len(self._history),
-            small_layout=[list(a.shape) for a in small], basis=basis_attrs,
-            rows_capacity=None if s.rows is None else list(s.rows.capacity),
-        )
-        k = self._store.commit(
-            {"small": np.concatenate([a.ravel() for a in small])}, attrs=attrs,
-            appended=appended,
-        )
-        self._tracker.committed(k)
-        if plan is None:
-            self._tracker.settle(s, len(self._history))
-        self._committed(basis_attrs)
-
-    def _committed(self, basis_attrs: dict[str, Any]) -> None:
-        """Run after every commit (a backend may release what no commit refers to)."""
-
-    def _restore(self, arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
-        if not arrays:
-            # killed between the creation of the store and its first commit: the store
-            # holds the options only, and nothing was absorbed
-            return
-        a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
-             if not k.startswith("inner_")}
-        pieces, start = [], 0
-        for shape in attrs["small_layout"]:
-            size = int(np.prod(shape))
-            pieces.append(a["small"][start : start + size].reshape(shape))
-            start += size
-        Gu, H, R = pieces[:3]
-        scalars, history = pieces[-1], a["history"]
-        s = self._state
-        s.basis.restore(a, attrs["basis"])
-        if s.rows is not None:
-            s.rows.restore(a["V0"], pieces[3], capacity=tuple(attrs["rows_capacity"]))
-        s.Gu, s.H, s.R = Gu, H, R
-        s.bound = Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3]))
-        self.source_offset = int(scalars[3])
-        s.m = int(scalars[4])
-        s.waste = float(scalars[5])
-        self._history = [record_from_row(row) for row in history]
-        self._version += 1
-
-    # ------------------------------------------------------------------ properties
-    @property
-    def n_seen(self) -> int:
-        """Number of snapshots (columns) in the expansion."""
-        return self._state.m
-
-    @property
-    def rank(self) -> int:
-        """Current number of terms."""
-        return self._state.rank
-
-    def _order(self, V: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``U`` of the exposed terms with its sort order and signs.
-
-        Terms are sorted by the norms of ``V`` when it is given, else of the core ``R``
-        (equal up to rounding).
-        """
-        s = self._state
-        U = s.basis.take(s.Gu)
-        perm = np.argsort(-safe_column_norms(s.R if V is None else V), kind="stable")
-        U = U[:, perm]
-        signs = fix_signs(U, np.zeros((0, U.shape[1])))
-        return U, perm, signs
-
-    @property
-    def left_vectors(self) -> np.ndarray:
-        """``U`` (``n x p``, ``M``-orthonormal), terms sorted by decreasing amplitude.
-
-        Signed so that the largest entry of each ``u_i`` is positive. Costs
-        ``O(n w p)``, nothing in the number of snapshots; available in every mode.
-        """
-        return self._order()[0]
-
-    @property
-    def expansion(self) -> Expansion:
-        """The current expansion ``U V^T`` (formed from the stored factors, signs fixed).
-
-        Terms are sorted by decreasing amplitude and signed so that the largest entry of
-        each ``u_i`` is positive; ``add(..., coefficients=dV)`` takes ``dV`` in the
-        coordinates of this ``U``. Needs ``right_vectors=True``.
-        """
-        V = self.right_factor()
-        U, perm, signs = self._order(V)
-        self._exposure = (self._version, perm, signs)  # the coordinates of `add`
-        return Expansion(U, V[:, perm] * signs, inner=self.inner)
-
-    def right_factor(self) -> np.ndarray:
-        """``V = Y R`` (``m x p``) in the stored term order, unsorted and unsigned.
-
-        ``Y`` is kept orthonormal (:mod:`streamsvd.update`), so the right vectors
-        ``v_i / ||v_i||`` are orthonormal to rounding at convergence, whatever the spread
-        of the amplitudes. Needs ``right_vectors=True``.
-        """
-        rows = self._state.rows
-        if rows is None:
-            raise InputError(
-                "this StreamCompressor keeps no right vectors (`right_vectors=False`); use "
-                "`left_vectors` and `amplitudes`, or create it with `right_vectors=True`."
-            )
-        return rows.value() @ self._state.R if self.rank else np.zeros((self.n_seen, 0))
-
-    @property
-    def amplitudes(self) -> np.ndarray:
-        """``||v_i||``, computed on the small core (``||v_i|| = ||r_i||``), sorted."""
-        return np.sort(safe_column_norms(self._state.R))[::-1]
-
-    @property
-    def discarded_energy(self) -> float:
-        """Sum of the energies ``||D_t||_F^2`` discarded by every update.
-
-        ``inf`` above about 1e154; :attr:`discarded_norm` is its square root, always finite.
-        """
-        return self._state.bound.discarded**2
-
-    @property
-    def discarded_norm(self) -> float:
-        """``sqrt(sum_t ||D_t||_F^2)``, kept as a norm (finite for amplitudes to 1e300)."""
-        return self._state.bound.discarded
-
-    @property
-    def error_bound(self) -> float:
-        """Guaranteed bound on ``||A - U V^T||_F`` (theorem in :mod:`streamsvd.bound`)."""
-        return self._state.bound.bound
-
-    @property
-    def error_in_measure(self) -> float:
-        """:attr:`error_bound` in the ``error_measure`` of the target (a guaranteed bound).
-
-        ``"absolute"``: the bound itself; ``"mean_l2"``: ``bound / sqrt(m)``;
-        ``"relative"``: ``bound / (||U V^T||_F - bound)``, which bounds
-        ``||A - U V^T|| / ||A||`` since ``||A|| >= ||U V^T|| - bound`` (``inf`` when the
-        bound is not below the expansion's norm).
-        """
-        b = self.error_bound
-        if self.error_measure == "absolute":
-            return b
-        if self.error_measure == "mean_l2":
-            return b / math.sqrt(self.n_seen) if self.n_seen else 0.0
-        norm = _norm(self.amplitudes)
-        return b / (norm - b) if norm > b else (0.0 if b == 0.0 else math.inf)
-
-    @property
-    def target_met(self) -> bool | None:
-        """Whether :attr:`error_in_measure` is within ``target_error`` (None without one)."""
-        if self.target_error is None:
-            return None
-        return self.error_in_measure <= self.target_error
-
-    @property
-    def history(self) -> tuple[UpdateRecord, ...]:
-        """One :class:`UpdateRecord` per update, oldest first."""
-        return tuple(self._history)
-
-    def orthogonality_error(self) -> float:
-        """Return ``||U^T M U - I||_2`` from the small Gram matrices."""
-        return self._state.orthogonality()
+                                threads=self.threads,
+                                **{**self.options.as_dict(), **changes})
 
     def __repr__(self) -> str:
         return (
@@ -776,36 +278,11 @@ class StreamCompressor:
         """
         t0 = time.perf_counter()
         s = self._state
-        if s.rows is None:
-            raise InputError(
-                "`add` needs the right vectors, and this StreamCompressor keeps none "
-                "(`right_vectors=False`); create it with `right_vectors=True`."
-            )
-        Uk = as_float_array(U_k, "U_k", ndim=2, rows=self.n)
-        m = s.m if (s.m or s.rank) else None
-        Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
-        dV_int = None
-        if coefficients is not None:
-            dV = as_float_array(coefficients, "coefficients", ndim=2, rows=s.m, cols=s.rank)
-            dV_int = self._internal_coefficients(dV)
-        elif Uk.shape[1] == 0:
-            raise InputError(
-                f"`U_k` must have at least one column (or pass `coefficients`); got shape "
-                f"{Uk.shape}."
-            )
+        Uk, Vk, dV = _increment(self, U_k, V_k, coefficients)
+        dV_int = None if dV is None else self._internal_coefficients(dV)
         return self._run(
             lambda: plan_add(s, Uk, Vk, dV_int, self._opts, t0=t0), self.source_offset
         )
-
-    def _internal_coefficients(self, dV: np.ndarray) -> np.ndarray:
-        """Map coefficients on the exposed basis (sorted, signed) to the stored terms."""
-        if self._exposure is None or self._exposure[0] != self._version:
-            _ = self.expansion  # computes and caches the exposure of this state
-        assert self._exposure is not None
-        _, perm, signs = self._exposure
-        out = np.empty_like(dV)
-        out[:, perm] = dV * signs
-        return out
 
     def merge(
         self, other: StreamCompressor | Expansion, *, spend_target: bool = True
@@ -828,31 +305,8 @@ class StreamCompressor:
         cut in the root's :meth:`finalize`, as pyMOR's ``dist_vectorarray_hapod`` does.
         """
         t0 = time.perf_counter()
-        if not isinstance(other, StreamCompressor | Expansion):
-            raise InputError(
-                "`other` must be a StreamCompressor or an Expansion; got "
-                f"{type(other).__name__}."
-            )
-        if other.n != self.n:
-            raise InputError(f"`other` must have snapshots of size {self.n}; got {other.n}.")
-        check_same_inner(self.inner, other.inner, "other")
-        Y_o: np.ndarray | None
-        if isinstance(other, StreamCompressor):
-            o = other._state
-            U_o, R_o, m_o, prior = o.basis.take(o.Gu), o.R, o.m, o.bound
-            if self._state.rows is not None and o.rows is None:
-                raise InputError(
-                    "`other` keeps no right vectors (`right_vectors=False`) but this "
-                    "compressor does; merge compressors created alike."
-                )
-            Y_o = None if self._state.rows is None or o.rows is None else o.rows.value()
-        else:
-            U_o, V_o, prior = np.array(other.U), np.array(other.V), Bound()
-            m_o = V_o.shape[0]
-            if self._state.rows is None:
-                Y_o, R_o = None, r_factor(V_o)
-            else:
-                Y_o, R_o = np.linalg.qr(V_o)
+        U_o, R_o, Y_o, m_o, prior = _merge_operand(
+            other, n=self.n, inner=self.inner, keep_rows=self._state.rows is not None)
         prior = self._state.bound.combine(prior)
         opts = self._opts
         if not spend_target:
@@ -885,22 +339,15 @@ class StreamCompressor:
         cap = check_positive_int(max_rank, "max_rank", allow_none=True)
         opts = dataclasses.replace(
             self._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
-            truncation=Truncation(
-                self.eps, self.rtol, self.max_rank if cap is None else cap, self.target_error,
-                self.error_measure, 1.0,
-            ),
+            truncation=self.options.truncation(
+                max_rank=self.max_rank if cap is None else cap, share=1.0),
         )
         with _sweep_bar(self.rank, progress) as on_sweep:
             record = self._run(
                 lambda: plan_finalize(self._state, opts, t0=t0, on_sweep=on_sweep),
                 self.source_offset,
             )
-        if self.target_met is False:
-            logger.warning(
-                "the target error %.3g (%s) is not met: the bound is %.3g in that measure "
-                "(max_rank=%s cuts more than the target allows)", self.target_error,
-                self.error_measure, self.error_in_measure, self.max_rank,
-            )
+        self._warn_if_target_missed()
         return record
 
     # ------------------------------------------------------------------ internals
@@ -914,21 +361,79 @@ class StreamCompressor:
         # persist first, then switch the in-memory state: an exception anywhere before
         # or in the commit leaves both the memory and the store as they were
         self._history.append(plan.record)
+        p = self._persistence
         try:
-            if self._store is not None and self._uncommitted + 1 >= self.commit_every:
+            if p is not None and p.due():
                 self._commit(plan, source_offset)
-                self._uncommitted = 0
-            elif self._store is not None:
-                self._uncommitted += 1
+            elif p is not None:
+                p.uncommitted += 1
         except BaseException:
             self._history.pop()
             self._state.basis.discard_planned()
             raise
         apply_plan(self._state, plan)
-        self._tracker.settle(self._state, len(self._history))
+        if p is not None:
+            p.tracker.settle(self._state, len(self._history))
         self._version += 1
         self.source_offset = source_offset
         return plan.record
+
+
+
+def _merge_operand(
+    other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int, Bound]:
+    """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
+
+    ``(U_o, R_o, Y_o, m_o, prior)``: the left vectors, the core (``V_o = Y_o R_o``), the
+    orthonormal right factor (None when the right vectors are not kept), the number of
+    snapshots and the error bound ``other`` carries. ``other`` is checked first: a
+    compressor or an expansion of snapshots of size ``n`` in the inner product ``inner``.
+    """
+    if not isinstance(other, StreamCompressor | Expansion):
+        raise InputError(
+            f"`other` must be a StreamCompressor or an Expansion; got {type(other).__name__}."
+        )
+    if other.n != n:
+        raise InputError(f"`other` must have snapshots of size {n}; got {other.n}.")
+    check_same_inner(inner, other.inner, "other")
+    if isinstance(other, StreamCompressor):
+        o = other._state
+        if keep_rows and o.rows is None:
+            raise InputError(
+                "`other` keeps no right vectors (`right_vectors=False`) but this "
+                "compressor does; merge compressors created alike."
+            )
+        Y_o = o.rows.value() if keep_rows and o.rows is not None else None
+        return o.basis.take(o.Gu), o.R, Y_o, o.m, o.bound
+    V_o = np.array(other.V)
+    if not keep_rows:
+        return np.array(other.U), r_factor(V_o), None, V_o.shape[0], Bound()
+    Y_o, R_o = np.linalg.qr(V_o)
+    return np.array(other.U), R_o, Y_o, V_o.shape[0], Bound()
+
+
+def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Check the arguments of :meth:`StreamCompressor.add`; return them as arrays."""
+    s = sc._state
+    if s.rows is None:
+        raise InputError(
+            "`add` needs the right vectors, and this StreamCompressor keeps none "
+            "(`right_vectors=False`); create it with `right_vectors=True`."
+        )
+    Uk = as_float_array(U_k, "U_k", ndim=2, rows=sc.n)
+    m = s.m if (s.m or s.rank) else None
+    Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
+    if coefficients is not None:
+        return Uk, Vk, as_float_array(coefficients, "coefficients", ndim=2, rows=s.m,
+                                      cols=s.rank)
+    if Uk.shape[1] == 0:
+        raise InputError(
+            f"`U_k` must have at least one column (or pass `coefficients`); got shape "
+            f"{Uk.shape}."
+        )
+    return Uk, Vk, None
 
 
 def summary_of(sc: StreamCompressor) -> dict[str, Any]:
@@ -939,7 +444,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
         "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
-        "options": sc._options(), "inner": repr(sc.inner),
+        "options": sc.options.as_dict(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),
     }

@@ -113,19 +113,6 @@ class Plan:
     Vp: np.ndarray | None = None
     Y_replace: np.ndarray | None = None
 
-    def stored_basis(self, state: State) -> tuple[dict[str, np.ndarray], dict]:
-        """Return what a commit of the basis this plan leads to writes (arrays, attrs)."""
-        return state.basis.persisted(self.new_directions, compacted=self.compact)
-
-    def stored_rows(self, state: State) -> tuple[np.ndarray, np.ndarray] | None:
-        """Return ``(V0, Vp)`` this plan leads to (views, for a commit); None without rows."""
-        if state.rows is None:
-            return None
-        if self.Y_replace is not None:
-            return self.Y_replace, np.eye(self.Y_replace.shape[1])
-        assert self.Vp is not None
-        return state.rows.planned(self.rows_appended, self.Vp), self.Vp
-
 
 def apply_plan(state: State, plan: Plan) -> None:
     """Switch the state to the planned one (cannot fail half-way)."""

@@ -12,9 +12,9 @@ import pytest
 import streamsvd as ss
 from streamsvd.cli import main
 from streamsvd.errors import InputError
+from streamsvd.options import CompressorOptions
 from streamsvd.parallel import TallCompressor, open_compressor
 from streamsvd.store import open_store
-from streamsvd.stream import stored_options
 from streamsvd.testing.matrices import with_spectrum
 
 EPS = np.finfo(np.float64).eps
@@ -119,10 +119,10 @@ def test_oversampling_is_checked_and_old_stores_keep_their_cap():
     assert ss.StreamCompressor(5, oversampling=3).streaming_rank is None
     # a store of this layout written before the option existed truncated every update
     # (and one written before target errors existed has none)
-    assert stored_options({"options": {"max_rank": 4}}) == {
-        "oversampling": 0, "max_rank": 4, "target_error": None, "error_measure": "relative",
-        "streaming_share": 0.9}
-    assert stored_options({"options": {"max_rank": 4, "oversampling": 7}})["oversampling"] == 7
+    old = CompressorOptions.from_stored(5, {"max_rank": 4})
+    assert (old.oversampling, old.max_rank, old.target_error, old.error_measure,
+            old.streaming_share) == (0, 4, None, "relative", 0.9)
+    assert CompressorOptions.from_stored(5, {"max_rank": 4, "oversampling": 7}).oversampling == 7
 
 
 def _ingest(argv):

@@ -70,10 +70,10 @@ def test_bad_block_leaves_store_bitwise_unchanged(tmp_path, rng):
     path = tmp_path / "b.zarr"
     sc = StreamCompressor(A.shape[0], store=path)
     sc.absorb(A[:, :10])
-    before = sc._store.read()
+    before = sc._persistence.handle.read()
     with pytest.raises(ss.NonFiniteError):
         sc.absorb(np.full((A.shape[0], 3), np.inf))
-    after = sc._store.read()
+    after = sc._persistence.handle.read()
     assert after.generation == before.generation
     assert all(np.array_equal(before.arrays[k], after.arrays[k]) for k in before.arrays)
     sc.close()
@@ -85,17 +85,17 @@ def test_failed_commit_leaves_memory_and_store_unchanged(tmp_path, rng, monkeypa
     sc = StreamCompressor(A.shape[0], store=path)
     sc.absorb(A[:, :10])
     U_before = sc.expansion.U.copy()
-    gen = sc._store.generation
+    gen = sc._persistence.handle.generation
 
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(sc._store, "commit", boom)
+    monkeypatch.setattr(sc._persistence.handle, "commit", boom)
     with pytest.raises(OSError, match="disk full"):
         sc.absorb(A[:, 10:20])
     monkeypatch.undo()
     assert sc.n_seen == 10 and np.array_equal(sc.expansion.U, U_before)
-    assert sc._store.generation == gen and len(sc.history) == 1
+    assert sc._persistence.handle.generation == gen and len(sc.history) == 1
     sc.absorb(A[:, 10:20])
     ref = _stream(A[:, :20], 10)
     _assert_same(sc, ref)
@@ -218,7 +218,7 @@ def _written_by_commits(path, m, monkeypatch, *, n=60, b=5, commits=8):
     per_array = []
     for j in range(commits):
         sc.absorb(tail[:, j * b : (j + 1) * b])
-        per_array.append(sc._store.last_written)
+        per_array.append(sc._persistence.handle.last_written)
     monkeypatch.undo()
     assert packs == [sum(w.values()) for w in per_array]  # the counter counts what is written
     with StreamCompressor.open(path, mode="r") as back:
@@ -272,7 +272,7 @@ def test_store_holds_the_state_after_every_kind_of_update(tmp_path, rng, commit_
                    coefficients=1e-3 * rng.standard_normal((sc.n_seen, sc.rank)))
         else:
             sc.merge(other)
-        if sc._uncommitted == 0:  # committed: the store holds exactly this state
+        if sc._persistence.uncommitted == 0:  # committed: the store holds exactly this state
             with StreamCompressor.open(path, inner=w, mode="r") as back:
                 assert _expansions_equal(back, sc), (kind, j)
     assert sc._state.rows.rebases > 0 and sc._state.basis.compactions > 0
@@ -319,11 +319,11 @@ def test_inner_product_is_kept_written_once_and_reopened_without_it(tmp_path, rn
     M = _inner(kind, A.shape[0], rng)
     path = tmp_path / "b.zarr"
     sc = StreamCompressor(A.shape[0], inner=M, max_rank=12, store=path)
-    first = set(sc._store.last_written)
+    first = set(sc._persistence.handle.last_written)
     assert {k for k in first if k.startswith("inner_")}, first  # written at creation
     for j in range(0, 40, 8):
         sc.absorb(A[:, j : j + 8])
-        assert not [k for k in sc._store.last_written if k.startswith("inner_")]
+        assert not [k for k in sc._persistence.handle.last_written if k.startswith("inner_")]
     fingerprint = sc.inner.fingerprint
     sc.close(finalize=False)  # a pause: resumed below, bit for bit
     with StreamCompressor.open(path, mode="r") as back:
@@ -351,9 +351,9 @@ def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
         StreamCompressor.open(path)
     with StreamCompressor.open(path, inner=w) as sc:
         sc.absorb(A[:, 20:30])
-        assert "inner_weights" in sc._store.last_written
+        assert "inner_weights" in sc._persistence.handle.last_written
         sc.absorb(A[:, 30:40])
-        assert "inner_weights" not in sc._store.last_written
+        assert "inner_weights" not in sc._persistence.handle.last_written
     with StreamCompressor.open(path, mode="r") as back:
         assert back.n_seen == 40 and back.inner == ss.DiagonalInner(w)
 

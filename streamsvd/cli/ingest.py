@@ -218,7 +218,7 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
     """Return the options of a new store, with the command's defaults (to resume: inner)."""
     if resume:
         return {} if inner is None else {"inner": inner}
-    from ..stream import STREAMING_SHARE
+    from ..options import STREAMING_SHARE
 
     sweeps = DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
     options: dict[str, Any] = {

@@ -1,0 +1,212 @@
+"""The lifecycle of a compressor with a store: open, copy, save, flush, close.
+
+:class:`StoreLifecycle` is the part of the :class:`~streamsvd.StreamCompressor` facade that
+creates, reopens and closes its store; what a commit writes and how a store is checked
+are :mod:`streamsvd.stream_store`'s. A backend (the tall mode) refines the hooks
+``_reopen``, ``_reopened``, ``_copied_basis`` and ``_committed``.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._core import UpdateRecord
+from ._validation import check_choice
+from .basis import BasisBackend
+from .errors import StoreError
+from .inner import InnerProduct
+from .options import CompressorOptions
+from .provenance import SourceRecord
+from .storage import open_storage
+from .stream_store import LAYOUT, StreamStore, open_stream_store, restore_state
+from .update import Plan, State
+
+__all__ = ["StoreLifecycle"]
+
+
+class StoreLifecycle:
+    """Open, copy, save, flush and close a compressor's store (see the module docstring)."""
+
+    KIND: str
+    n: int
+    inner: InnerProduct
+    options: CompressorOptions
+    source_record: SourceRecord | None
+    source_offset: int
+    finalized: bool
+    _state: State
+    _history: list[UpdateRecord]
+    _version: int
+    _persistence: StreamStore | None
+    _inner_data: dict[str, np.ndarray]
+    finalize: Callable[..., UpdateRecord]
+    _empty_copy: Callable[..., Any]
+
+    @classmethod
+    def open(
+        cls, path: Any, *, inner: Any = None, mode: str = "a",
+        storage_options: dict[str, Any] | None = None,
+    ) -> Any:
+        """Reopen a compressor from its store, exactly as it was at the last commit.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The store written with ``StreamCompressor(..., store=path)``.
+        inner : optional
+            The inner product the store was written with (checked by fingerprint). When
+            omitted, the one the store keeps (Euclidean if none); a store written before
+            stores kept it, with another inner product than the Euclidean one, needs it.
+        mode : {"a", "r"}
+            ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
+        storage_options : dict, optional
+            Options of the object store of a URL ``path`` (``s3://``: ``key``,
+            ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
+        """
+        return cls._open(path, inner=inner, mode=mode, backend={},
+                         storage_options=storage_options)
+
+    @classmethod
+    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any],
+              storage_options: dict[str, Any] | None = None) -> Any:
+        """Open a store and restore the compressor it holds (``backend``: for ``_reopen``)."""
+        mode = check_choice(mode, "mode", ("a", "r"))
+        path = open_storage(path, storage_options=storage_options)
+        st, state, ip = open_stream_store(path, kind=cls.KIND, name=cls.__name__, mode=mode,
+                                          inner=inner)
+        try:
+            options = CompressorOptions.from_stored(state.n, state.attrs["options"])
+            sc = cls._reopen(state.n, ip, state.attrs, path, options=options, **backend)
+            sc.source_offset, sc._history = restore_state(sc._state, state.arrays,
+                                                          state.attrs)
+            sc._version += 1
+            sc.source_record = SourceRecord.from_attrs(state.attrs.get("source"))
+            sc._persistence = StreamStore(st, commit_every=options.commit_every)
+            if state.arrays:
+                sc._persistence.tracker.restored(
+                    state.generation, sc._state, state.arrays["history"],
+                    inner=all(name in state.arrays for name in sc._inner_data),
+                )
+            sc._reopened(mode)
+        except BaseException:
+            st.close()
+            raise
+        return sc
+
+    @classmethod
+    def _reopen(cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, *,
+                options: CompressorOptions, **backend: Any) -> Any:
+        """Return a compressor with a store's options, before its state is restored."""
+        return cls(n, inner=inner, **options.as_dict())
+
+    def _reopened(self, mode: str) -> None:
+        """Run once a store was reopened (a backend may clean what it left)."""
+
+    def copy(self) -> Any:
+        """Return an independent copy of the compressor (without its store)."""
+        return self._copy_with()
+
+    def _copy_with(self, **changes: Any) -> Any:
+        """Return an independent copy whose options differ by ``changes``."""
+        out = self._empty_copy(**changes)
+        basis = self._copied_basis(out._state.basis)
+        out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
+        out._history = list(self._history)
+        out.source_offset = self.source_offset
+        return out
+
+    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
+        """Return the stored basis copied for :meth:`copy` (``blank``: the copy's own)."""
+        return copy.deepcopy(self._state.basis)
+
+    def _start_store(self, path: Any, storage_options: dict[str, Any] | None) -> None:
+        """Create the store at ``path`` and commit the current state to it."""
+        self._persistence = StreamStore.create(
+            path, n=self.n, inner_fingerprint=self.inner.fingerprint,
+            attrs=self._attrs(None), storage_options=storage_options,
+            commit_every=self.options.commit_every,
+        )
+        try:
+            self._commit(None, self.source_offset)
+        except BaseException:
+            self._persistence.close()  # release the lock of the store left at generation 0
+            self._persistence = None
+            raise
+
+    def save(self, path: Any) -> None:
+        """Write the compressor into a new store at ``path`` and keep committing there.
+
+        One commit of the current state, bit for bit (no update is run). The compressor
+        must not have a store already.
+        """
+        if self._persistence is not None:
+            raise StoreError(
+                f"this compressor already commits to {self._persistence.path}; `save` "
+                "writes a compressor that has no store."
+            )
+        self._start_store(path, None)
+
+    def flush(self) -> None:
+        """Commit the current state to the store now (no-op without a store)."""
+        if self._persistence is not None and self._persistence.uncommitted:
+            self._commit(None, self.source_offset)
+
+    def close(self, *, finalize: bool = True) -> None:
+        """Finalise the expansion, commit what is pending and release the store's lock.
+
+        Parameters
+        ----------
+        finalize : bool
+            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
+            closed expansion is the SVD, truncated to ``max_rank``. A store opened
+            read-only is never finalised.
+        """
+        p = self._persistence
+        writable = p is None or p.writable
+        if finalize and writable and not self.finalized:
+            self.finalize()
+        if p is not None:
+            if writable:
+                self.flush()
+            p.close()
+            self._persistence = None
+
+    def __enter__(self) -> Any:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        # a block that raised keeps its streamed state: what was committed stays as it was
+        self.close(finalize=exc_type is None)
+
+    @property
+    def store_path(self) -> str | None:
+        """Path of the store, or None."""
+        return None if self._persistence is None else self._persistence.path
+
+    def _attrs(self, plan: Plan | None) -> dict[str, Any]:
+        s = self._state
+        bound = s.bound if plan is None else plan.bound
+        rank = s.rank if plan is None else plan.Gu.shape[1]
+        return {
+            "kind": self.KIND, "layout": LAYOUT, "options": self.options.as_dict(),
+            "n_seen": s.m if plan is None else plan.m, "rank": rank,
+            "source_offset": self.source_offset, "updates": len(self._history),
+            "error_bound": bound.bound, "discarded_norm": bound.discarded,
+            "source": None if self.source_record is None else self.source_record.to_attrs(),
+        }
+
+    def _commit(self, plan: Plan | None, source_offset: int) -> None:
+        """Write the current state, or the state ``plan`` leads to, as a new generation."""
+        assert self._persistence is not None
+        basis_attrs = self._persistence.commit(
+            self._state, plan, attrs=self._attrs(plan), history=self._history,
+            inner_data=self._inner_data, source_offset=source_offset,
+        )
+        self._committed(basis_attrs)
+
+    def _committed(self, basis_attrs: dict[str, Any]) -> None:
+        """Run after every commit (a backend may release what no commit refers to)."""

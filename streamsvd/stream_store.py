@@ -1,0 +1,259 @@
+"""The store of a stream: what a :class:`~streamsvd.StreamCompressor` commits and reads back.
+
+A compressor with a store holds a :class:`StreamStore`: the store's handle
+(:class:`~streamsvd.store.BasisStore`), the :class:`~streamsvd.commits.CommitTracker` that
+makes a commit write only what changed, and the count of updates not committed yet. A
+commit writes
+
+* the basis and the right factor *this update leads to* (the backend's planned arrays:
+  the state in memory switches only after the commit succeeded),
+* the small state packed into one array ``small`` (``Gu``, ``H``, ``R``, ``Vp`` when the
+  right vectors are kept, and the scalars: the bound's three norms, the source offset,
+  the number of snapshots, the basis's wasted width), whose shapes are recorded in the
+  attribute ``small_layout``,
+* the attributes the facade gives (options, provenance, counts).
+
+:func:`open_stream_store` checks what a store holds (the kind of compressor, the layout
+version :data:`LAYOUT`, the inner product) before anything is restored from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ._core import UpdateRecord, record_from_row
+from .bound import Bound
+from .commits import CommitTracker
+from .errors import StoreError, StoreFormatError, StoreMismatchError
+from .inner import InnerProduct, as_inner, inner_from_arrays
+from .store import BasisStore, open_store
+from .store.format import StoreState
+from .update import Plan, State
+
+__all__ = ["KIND", "LAYOUT", "StreamStore", "open_stream_store", "restore_state"]
+
+KIND = "streamsvd.StreamCompressor"
+# version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
+# is the orthonormal factor Y of V = Y R)
+LAYOUT = 4
+
+
+@dataclass(frozen=True)
+class _Small:
+    """The small state, as one commit writes it."""
+
+    Gu: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    Vp: np.ndarray | None
+    bound: Bound
+    source_offset: int
+    m: int
+    waste: float
+
+    def pack(self) -> tuple[np.ndarray, list[list[int]]]:
+        """Return the flat array and the shapes of its pieces."""
+        # the bound's norms are >= 0; an infinite one (the coupling after `add`) is stored
+        # as -1, since a store holds finite numbers only
+        norms = np.where(np.isinf(self.bound.to_array()), -1.0, self.bound.to_array())
+        scalars = np.concatenate([norms, [float(self.source_offset), float(self.m),
+                                          self.waste]])
+        pieces = [self.Gu, self.H, self.R, scalars]
+        if self.Vp is not None:
+            pieces.insert(3, self.Vp)
+        return (np.concatenate([a.ravel() for a in pieces]),
+                [list(a.shape) for a in pieces])
+
+    @classmethod
+    def unpack(cls, flat: np.ndarray, layout: list[list[int]]) -> _Small:
+        """Read the pieces back (``Vp`` is there when the layout has five pieces)."""
+        pieces, start = [], 0
+        for shape in layout:
+            size = int(np.prod(shape))
+            pieces.append(flat[start : start + size].reshape(shape))
+            start += size
+        scalars = pieces[-1]
+        return cls(
+            Gu=pieces[0], H=pieces[1], R=pieces[2],
+            Vp=pieces[3] if len(pieces) == 5 else None,
+            bound=Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3])),
+            source_offset=int(scalars[3]), m=int(scalars[4]), waste=float(scalars[5]),
+        )
+
+
+class StreamStore:
+    """A compressor's store: its handle, what the last commit wrote, what waits for one."""
+
+    def __init__(self, handle: BasisStore, *, commit_every: int) -> None:
+        self.handle = handle
+        self.commit_every = commit_every
+        self.tracker = CommitTracker()
+        self.uncommitted = 0
+
+    @classmethod
+    def create(cls, path: Any, *, n: int, inner_fingerprint: str, attrs: dict[str, Any],
+               storage_options: dict[str, Any] | None, commit_every: int) -> StreamStore:
+        """Create a new store at ``path`` (nothing committed yet)."""
+        handle = BasisStore.create(
+            path, n=n, dtype="float64", inner_fingerprint=inner_fingerprint, attrs=attrs,
+            storage_options=storage_options,
+        )
+        return cls(handle, commit_every=commit_every)
+
+    @property
+    def path(self) -> str:
+        """Where the store is."""
+        return str(self.handle.path)
+
+    @property
+    def writable(self) -> bool:
+        """Whether the store was opened to continue the stream (mode ``"a"``)."""
+        return self.handle.mode == "a"
+
+    def due(self) -> bool:
+        """Whether the next update is committed (every ``commit_every`` updates)."""
+        return self.uncommitted + 1 >= self.commit_every
+
+    def commit(self, state: State, plan: Plan | None, *, attrs: dict[str, Any],
+               history: list[UpdateRecord], inner_data: dict[str, np.ndarray],
+               source_offset: int) -> dict[str, Any]:
+        """Write ``state``, or the state ``plan`` leads to, as a new generation.
+
+        Returns the basis backend's attributes of what was written. Raises
+        :class:`~streamsvd.errors.StoreError` on a store opened read-only.
+        """
+        if not self.writable:
+            raise StoreError(
+                f"the store {self.path} is open read-only; reopen it with "
+                "`StreamCompressor.open(path, mode='a')` to continue the stream."
+            )
+        if plan is None:
+            basis, basis_attrs = state.basis.persisted(0, compacted=False)
+            rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
+            compact = replaced = False
+            small = _Small(state.Gu, state.H, state.R, None if rows is None else rows[1],
+                           state.bound, source_offset, state.m, state.waste)
+        else:
+            basis, basis_attrs = state.basis.persisted(plan.new_directions,
+                                                       compacted=plan.compact)
+            rows = _planned_rows(state, plan)
+            compact, replaced = plan.compact, plan.Y_replace is not None
+            small = _Small(plan.Gu, plan.H, plan.R, None if rows is None else rows[1],
+                           plan.bound, source_offset, plan.m, plan.waste)
+        # only what changed since the previous commit is written (streamsvd.commits)
+        appended = self.tracker.appended(
+            self.handle.generation, state, basis=dict(basis), compact=compact,
+            V0=None if rows is None else rows[0], replaced=replaced, history=history,
+            inner=inner_data,
+        )
+        flat, layout = small.pack()
+        attrs = {
+            **attrs, "source_offset": int(source_offset), "updates": len(history),
+            "small_layout": layout, "basis": basis_attrs,
+            "rows_capacity": None if state.rows is None else list(state.rows.capacity),
+        }
+        k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
+        self.tracker.committed(k)
+        self.uncommitted = 0
+        if plan is None:
+            self.tracker.settle(state, len(history))
+        return basis_attrs
+
+    def close(self) -> None:
+        """Release the store (and its writer lock)."""
+        self.handle.close()
+
+
+def _planned_rows(state: State, plan: Plan) -> tuple[np.ndarray, np.ndarray] | None:
+    """Return ``(V0, Vp)`` the plan leads to (views, for a commit); None without rows."""
+    if state.rows is None:
+        return None
+    if plan.Y_replace is not None:
+        return plan.Y_replace, np.eye(plan.Y_replace.shape[1])
+    assert plan.Vp is not None
+    return state.rows.planned(plan.rows_appended, plan.Vp), plan.Vp
+
+
+def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
+                      ) -> tuple[BasisStore, StoreState, InnerProduct]:
+    """Open a compressor's store and check it: ``kind`` and layout, then the inner product.
+
+    ``name`` is the class the user called (for the messages). Returns the handle, the
+    state read and the inner product to use; the handle is closed on any error.
+    """
+    st = open_store(path, mode)
+    try:
+        state = st.read()
+        attrs = state.attrs
+        if attrs.get("kind") != kind:
+            raise StoreMismatchError(
+                f"`path` {path!s} holds a basis store that was not written by a "
+                f"{name} (its kind is {attrs.get('kind')!r}); open any compressor's store "
+                "with `streamsvd.parallel.open_compressor`, any other with "
+                "`streamsvd.store.open_store`."
+            )
+        if attrs.get("layout") != LAYOUT:
+            raise StoreFormatError(
+                f"`path` {path!s} holds a StreamCompressor of layout "
+                f"{attrs.get('layout', 1)!r}, written by another version of streamsvd; "
+                f"this version reads layout {LAYOUT}. Ingest the snapshots again into a "
+                "new store."
+            )
+        ip = _inner_of(path, state, inner)
+    except BaseException:
+        st.close()
+        raise
+    return st, state, ip
+
+
+def _inner_of(path: Any, state: StoreState, inner: Any) -> InnerProduct:
+    """Return the inner product to continue with: the one given, else the store's."""
+    if inner is not None:
+        ip = as_inner(inner, state.n)
+    else:
+        stored = inner_from_arrays(state.arrays)
+        if stored is not None and stored.fingerprint != state.inner_fingerprint:
+            raise StoreFormatError(
+                f"`path` {path!s} is damaged: the inner product it keeps does not match "
+                f"its fingerprint {state.inner_fingerprint[:12]}... Restore the store from "
+                "a copy."
+            )
+        ip = as_inner(None) if stored is None else stored
+        if ip.fingerprint != state.inner_fingerprint:
+            raise StoreMismatchError(
+                f"`inner` must be given: the store {path!s} was written with an inner "
+                f"product (fingerprint {state.inner_fingerprint[:12]}...) that it does not "
+                "keep (an earlier version of streamsvd, or an inner product of another "
+                "class). Pass the same matrix or weights."
+            )
+    if ip.fingerprint != state.inner_fingerprint:
+        raise StoreMismatchError(
+            f"`inner` must be the inner product the store {path!s} was written with "
+            f"(fingerprint {state.inner_fingerprint[:12]}...); got {ip!r}. Pass the "
+            "same matrix or weights."
+        )
+    return ip
+
+
+def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
+                  ) -> tuple[int, list[UpdateRecord]]:
+    """Load a commit into ``state``; return the source offset and the history.
+
+    A store killed between its creation and its first commit holds no arrays: nothing
+    was absorbed, and ``state`` is left empty.
+    """
+    if not arrays:
+        return 0, []
+    a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
+         if not k.startswith("inner_")}
+    small = _Small.unpack(a["small"], attrs["small_layout"])
+    state.basis.restore(a, attrs["basis"])
+    if state.rows is not None:
+        assert small.Vp is not None
+        state.rows.restore(a["V0"], small.Vp, capacity=tuple(attrs["rows_capacity"]))
+    state.Gu, state.H, state.R = small.Gu, small.H, small.R
+    state.bound, state.m, state.waste = small.bound, small.m, small.waste
+    return small.source_offset, [record_from_row(row) for row in a["history"]]
