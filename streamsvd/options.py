@@ -5,30 +5,19 @@ can be told: it validates them (:meth:`CompressorOptions.validated`), is what a 
 records (:meth:`CompressorOptions.as_dict`, :meth:`CompressorOptions.from_stored`), and
 derives the step's options (:meth:`CompressorOptions.step_options`). The tree's option
 names (:data:`TREE_OPTIONS`) and the compressor's attributes (:func:`option_properties`)
-come from its fields.
+come from its fields, and so do the command line's options (:meth:`CompressorOptions.flag`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from ._core import Truncation
-from ._validation import (
-    check_choice,
-    check_nonnegative,
-    check_nonnegative_int,
-    check_positive_int,
-    check_target,
-)
-from .errors import InputError
-from .gram_schmidt import default_reject_tol
-from .inner import InnerProduct
-from .rotations import RULES
-from .update import StepOptions
+if TYPE_CHECKING:  # the numerical modules load when options are validated, not imported
+    from ._core import Truncation
+    from .inner import InnerProduct
+    from .update import StepOptions
 
 __all__ = [
     "STREAMING_SHARE",
@@ -37,7 +26,7 @@ __all__ = [
     "option_properties",
 ]
 
-_EPS = float(np.finfo(np.float64).eps)
+_EPS = 2.0**-52  # float64 machine epsilon
 # the target error's budget spent while streaming: HAPOD's split at omega = 0.9, whose
 # root (here: finalize) spends omega of the budget and the updates before it the rest
 STREAMING_SHARE = math.sqrt(1.0 - 0.9**2)
@@ -75,6 +64,11 @@ class CompressorOptions:
         """Return the option names, in the order of the fields."""
         return tuple(f.name for f in dataclasses.fields(cls))
 
+    @staticmethod
+    def flag(name: str) -> str:
+        """Return the command-line option of the option ``name`` (``max_rank``: ``--max-rank``)."""
+        return "--" + name.replace("_", "-")
+
     @classmethod
     def validated(cls, n: int, **values: Any) -> CompressorOptions:
         """Check ``values`` (option names to values) for snapshots of size ``n``.
@@ -82,6 +76,19 @@ class CompressorOptions:
         Raises :class:`~streamsvd.errors.InputError` naming the option, what it must be
         and what it got; an unknown name is refused with the known ones.
         """
+        import numpy as np
+
+        from ._validation import (
+            check_choice,
+            check_nonnegative,
+            check_nonnegative_int,
+            check_positive_int,
+            check_target,
+        )
+        from .errors import InputError
+        from .gram_schmidt import default_reject_tol
+        from .rotations import RULES
+
         unknown = sorted(set(values) - set(cls.names()))
         if unknown:
             raise InputError(
@@ -138,6 +145,8 @@ class CompressorOptions:
     def truncation(self, *, max_rank: int | None = None, share: float | None = None
                    ) -> Truncation:
         """Return the cut of an update (``max_rank``, ``share``: the streaming ones by default)."""
+        from ._core import Truncation
+
         return Truncation(
             self.eps, self.rtol, self.streaming_rank if max_rank is None else max_rank,
             self.target_error, self.error_measure,
@@ -146,6 +155,8 @@ class CompressorOptions:
 
     def step_options(self, inner: InnerProduct) -> StepOptions:
         """Return the options of the update step (:mod:`streamsvd.update`) in ``inner``."""
+        from .update import StepOptions
+
         assert self.reject_tol is not None and self.reorth_tol is not None
         return StepOptions(
             inner=inner, rule=self.rule, sweeps=self.sweeps, truncation=self.truncation(),

@@ -24,19 +24,19 @@ from datetime import datetime
 from typing import Any
 
 from .errors import InputError, ShapeMismatchError, StoreError, StreamSVDError
+from .options import CompressorOptions
 
 __all__ = ["check_resume", "removed_on_failure", "resuming"]
 
 logger = logging.getLogger(__name__)
 
 # the options a store records at creation (``--resume`` reuses them), with their flags
-_RECORDED_OPTIONS = (
-    ("eps", "--eps"), ("rtol", "--rtol"), ("max_rank", "--max-rank"),
-    ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
-    ("commit_every", "--commit-every"), ("target_error", "--target-error"),
-    ("error_measure", "--error-measure"), ("streaming_share", "--streaming-share"),
-    ("chunk_rows", "--chunk-rows"),
-)
+# the options a store records that the command line sets, by option name
+_RECORDED_OPTIONS = tuple(
+    name for name in CompressorOptions.names()
+    if name not in ("reject_tol", "reorth_tol", "right_vectors")
+) + ("chunk_rows",)
+
 
 # how a difference of SourceRecord.differences is named on the command line
 _SOURCE_PARTS = {"path": "SOURCE", "dataset": "--dataset", "shape": "SOURCE of shape"}
@@ -165,7 +165,8 @@ def check_resume(compressor: Any, record: Any, *, given: Mapping[str, Any],
 def _check_options(given: Mapping[str, Any], recorded: dict[str, Any]) -> None:
     """Refuse an option of ``given`` that differs from the one the store records."""
     differ = []
-    for name, flag in _RECORDED_OPTIONS:
+    for name in _RECORDED_OPTIONS:
+        flag = CompressorOptions.flag(name)
         if name not in given or name not in recorded:
             continue
         if given[name] != recorded[name]:

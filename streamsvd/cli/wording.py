@@ -14,6 +14,7 @@ import shlex
 from typing import Any
 
 from ..errors import StreamSVDError
+from ..options import CompressorOptions
 
 __all__ = ["in_cli_words", "interrupted"]
 
@@ -45,13 +46,12 @@ _REWRITES = (
 
 # Python argument names (as the library quotes them) -> command-line words
 _NAMES = {
+    **{name: CompressorOptions.flag(name) for name in CompressorOptions.names()
+       if name not in ("reject_tol", "reorth_tol", "right_vectors")},
     "path": "STORE", "store": "STORE", "source": "SOURCE", "out": "OUT",
-    "dataset": "--dataset", "block": "--block", "eps": "--eps", "rtol": "--rtol",
-    "max_rank": "--max-rank", "oversampling": "--oversampling", "rule": "--rule",
-    "sweeps": "--sweeps",
-    "commit_every": "--commit-every", "scheduler": "--scheduler", "workers": "--workers",
-    "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows", "resume": "--resume",
-    "inner": "--inner", "storage_options": "--storage-option",
+    "dataset": "--dataset", "block": "--block", "scheduler": "--scheduler",
+    "workers": "--workers", "leaf_columns": "--leaf-columns", "chunk_rows": "--chunk-rows",
+    "resume": "--resume", "inner": "--inner", "storage_options": "--storage-option",
     "M": "--inner (its matrix)", "weights": "--inner (its weights)",
 }
 

@@ -228,15 +228,18 @@ class Writer:
                 raise
             # The pointer names this commit: the switch took effect and only what follows
             # it (the directory's fsync, the reply) failed or was interrupted. The commit
-            # stands and is never undone; an interrupt still propagates once it is recorded.
+            # stands and is never undone; an interrupt still propagates once it is recorded
+            # (and the caller reports the commit: the command line names its last column).
+            self.switched = True
+            adopt(doc, pointer, written)
+            if not isinstance(exc, self.failures):
+                logger.info("generation %d of %s was committed before the interrupt",
+                            k, self.path)
+                raise
             logger.warning(
                 "generation %d of %s was committed; the step after its pointer switch "
                 "failed (%s)", k, self.path, type(exc).__name__,
             )
-            self.switched = True
-            adopt(doc, pointer, written)
-            if not isinstance(exc, self.failures):
-                raise
             return
         self.switched = True
         adopt(doc, pointer, written)
