@@ -19,7 +19,7 @@ import numpy as np
 import scipy.linalg
 
 from ._scaling import pow2_exponent, safe_column_norms
-from .rotations import sweep_core
+from .rotations import SweepStats, sweep_until
 
 __all__ = [
     "HISTORY_FIELDS",
@@ -314,19 +314,23 @@ def core_step(
     Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
     Qt = np.eye(p)
     order = np.arange(p, dtype=np.int64)
-    done = 0
     max_cos = 0.0
-    limit = sweeps if sweeps is not None else _MAX_SWEEPS
-    converged = p <= 1
-    if sweeps is None and not converged:
-        _precondition(Rt, Qt)
-    while done < limit and not converged:
-        s = sweep_core(Rt, Qt, order, p, rule=rule, eps=0.0, tol=math.sqrt(m) * _EPS)
-        done += 1
+
+    def after(s: SweepStats, done: int) -> None:
+        nonlocal max_cos
         max_cos = s.max_cosine
-        converged = s.rotations == 0
         if on_sweep is not None:
             on_sweep(done, max_cos)
+
+    tol = math.sqrt(m) * _EPS
+    done, converged = 0, p <= 1
+    if not converged:
+        if sweeps is None:
+            _precondition(Rt, Qt)
+        _, done, converged = sweep_until(
+            Rt, Qt, order, p, rule=rule, eps=0.0, tol=tol,
+            limit=_MAX_SWEEPS if sweeps is None else sweeps, after=after,
+        )
     amps_scaled = safe_column_norms(Rt.T)
     if not converged and truncation.needs_convergence(
         np.ldexp(amps_scaled, e), spent=spent, m=m
@@ -335,15 +339,8 @@ def core_step(
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
         # would drop energy of the leading directions for good
         _precondition(Rt, Qt)
-        while done < _MAX_SWEEPS:
-            s = sweep_core(Rt, Qt, order, p, rule="jacobi", eps=0.0,
-                           tol=math.sqrt(m) * _EPS)
-            done += 1
-            max_cos = s.max_cosine
-            if on_sweep is not None:
-                on_sweep(done, max_cos)
-            if s.rotations == 0:
-                break
+        _, done, _ = sweep_until(Rt, Qt, order, p, rule="jacobi", eps=0.0, tol=tol,
+                                 limit=_MAX_SWEEPS, done=done, after=after)
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")

@@ -15,7 +15,7 @@ from ._scaling import pow2_exponent, safe_column_norms
 from ._validation import check_choice, check_nonnegative, check_positive_int
 from .errors import InputError
 from .expansion import Expansion
-from .rotations import RULES, SweepStats, sweep_core, sweep_literal
+from .rotations import RULES, SweepStats, sweep_literal, sweep_until
 
 __all__ = ["CompressResult", "SweepState", "compress", "fix_signs"]
 
@@ -224,19 +224,17 @@ def _run_fast(
     Rt = np.ascontiguousarray(R.T)
     Qt = np.eye(p)
     order = np.arange(p, dtype=np.int64)
-    q = p
-    eps_s = math.ldexp(eps, -e)
     stats: list[SweepStats] = []
     discarded = 0.0  # kept as a norm: amplitudes from 1e-300 to 1e300 stay representable
-    converged = False
-    while len(stats) < max_sweeps:
-        s = sweep_core(Rt, Qt, order, q, rule=rule, eps=eps_s, tol=tol, nrm2=nrm2)
-        q = s.rank
+
+    def after(s: SweepStats, done: int) -> bool:
+        nonlocal discarded
         discarded = math.hypot(discarded, math.ldexp(math.sqrt(s.cut_energy), e))
         stats.append(s)
-        converged = s.rotations == 0
-        if _notify(callback, stats, discarded * discarded) or converged:
-            break
+        return _notify(callback, stats, discarded * discarded)
+
+    q, _, converged = sweep_until(Rt, Qt, order, p, rule=rule, eps=math.ldexp(eps, -e),
+                                  tol=tol, limit=max_sweeps, nrm2=nrm2, after=after)
     sel = order[:q]
     U_out = U @ newton_schulz(Qt[sel].T)
     V_out = np.ldexp(Qv @ Rt[sel].T, e)

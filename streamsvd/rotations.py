@@ -26,6 +26,7 @@ Two implementations of the sweep of Algorithms 2 and 3 are kept:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -39,6 +40,7 @@ __all__ = [
     "rotate_pair",
     "rotation_tangent",
     "sweep_core",
+    "sweep_until",
     "sweep_literal",
 ]
 
@@ -395,3 +397,36 @@ def sweep_literal(
     V_out = np.column_stack(cols_v) if cols_v else np.zeros((m, 0))
     indicator = math.sqrt(sum(a * a for a in alphas) / len(alphas)) if alphas else 0.0
     return U_out, V_out, SweepStats(len(cols_v), indicator, max_cos, n_rot, cut)
+
+
+def sweep_until(
+    Rt: np.ndarray,
+    Qt: np.ndarray,
+    order: np.ndarray,
+    q: int,
+    *,
+    rule: str,
+    eps: float,
+    tol: float,
+    limit: int,
+    done: int = 0,
+    nrm2: np.ndarray | None = None,
+    after: Callable[[SweepStats, int], bool | None] | None = None,
+) -> tuple[int, int, bool]:
+    """Run sweeps (:func:`sweep_core`) until one rotates nothing or ``limit`` sweeps ran.
+
+    The one sweep loop of the package: :func:`streamsvd.compress` and the update step's
+    core (:func:`streamsvd._core.core_step`) both drive it. ``done`` sweeps already ran
+    (they count towards ``limit``); ``after(stats, done)`` is called after every sweep
+    and stops the loop when it returns True. Returns the number of live terms, of sweeps
+    run (with ``done``) and whether the last sweep rotated nothing.
+    """
+    converged = False
+    while done < limit:
+        s = sweep_core(Rt, Qt, order, q, rule=rule, eps=eps, tol=tol, nrm2=nrm2)
+        q = s.rank
+        done += 1
+        converged = s.rotations == 0
+        if (after is not None and after(s, done)) or converged:
+            break
+    return q, done, converged
