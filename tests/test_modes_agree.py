@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-import streamsvd._core as core
+import streamsvd.rotations as rotations
 from streamsvd.parallel import TallCompressor, tall_compress, tree_compress
 
 EPS = np.finfo(float).eps
@@ -138,7 +138,7 @@ def test_an_interrupt_in_the_final_sweeps_keeps_the_last_commit(rng, tmp_path, m
             raise KeyboardInterrupt
 
         with monkeypatch.context() as mp:
-            mp.setattr(core, "sweep_core", interrupt)
+            mp.setattr(rotations, "sweep_core", interrupt)
             with pytest.raises(KeyboardInterrupt):
                 sc.finalize(progress=True)
         assert calls and not sc.finalized
