@@ -37,6 +37,7 @@ from ._threads import blas_threads, check_threads
 from ._validation import (
     as_float_array,
     check_choice,
+    check_forget,
     check_nonnegative,
     check_nonnegative_int,
     check_positive_int,
@@ -46,6 +47,15 @@ from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
 from .commits import CommitTracker
 from .compress import fix_signs
+from .downdate import (
+    Ledger,
+    bound_after_removal,
+    intervals_add,
+    intervals_contain,
+    intervals_count_below,
+    intervals_skip,
+    plan_remove,
+)
 from .errors import InputError, StoreError, StoreFormatError, StoreMismatchError
 from .expansion import Expansion
 from .gram_schmidt import default_reject_tol
@@ -97,7 +107,7 @@ def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
     """
     defaults = {
         "oversampling": 0, "target_error": None, "error_measure": "relative",
-        "streaming_share": 0.9,
+        "streaming_share": 0.9, "window": None, "forget": 1.0,
     }
     return {**defaults, **attrs["options"]}
 def _stored_inner(path: Any, state: Any) -> InnerProduct:
@@ -190,6 +200,16 @@ class StreamCompressor:
         (``omega`` is the root's share there): on pyMOR's Burgers demo it keeps the
         optimal number of modes, where a share of 0.9 kept up to one more in memory
         and up to four more in the tree (``bench/README.md``).
+    window : int, optional
+        Keep the ``window`` most recent snapshots only: each :meth:`absorb` first
+        removes (:meth:`remove`) the oldest ones that would fall out, so the expansion is
+        that of the last ``window`` snapshots. Needs ``right_vectors=True``.
+    forget : float
+        Forgetting factor ``gamma`` in (0, 1] (1: none): each snapshot is weighted by
+        ``gamma`` to the number of snapshots absorbed after it, so the expansion is that
+        of ``[gamma^(m-1) a_1, ..., gamma a_(m-1), a_m]`` whatever the block sizes (the
+        core, the error bound and the discarded norm are scaled by ``gamma^b`` before a
+        block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).
         One thread is never much slower than all cores and is much faster on a machine
@@ -248,6 +268,8 @@ class StreamCompressor:
         target_error: float | None = None,
         error_measure: str = "relative",
         streaming_share: float = STREAMING_SHARE,
+        window: int | None = None,
+        forget: float = 1.0,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self.threads = check_threads(threads)
@@ -280,6 +302,14 @@ class StreamCompressor:
         if not isinstance(right_vectors, bool | np.bool_):
             raise InputError(f"`right_vectors` must be True or False; got {right_vectors!r}.")
         self.right_vectors = bool(right_vectors)
+        self.window = check_positive_int(window, "window", allow_none=True)
+        self.forget = check_forget(forget)
+        if self.window is not None and not self.right_vectors:
+            raise InputError(
+                f"`window` needs the right vectors to remove the snapshots that leave it; "
+                f"got window={self.window} with right_vectors=False. Pass "
+                "`right_vectors=True`, or use `forget` (which needs none)."
+            )
         self.commit_every = int(check_positive_int(commit_every, "commit_every"))  # type: ignore[arg-type]
         self._opts = StepOptions(
             inner=self.inner, rule=self.rule, sweeps=self.sweeps,
@@ -297,6 +327,11 @@ class StreamCompressor:
         self._version = 0  # increases with every state change (for the exposure cache)
         self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
         self.source_offset = 0
+        # global indices of the snapshots removed (sorted disjoint [start, stop) rows),
+        # and the error ledger (streamsvd.downdate); the values a planned update leads to
+        self._removed = np.zeros((0, 2), dtype=np.int64)
+        self._ledger = Ledger.start(0, 0.0)
+        self._pending: tuple[Ledger, np.ndarray] = (self._ledger, self._removed)
         self._store: BasisStore | None = None
         self._uncommitted = 0
         self._tracker = CommitTracker()
@@ -427,6 +462,7 @@ class StreamCompressor:
         out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)
         out.source_offset = self.source_offset
+        out._removed, out._ledger = self._removed, self._ledger
         return out
 
     def _empty_copy(self, **changes: Any) -> StreamCompressor:
@@ -514,18 +550,21 @@ class StreamCompressor:
             "reorth_tol": self.reorth_tol, "right_vectors": self.right_vectors,
             "commit_every": self.commit_every, "target_error": self.target_error,
             "error_measure": self.error_measure, "streaming_share": self.streaming_share,
+            "window": self.window, "forget": self.forget,
         }
 
     def _attrs(self, plan: Plan | None) -> dict[str, Any]:
         s = self._state
         bound = s.bound if plan is None else plan.bound
         rank = s.rank if plan is None else plan.Gu.shape[1]
+        ledger, removed = (self._ledger, self._removed) if plan is None else self._pending
         return {
             "kind": self.KIND, "layout": LAYOUT, "options": self._options(),
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
             "source": None if self.source_record is None else self.source_record.to_attrs(),
+            "removed": removed.tolist(), "ledger": ledger.entries.tolist(),
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
@@ -565,6 +604,8 @@ class StreamCompressor:
             source_offset=int(source_offset), updates=len(self._history),
             small_layout=[list(a.shape) for a in small], basis=basis_attrs,
             rows_capacity=None if s.rows is None else list(s.rows.capacity),
+            rows_dead=None if s.rows is None else intervals_add(
+                np.zeros((0, 2)), _planned_dead(s.rows.dead, plan)).tolist(),
         )
         k = self._store.commit(
             {"small": np.concatenate([a.ravel() for a in small])}, attrs=attrs,
@@ -595,13 +636,18 @@ class StreamCompressor:
         s = self._state
         s.basis.restore(a, attrs["basis"])
         if s.rows is not None:
-            s.rows.restore(a["V0"], pieces[3], capacity=tuple(attrs["rows_capacity"]))
+            dead = [np.arange(a0, b0) for a0, b0 in attrs.get("rows_dead") or []]
+            s.rows.restore(a["V0"], pieces[3], capacity=tuple(attrs["rows_capacity"]),
+                           dead=np.concatenate(dead + [np.zeros(0, dtype=np.int64)]))
         s.Gu, s.H, s.R = Gu, H, R
         s.bound = Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3]))
         self.source_offset = int(scalars[3])
         s.m = int(scalars[4])
         s.waste = float(scalars[5])
         self._history = [record_from_row(row) for row in history]
+        self._removed = np.array(attrs.get("removed", []), dtype=np.int64).reshape(-1, 2)
+        self._ledger = (Ledger(np.array(attrs["ledger"], dtype=np.float64).reshape(-1, 2))
+                        if "ledger" in attrs else Ledger.start(s.m, s.bound.bound))
         self._version += 1
 
     # ------------------------------------------------------------------ properties
@@ -609,6 +655,16 @@ class StreamCompressor:
     def n_seen(self) -> int:
         """Number of snapshots (columns) in the expansion."""
         return self._state.m
+
+    @property
+    def n_absorbed(self) -> int:
+        """Number of snapshots absorbed, removed ones included (the next one's index)."""
+        return self._state.m + int(np.sum(self._removed[:, 1] - self._removed[:, 0]))
+
+    @property
+    def removed(self) -> np.ndarray:
+        """Indices (in absorption order) of the snapshots removed, as ``[start, stop)`` rows."""
+        return self._removed.copy()
 
     @property
     def rank(self) -> int:
@@ -746,10 +802,110 @@ class StreamCompressor:
         t0 = time.perf_counter()
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
+        if self.window is not None:
+            # the oldest snapshots that fall out leave first (an update of their own), and
+            # a block wider than the window enters by its last `window` columns only
+            skipped = max(B.shape[1] - self.window, 0)
+            out = self.n_seen + B.shape[1] - skipped - self.window
+            if out > 0:
+                self._remove_positions(np.arange(out))
+            if skipped:
+                B = B[:, skipped:]
+        removed = self._removed
+        if self.window is not None and skipped:
+            removed = intervals_add(removed, self.n_absorbed + np.arange(skipped))
+        state, ledger = self._state, self._ledger
+        if self.forget < 1.0:
+            b = B.shape[1]
+            B = B * self.forget ** np.arange(b - 1, -1, -1, dtype=np.float64)
+            scale = self.forget**b
+            state = dataclasses.replace(
+                state, R=state.R * scale, bound=Bound.from_array(state.bound.to_array() * scale)
+            )
+            ledger = ledger.scaled(scale)
         return self._run(
-            lambda: plan_absorb_by_gram(self._state, B, self._opts, t0=t0)
-            or plan_absorb(self._state, B, self._opts, t0=t0),
-            offset,
+            lambda: plan_absorb_by_gram(state, B, self._opts, t0=t0)
+            or plan_absorb(state, B, self._opts, t0=t0),
+            offset, ledger=ledger, removed=removed,
+        )
+
+    def remove(self, columns: Any) -> UpdateRecord:
+        """Remove absorbed snapshots exactly: the result is as if they were never absorbed.
+
+        Parameters
+        ----------
+        columns : int or sequence of int
+            Indices of the snapshots in the order they were absorbed (0 is the first one
+            ever absorbed; :attr:`n_absorbed` the next), unchanged by earlier removals.
+
+        Brand's downdate (:mod:`streamsvd.downdate`): the removed rows of the orthonormal
+        right factor ``Y`` are read, and the small core is downdated, swept and truncated
+        like any update. ``U`` is unchanged. Cost ``O(r w k + (r + k)^3 + k^2 p)`` for
+        ``r`` columns, nothing in the number of snapshots absorbed (the live rows of
+        ``Y`` are written anew once the removed ones outnumber them: ``O(w k)``
+        amortised per removed column).
+
+        Guarantee: the new expansion is, to rounding, ``U V^T`` with the removed columns
+        deleted (then swept and truncated by the compressor's rules). Without truncation
+        so far it is the expansion of the remaining snapshots; with truncation, that of
+        the remaining columns of the truncated expansion, and
+        ``||A_rest - U V^T||_F <= error_bound`` still holds (module
+        :mod:`streamsvd.downdate`: the bound is kept, or lowered to the ledger's sum of
+        the discards that still lie on remaining columns). Rounding: a direction keeping
+        a share ``c`` of its support on the remaining columns is exact to about
+        ``eps ||R|| / c``. Needs ``right_vectors=True``.
+
+        Raises
+        ------
+        InputError
+            Without right vectors, or when an index is not an integer, out of range,
+            repeated or already removed; the state, in memory and in the store, is then
+            unchanged.
+        """
+        if self._state.rows is None:
+            raise InputError(
+                "`remove` needs the right vectors, and this StreamCompressor keeps none "
+                "(`right_vectors=False`); create it with `right_vectors=True`."
+            )
+        g = np.asarray(columns)
+        if g.ndim == 0:
+            g = g.reshape(1)
+        if g.ndim != 1 or g.size == 0 or g.dtype.kind not in "iu":
+            raise InputError(
+                "`columns` must be a non-empty sequence of integer snapshot indices; got "
+                + f"{columns!r}"[:120] + "."
+            )
+        g = g.astype(np.int64)
+        total = self.n_absorbed
+        bad = g[(g < 0) | (g >= total)]
+        if bad.size:
+            raise InputError(
+                f"`columns` must be indices of absorbed snapshots, 0 <= index < {total} "
+                f"(the snapshots absorbed so far); got {bad[:5].tolist()}."
+            )
+        values, counts = np.unique(g, return_counts=True)
+        if np.any(counts > 1):
+            raise InputError(
+                f"`columns` must name each snapshot once; got "
+                f"{values[counts > 1][:5].tolist()} more than once."
+            )
+        gone = g[intervals_contain(self._removed, g)]
+        if gone.size:
+            raise InputError(
+                f"`columns` must name snapshots still in the expansion; got "
+                f"{gone[:5].tolist()}, already removed (see `removed`)."
+            )
+        return self._remove_positions(values - intervals_count_below(self._removed, values))
+
+    def _remove_positions(self, positions: np.ndarray) -> UpdateRecord:
+        """Remove the current columns at ``positions`` (sorted, distinct, valid)."""
+        t0 = time.perf_counter()
+        ledger = self._ledger.removed(positions)
+        prior = bound_after_removal(self._state.bound, ledger)
+        removed = intervals_add(self._removed, intervals_skip(self._removed, positions))
+        return self._run(
+            lambda: plan_remove(self._state, positions, self._opts, prior=prior, t0=t0),
+            self.source_offset, ledger=ledger, removed=removed,
         )
 
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
@@ -862,6 +1018,7 @@ class StreamCompressor:
         return self._run(
             lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, opts, t0=t0),
             self.source_offset + m_o,
+            ledger=self._ledger.appended(self.n_seen + m_o, prior.bound),
         )
 
     def finalize(
@@ -904,13 +1061,23 @@ class StreamCompressor:
         return record
 
     # ------------------------------------------------------------------ internals
-    def _run(self, make_plan: Callable[[], Plan], source_offset: int) -> UpdateRecord:
+    def _run(
+        self, make_plan: Callable[[], Plan], source_offset: int, *,
+        ledger: Ledger | None = None, removed: np.ndarray | None = None,
+    ) -> UpdateRecord:
         """Plan an update, persist it when a commit is due, then switch to it.
 
-        The plan runs with the BLAS limited to :attr:`threads` threads.
+        The plan runs with the BLAS limited to :attr:`threads` threads. ``ledger`` and
+        ``removed`` are the error ledger and the removed indices before the update's own
+        discard (default: the current ones).
         """
         with blas_threads(self.threads):
             plan = make_plan()
+        base = self._ledger if ledger is None else ledger
+        self._pending = (
+            base.appended(plan.m, plan.record.discarded),
+            self._removed if removed is None else removed,
+        )
         # persist first, then switch the in-memory state: an exception anywhere before
         # or in the commit leaves both the memory and the store as they were
         self._history.append(plan.record)
@@ -925,6 +1092,7 @@ class StreamCompressor:
             self._state.basis.discard_planned()
             raise
         apply_plan(self._state, plan)
+        self._ledger, self._removed = self._pending
         self._tracker.settle(self._state, len(self._history))
         self._version += 1
         self.source_offset = source_offset
@@ -939,10 +1107,20 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
         "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
+        "n_absorbed": sc.n_absorbed, "removed": sc.removed.tolist(),
         "options": sc._options(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),
     }
+
+
+def _planned_dead(dead: np.ndarray, plan: Plan | None) -> np.ndarray:
+    """Return the dead stored rows of the right factor once ``plan`` is applied."""
+    if plan is None:
+        return dead
+    if plan.Y_replace is not None:
+        return np.zeros(0, dtype=np.int64)
+    return dead if plan.dead is None else plan.dead
 
 
 @contextlib.contextmanager
