@@ -35,7 +35,7 @@ _RECORDED_OPTIONS = (
     ("oversampling", "--oversampling"), ("rule", "--rule"), ("sweeps", "--sweeps"),
     ("commit_every", "--commit-every"), ("target_error", "--target-error"),
     ("error_measure", "--error-measure"), ("streaming_share", "--streaming-share"),
-    ("chunk_rows", "--chunk-rows"),
+    ("chunk_rows", "--chunk-rows"), ("window", "--window"), ("forget", "--forget"),
 )
 
 # how a difference of SourceRecord.differences is named on the command line

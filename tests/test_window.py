@@ -8,6 +8,9 @@ columns, the last ``window`` snapshots, or the weighted matrix
 
 from __future__ import annotations
 
+import json
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -322,3 +325,47 @@ def test_bad_removals_name_the_argument_and_change_nothing(rng, tmp_path, column
 def test_bad_window_and_forget_options(options, message):
     with pytest.raises(InputError, match=message):
         ss.StreamCompressor(10, **options)
+
+
+# ------------------------------------------------------------------------- the command
+def _cli(argv, capsys):
+    from streamsvd.cli import main
+
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+@pytest.mark.parametrize("mode", [[], ["--tall"]])
+def test_cli_window_and_forget(rng, tmp_path, capsys, mode):
+    A = _data(rng, 40, 90, 10, 1e-6)
+    np.save(tmp_path / "a.npy", A)
+    store = tmp_path / "s.zarr"
+    status, out, _ = _cli(["ingest", tmp_path / "a.npy", store, "--window", 25, "--forget",
+                           0.9, "--block", 7, *mode], capsys)
+    assert status == 0
+    summary = json.loads(out)
+    assert summary["options"]["window"] == 25 and summary["options"]["forget"] == 0.9
+    assert summary["n_seen"] == 25 and summary["n_absorbed"] == 90
+    Wt = A[:, -25:] * 0.9 ** np.arange(24, -1, -1, dtype=float)
+    s = np.linalg.svd(Wt, compute_uv=False)
+    amps = np.array(summary["amplitudes_head"])
+    assert np.max(np.abs(amps - s[: amps.size])) <= 50 * 40 * EPS * s[0]
+    status, out, _ = _cli(["info", store], capsys)
+    assert status == 0 and "window        25 snapshots (forget 0.9); 90 absorbed, 65 removed" in out
+    status, _, err = _cli(["ingest", tmp_path / "a.npy", store, "--resume", "--window", 30,
+                           *mode], capsys)
+    assert status == 2 and "--window 30 (STORE has 25)" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--window", "0"], "argument --window: must be a positive integer; got '0'"),
+    (["--forget", "0"], r"argument --forget: must be a number in \(0, 1\]; got '0'"),
+    (["--forget", "1.1"], r"argument --forget: must be a number in \(0, 1\]; got '1.1'"),
+    (["--window", "5", "--scheduler", "threads"], r"got unknown \['window'\]"),
+])
+def test_cli_bad_window_and_forget(rng, tmp_path, capsys, argv, message):
+    np.save(tmp_path / "a.npy", rng.standard_normal((10, 12)))
+    status, _, err = _cli(["ingest", tmp_path / "a.npy", tmp_path / "s.zarr", *argv], capsys)
+    assert status == 2 and re.search(message, err), err
+    assert not (tmp_path / "s.zarr").exists()
