@@ -369,3 +369,53 @@ def test_cli_bad_window_and_forget(rng, tmp_path, capsys, argv, message):
     status, _, err = _cli(["ingest", tmp_path / "a.npy", tmp_path / "s.zarr", *argv], capsys)
     assert status == 2 and re.search(message, err), err
     assert not (tmp_path / "s.zarr").exists()
+
+
+# ------------------------------------------------------------------------- estimator
+def _pca_reference(X: np.ndarray, w: np.ndarray, k: int):
+    mu = (w[:, None] ** 2 * X).sum(0) / float(w @ w)
+    return mu, *np.linalg.svd(w[:, None] * (X - mu), full_matrices=False)[1:]
+
+
+@pytest.mark.parametrize("window, forget, k", [(50, 1.0, 5), (None, 0.97, 4), (40, 0.9, 6)])
+def test_estimator_window_and_forget_equal_pca_of_the_weighted_window(rng, window, forget, k):
+    from streamsvd.estimator import StreamingSVD
+
+    X = rng.standard_normal((300, 12)) @ rng.standard_normal((12, 12)) + 3.0
+    est = StreamingSVD(n_components=k, window=window, forget=forget)
+    for i in range(0, 300, 17):
+        est.partial_fit(X[i : i + 17])
+    Xw = X if window is None else X[-window:]
+    mw = Xw.shape[0]
+    mu, s, Vt = _pca_reference(Xw, forget ** np.arange(mw - 1, -1, -1, dtype=float), k)
+    tol = 50 * max(Xw.shape) * EPS * s[0]
+    assert est.n_samples_seen_ == mw
+    assert np.max(np.abs(est.singular_values_ - s[:k])) <= tol
+    assert np.max(np.abs(est.mean_ - mu)) <= tol
+    # the components, up to sign, for the well-separated leading ones
+    cos = np.abs(np.sum(est.components_ * Vt[:k], axis=1))
+    gaps = np.minimum(np.abs(s[:k] - s[1 : k + 1]), np.abs(s[:k] - np.r_[np.inf, s[: k - 1]]))
+    assert np.all(1.0 - cos <= (tol / gaps) ** 2 + 50 * EPS)
+    C = est.components_ @ est.components_.T
+    assert np.linalg.norm(C - np.eye(k), 2) <= 50 * 12 * EPS
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"window": 0}, r"`window` must be an integer >= 1 or None; got int 0"),
+    ({"forget": 2.0}, r"`forget` must be a number in \(0, 1\] .*got float 2.0"),
+])
+def test_estimator_bad_window_and_forget(rng, options, message):
+    from streamsvd.estimator import StreamingSVD
+
+    with pytest.raises(InputError, match=message):
+        StreamingSVD(n_components=2, **options).partial_fit(rng.standard_normal((10, 4)))
+
+
+def test_estimator_window_may_not_change_between_partial_fits(rng):
+    from streamsvd.estimator import StreamingSVD
+
+    est = StreamingSVD(n_components=2, window=10)
+    est.partial_fit(rng.standard_normal((10, 4)))
+    est.window = 20
+    with pytest.raises(InputError, match=r"`window` must stay 10 between calls to partial_fit"):
+        est.partial_fit(rng.standard_normal((10, 4)))
