@@ -16,20 +16,26 @@ of ``U``, to a change of the right factor only:
 
 ``U`` is unchanged, so ``||U^T M U - I||`` is unchanged by a removal, and the new core is
 then swept and truncated as any other (the rotation sweeps of the paper, Algorithms 2-3,
-by :func:`streamsvd.update.plan_remove`'s caller). Cost: ``O(r k w + (r + k) k^2 + k^2 p)``
-(``w`` the stored width of ``Y``), nothing in the number of snapshots absorbed; the rows
-themselves are never read but the ``r`` removed ones.
+by :func:`plan_remove`). Cost: ``O(r k w + (r + k) k^2 + k^2 p)`` (``w`` the stored width
+of ``Y``), nothing in the number of snapshots absorbed; the rows are not read but the
+``r`` removed ones (except as below).
 
-Accuracy. ``Y`` is orthonormal to rounding ``delta`` (a few ``eps``), so the computed
-``c_i^2`` has an absolute error of about ``delta`` and a direction that keeps a share
-``c_i`` of its support is recovered with a relative error of about ``delta / c_i^2``: its
-term, of amplitude at most ``c_i ||R||``, is exact to about ``delta ||R|| / c_i``. A
-direction with ``c_i^2`` below its own rounding (``DROP_FACTOR (k + r) eps``) lives in the
-removed columns to working accuracy: it is dropped, and what it carries on the remaining
-columns, ``c_i ||B_i^T R||`` with the computed ``c_i`` (at most
-``sqrt(DROP_FACTOR (k + r) eps) ||B_i^T R||``), is counted as discarded. ``c_min``, the smallest share kept, is
-returned: the removal is exact to rounding while ``c_min`` is not small (it is about 0.97
-when 10 of 200 evenly supported columns leave a window, ``bench/README.md``).
+Accuracy, and when the rows are read. ``Y`` is orthonormal to rounding ``delta`` (a few
+``eps``), so the computed ``c_i^2`` has an absolute error of about ``delta``: a direction
+that keeps a share ``c_i`` of its support is recovered with a relative error of about
+``delta / c_i^2``, and ``Y'`` loses orthogonality by as much. Directions concentrated on
+the removed columns are common (the transient of a time series, a mode that left a
+window), and the loss compounds over removals (on the moving-source example of
+``examples/`` it reached ``||Y^T Y - I|| = 0.2`` after two removals). So the small
+downdate is used only while every share is at least ``EXACT_BELOW = 0.5``
+(``delta / c^2 <= 4 delta``); otherwise the remaining rows themselves are orthonormalised
+again by a Householder QR, ``Y_rest = Q T``, ``Y' = Q``, ``R' = T R``: exact whatever the
+shares, at ``O(m_rest w k)``, which for a window is ``O(W w k)``, still nothing in the
+number of snapshots absorbed before it. The same QR writes the live rows anew once the
+dead rows outnumber them, which also resets the orthogonality lost by the small downdates
+in between. In the small downdate a direction with ``c_i^2`` below its own rounding
+(``DROP_FACTOR (k + r) eps``) would be dropped, and what it carries on the remaining
+columns, ``c_i ||B_i^T R||`` with the computed ``c_i``, counted as discarded.
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ _EPS = float(np.finfo(np.float64).eps)
 DROP_FACTOR = 16.0  # a direction is dropped when c^2 <= DROP_FACTOR (k + r) eps
 LEDGER_SIZE = 32  # entries of the error ledger (older ones are merged)
 _MIN_DEAD = 64  # dead rows kept stored at least, before the live ones are written anew
+EXACT_BELOW = 0.5  # a smaller remaining share c_min orthonormalises the live rows again
 
 
 @dataclass(frozen=True)
@@ -270,9 +277,9 @@ def plan_remove(
     (:func:`downdate`) and then swept and truncated by ``opts`` like any update
     (:func:`streamsvd.update._plan`), ``prior`` being the bound account after the removal
     (:func:`bound_after_removal`). The removed rows stay stored, marked dead, so that a
-    store only appends; once the dead rows outnumber the live ones (and 64), the live
-    rows are written anew instead (``O(m_live w k)``, once per as many removals: amortised
-    ``O(w k)`` per removed column).
+    store only appends. When a share is below ``EXACT_BELOW``, or once the dead rows
+    outnumber the live ones (and 64), the live rows are orthonormalised again and
+    written anew instead (``O(m_live w k)``; see the module docstring).
     """
     rows = state.rows
     assert rows is not None
@@ -282,12 +289,16 @@ def plan_remove(
     m = state.m - positions.size
     ext = BasisExtension.empty(state.rank, state.basis.width)
     Y_replace = Y_map = None
-    if dead.size > max(m, _MIN_DEAD):
-        Y_replace = np.delete(rows.V0, dead, axis=0) @ (rows.Vp @ dd.S)
+    K, dropped = dd.R, dd.dropped
+    if dd.c_min < EXACT_BELOW or dead.size > max(m, _MIN_DEAD):
+        # the remaining rows orthonormalised again (Householder QR): exact whatever the
+        # shares, and the dead rows are no longer stored
+        Y_replace, T = np.linalg.qr(np.delete(rows.V0, dead, axis=0) @ rows.Vp)
+        K, dropped = T @ state.R, 0.0
     else:
         Y_map = dd.S
     logger.debug("remove %d columns: smallest remaining share %.3e", positions.size, dd.c_min)
-    k_new = dd.R.shape[0]
+    k_new = K.shape[0]
     if k_new < state.rank:
         # directions left with the removed columns: the core has rank k_new at most, and
         # its other terms are rounding; a cap at k_new converges the core and cuts them
@@ -295,7 +306,7 @@ def plan_remove(
         opts = dataclasses.replace(opts, truncation=dataclasses.replace(
             opts.truncation, max_rank=k_new if cap is None else min(cap, k_new)))
     return _plan(
-        state, ext, dd.R, opts, kind="remove", columns=int(positions.size), m=m, t0=t0,
-        d_rej=dd.dropped, extra_root=0.0, prior=prior, Y_replace=Y_replace, Y_map=Y_map,
+        state, ext, K, opts, kind="remove", columns=int(positions.size), m=m, t0=t0,
+        d_rej=dropped, extra_root=0.0, prior=prior, Y_replace=Y_replace, Y_map=Y_map,
         dead=None if Y_replace is not None else dead,
     )

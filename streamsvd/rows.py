@@ -25,6 +25,10 @@ When ``wv`` exceeds ``width_limit * p`` the factor is *rebased*, ``V0 <- V0 Vp``
 ``Vp <- I`` (the only operation that reads and writes every row, ``O(m wv p)``), counted
 in :attr:`RowFactor.rebases`.
 
+Removed rows (:mod:`streamsvd.downdate`) stay stored and are listed in
+:attr:`RowFactor.dead`; ``Y`` is the other rows, in order, so a removal writes nothing
+until the live rows are written anew by a replacement.
+
 Between two rebases (or replacements, both counted in :attr:`RowFactor.rewrites`) the
 stored rows only grow: a commit to a store writes the rows appended since the previous
 one, the old rows being unchanged and zero in every column added since.

@@ -841,9 +841,11 @@ class StreamCompressor:
         Brand's downdate (:mod:`streamsvd.downdate`): the removed rows of the orthonormal
         right factor ``Y`` are read, and the small core is downdated, swept and truncated
         like any update. ``U`` is unchanged. Cost ``O(r w k + (r + k)^3 + k^2 p)`` for
-        ``r`` columns, nothing in the number of snapshots absorbed (the live rows of
-        ``Y`` are written anew once the removed ones outnumber them: ``O(w k)``
-        amortised per removed column).
+        ``r`` columns, nothing in the number of snapshots absorbed, while every right
+        direction keeps at least half its support on the remaining columns; otherwise
+        (and once the removed rows outnumber the others) the remaining rows of ``Y``
+        are orthonormalised again, ``O(m w k)`` with ``m`` the snapshots kept (the
+        window's size with ``window``).
 
         Guarantee: the new expansion is, to rounding, ``U V^T`` with the removed columns
         deleted (then swept and truncated by the compressor's rules). Without truncation
@@ -851,9 +853,7 @@ class StreamCompressor:
         the remaining columns of the truncated expansion, and
         ``||A_rest - U V^T||_F <= error_bound`` still holds (module
         :mod:`streamsvd.downdate`: the bound is kept, or lowered to the ledger's sum of
-        the discards that still lie on remaining columns). Rounding: a direction keeping
-        a share ``c`` of its support on the remaining columns is exact to about
-        ``eps ||R|| / c``. Needs ``right_vectors=True``.
+        the discards that still lie on remaining columns). Needs ``right_vectors=True``.
 
         Raises
         ------

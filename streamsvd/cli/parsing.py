@@ -279,11 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
                      "cut to K by the final sweeps (default: no limit)")
     ing.add_argument("--window", metavar="W", type=_positive_int,
                      help="keep the W most recent snapshots: each block removes exactly "
-                     "those that fall out (in memory and --tall; the tree mode refuses it; "
-                     "default: keep all)")
+                     "those that fall out, in memory and --tall; the tree mode refuses it "
+                     "(default: keep all)")
     ing.add_argument("--forget", metavar="G", type=_forget,
                      help="forgetting factor in (0, 1]: each snapshot is weighted by G to "
-                     "the number absorbed after it (in memory and --tall; default: 1, none)")
+                     "the number absorbed after it, in memory and --tall (default: 1, none)")
     ing.add_argument("--oversampling", metavar="P", type=_nonnegative_int,
                      help="extra terms kept while streaming with --max-rank; 0 cuts to K "
                      f"at every update (default: {DEFAULT_OVERSAMPLING})")
