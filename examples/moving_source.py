@@ -124,14 +124,13 @@ def _figure(x: np.ndarray, checks: list[dict], path: Path) -> None:
             ax.plot(x, c["U"][:, i], "--", color=line.get_color(), label=f"mode {i + 1}")
         ax.set_title(f"t = {c['time_s']:.0f} s (batch: thick, window: dashed)", fontsize=9)
         ax.set_xlabel("x (m)")
-        ax.set_ylabel("mode (1/sqrt(node), unit 2-norm)")
+        ax.set_ylabel("mode shape (-, unit 2-norm over the nodes)")
         ax.legend(fontsize=7)
         ax = axes[1, j]
-        ax.semilogy(np.arange(1, c["s_ref"].size + 1), c["s_ref"], "o", mfc="none",
-                    label="batch SVD of the window")
-        ax.semilogy(np.arange(1, c["s"].size + 1), c["s"], "x", label="streamed window")
-        ax.set_xlabel("mode index")
-        ax.set_ylabel("singular value (K)")
+        for key, style, label in (("s_ref", "o", "batch SVD of the window"),
+                                  ("s", "x", "streamed window")):
+            ax.semilogy(np.arange(1, c[key].size + 1), c[key], style, mfc="none", label=label)
+        ax.set(xlabel="mode index", ylabel="singular value (K)")
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
