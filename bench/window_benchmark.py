@@ -65,7 +65,7 @@ def _angles(U_ref: np.ndarray, U: np.ndarray, s_ref: np.ndarray, limit: int
     for i in range(1, min(U.shape[1], s_ref.size - 1, limit) + 1):
         if s_ref[i - 1] >= 10 * s_ref[i]:
             A, B = U_ref[:, :i], U[:, :i]
-            out[i] = float(np.linalg.norm(B - A @ (A.T @ B), 2))
+            out[str(i)] = float(np.linalg.norm(B - A @ (A.T @ B), 2))
     return out
 
 
@@ -165,9 +165,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "summary": {
             "max_angle": max(max(c["angles"].values()) for c in acc),
             "max_angle_by_gap": {i: max(c["angles"].get(i, 0.0) for c in acc)
-                                 for i in sorted({i for c in acc for i in c["angles"]})},
-            "gap_sigma": {i: acc[-1]["s_ref"][i - 1] for i in acc[-1]["angles"]},
-            "gaps": sorted(acc[-1]["angles"]),
+                                 for i in sorted({i for c in acc for i in c["angles"]}, key=int)},
+            "gap_sigma": {i: acc[-1]["s_ref"][int(i) - 1] for i in acc[-1]["angles"]},
+            "gaps": sorted({int(i) for c in acc for i in c["angles"]}),
             "max_sv_rel": max(c["sv_rel"] for c in acc),
             "max_orthogonality": max(c["orthogonality"] for c in acc),
             "bound_over_true": [min(c["bound"] / c["true_error"] for c in acc),
@@ -191,7 +191,8 @@ def _figure(report: dict[str, Any], path: Any) -> None:
     acc = report["runs"][0]["checks"]
     u = [c["update"] for c in acc]
     for i in report["summary"]["gaps"]:
-        a1.semilogy(u, [max(c["angles"][i], 1e-17) for c in acc], label=f"leading {i} modes")
+        a1.semilogy(u, [max(c["angles"].get(str(i), np.nan), 1e-17) for c in acc],
+                    label=f"leading {i} modes")
     a1.semilogy(u, [c["sv_rel"] for c in acc], "k--", label="singular values (relative)")
     a1.semilogy(u, [c["orthogonality"] for c in acc], "k:", label="||U^T U - I||")
     a1.set_xlabel("update (blocks of %d snapshots)" % report["args"]["block"])
