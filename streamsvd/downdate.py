@@ -205,8 +205,9 @@ class Ledger:
     of ``J`` below it; an entry with ``L = 0`` lies on no current column and is dropped.
     By the triangle inequality ``||E|| <= sum d`` over the entries: a bound that, unlike
     the recursion of :mod:`streamsvd.bound`, forgets what left a window. Entries beyond
-    ``LEDGER_SIZE`` are merged two by two (the larger ``L``, the sum of ``d``), which
-    keeps the bound valid and the state small.
+    ``LEDGER_SIZE`` are merged two by two (the larger ``L``, the sum of ``d``; the pair
+    whose ``d_i (L_(i+1) - L_i)`` is smallest), which keeps the bound valid and the
+    state small.
 
     Attributes
     ----------
@@ -248,8 +249,9 @@ class Ledger:
         else:
             e = np.vstack([e, [[float(m), d]]])
         while e.shape[0] > LEDGER_SIZE:
-            # merge the two adjacent entries closest in L: the smallest loss of sharpness
-            i = int(np.argmin(np.diff(e[:, 0])))
+            # merge the adjacent pair whose merge costs least: entry i's d then lies on
+            # L_(i+1) - L_i more columns (it leaves a window that much later)
+            i = int(np.argmin(e[:-1, 1] * np.diff(e[:, 0])))
             e = np.vstack([e[:i], [[e[i + 1, 0], e[i, 1] + e[i + 1, 1]]], e[i + 2 :]])
         return Ledger(e)
 

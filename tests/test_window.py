@@ -419,3 +419,39 @@ def test_estimator_window_may_not_change_between_partial_fits(rng):
     est.window = 20
     with pytest.raises(InputError, match=r"`window` must stay 10 between calls to partial_fit"):
         est.partial_fit(rng.standard_normal((10, 4)))
+
+
+# ------------------------------------------------------------------------- the bound
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    ops=st.lists(st.tuples(st.sampled_from(["absorb", "remove"]), st.integers(1, 8)),
+                 min_size=5, max_size=60),
+    gamma=st.sampled_from([1.0, 0.95]),
+    cap=st.sampled_from([3, 6]),
+)
+def test_bound_holds_through_any_sequence_of_absorbs_and_removals(seed, ops, gamma, cap):
+    """The dense model: the weighted current columns; the bound after every step."""
+    rng = np.random.default_rng(seed)
+    n = 30
+    sc = ss.StreamCompressor(n, forget=gamma, max_rank=cap, oversampling=2,
+                             sweeps=int(rng.integers(1, 3)))
+    cols: list[np.ndarray] = []  # current columns, weighted
+    ids: list[int] = []  # their absorption indices
+    for kind, size in ops:
+        if kind == "absorb":
+            X = _data(rng, n, size, 4, 1e-2)
+            sc.absorb(X)
+            cols = [c * gamma**size for c in cols]
+            cols += [X[:, j] * gamma ** (size - 1 - j) for j in range(size)]
+            ids += list(range(sc.n_absorbed - size, sc.n_absorbed))
+        elif ids:
+            pick = sorted(rng.choice(len(ids), size=min(size, len(ids)), replace=False))
+            sc.remove([ids[i] for i in pick])
+            cols = [c for i, c in enumerate(cols) if i not in pick]
+            ids = [g for i, g in enumerate(ids) if i not in pick]
+        assert sc.n_seen == len(cols) and sc._ledger.entries.shape[0] <= 32
+        A = np.column_stack(cols) if cols else np.zeros((n, 0))
+        err = np.linalg.norm(A - sc.expansion.to_dense())
+        assert err <= sc.error_bound + 50 * n * EPS * np.linalg.norm(A)
+        assert sc.orthogonality_error() <= 50 * n * EPS
