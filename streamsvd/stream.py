@@ -796,6 +796,11 @@ class StreamCompressor:
             Position in the source just after this block, recorded in the store so that
             an interrupted ingestion resumes there; default: the previous offset + ``b``.
 
+        With ``window``, the oldest snapshots that would fall out are removed first
+        (:meth:`remove`, an update of its own in :attr:`history`); with ``forget``, the
+        expansion is scaled by ``forget^b`` and the block's columns weighted
+        ``forget^(b-1), ..., 1`` (``b`` the block's width).
+
         On bad input an :class:`~streamsvd.errors.InputError` is raised and the state,
         in memory and in the store, is unchanged.
         """
