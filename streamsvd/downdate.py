@@ -25,8 +25,8 @@ Accuracy, and when the rows are read. ``Y`` is orthonormal to rounding ``delta``
 that keeps a share ``c_i`` of its support is recovered with a relative error of about
 ``delta / c_i^2``, and ``Y'`` loses orthogonality by as much. Directions concentrated on
 the removed columns are common (the transient of a time series, a mode that left a
-window), and the loss compounds over removals (on the moving-source example of
-``examples/`` it reached ``||Y^T Y - I|| = 0.2`` after two removals). So the small
+window; ``examples/moving_source.py`` has them), and the loss compounds over removals.
+So the small
 downdate is used only while every share is at least ``EXACT_BELOW = 0.5``
 (``delta / c^2 <= 4 delta``); otherwise the remaining rows themselves are orthonormalised
 again by a Householder QR, ``Y_rest = Q T``, ``Y' = Q``, ``R' = T R``: exact whatever the
