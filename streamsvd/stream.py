@@ -103,11 +103,13 @@ def stored_options(attrs: dict[str, Any]) -> dict[str, Any]:
     """Return the compressor options recorded in a store's attributes.
 
     Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
-    update: they continue so; stores written before ``target_error`` existed have none.
+    update: they continue so; stores written before ``target_error`` existed have none,
+    and those written before ``window`` and ``forget`` take the constructor's defaults
+    (no window, nothing forgotten).
     """
     defaults = {
         "oversampling": 0, "target_error": None, "error_measure": "relative",
-        "streaming_share": 0.9, "window": None, "forget": 1.0,
+        "streaming_share": 0.9,
     }
     return {**defaults, **attrs["options"]}
 def _stored_inner(path: Any, state: Any) -> InnerProduct:
