@@ -31,7 +31,6 @@ import time
 from typing import Any
 
 import numpy as np
-
 from _common import machine_info, out_dir, pyplot, write_json
 
 import streamsvd as ss
@@ -195,7 +194,7 @@ def _figure(report: dict[str, Any], path: Any) -> None:
                     label=f"leading {i} modes")
     a1.semilogy(u, [c["sv_rel"] for c in acc], "k--", label="singular values (relative)")
     a1.semilogy(u, [c["orthogonality"] for c in acc], "k:", label="||U^T U - I||")
-    a1.set_xlabel("update (blocks of %d snapshots)" % report["args"]["block"])
+    a1.set_xlabel(f"update (blocks of {report['args']['block']} snapshots)")
     a1.set_ylabel("sin(principal angle), relative error (-)")
     a1.set_title(f"window {report['args']['window']} against the batch SVD")
     a1.legend(fontsize=7)

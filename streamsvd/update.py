@@ -373,7 +373,7 @@ def stage_rows(
     """Stage ``Y <- blockdiag(Y, Y_appended) P``; return the new ``Vp`` and the rows added.
 
     ``P`` (``(k + k_a) x k_new``) is orthonormal; ``Y_appended`` (the identity when None)
-    holds the new rows' own orthonormal factor; ``Y_map`` (``k x k``), when given, maps
+    holds the new rows' own orthonormal factor; ``Y_map`` (``k x k'``), when given, maps
     ``Y`` first (``Y <- Y Y_map``: a removal).
     """
     assert state.rows is not None
