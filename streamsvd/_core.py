@@ -47,9 +47,10 @@ class UpdateRecord:
 
     Attributes
     ----------
-    kind : {"absorb", "add", "merge", "finalize"}
+    kind : {"absorb", "add", "merge", "finalize", "remove"}
     columns : int
-        Snapshots added (``absorb``, ``merge``) or terms of the increment (``add``).
+        Snapshots added (``absorb``, ``merge``), removed (``remove``) or terms of the
+        increment (``add``).
     rank : int
         Rank after the update.
     new_directions : int
@@ -98,7 +99,7 @@ HISTORY_FIELDS = (
     "kind", "columns", "rank", "new_directions", "rejected", "cut", "discarded", "sweeps",
     "max_cosine", "orthogonality", "error_bound", "seconds", "passes",
 )
-_KINDS = ("absorb", "add", "merge", "finalize")
+_KINDS = ("absorb", "add", "merge", "finalize", "remove")
 
 
 def history_array(history: list[UpdateRecord]) -> np.ndarray:

@@ -209,6 +209,59 @@ def pca_components(U: np.ndarray, s: np.ndarray, *, n_components: int | float | 
     )
 
 
+@dataclass(frozen=True)
+class WeightedComponents:
+    """Components of weighted samples kept as an expansion, and their weighted moments."""
+
+    components: Components
+    mean: np.ndarray
+    variance: np.ndarray
+
+
+def weighted_components(U: np.ndarray, R: np.ndarray, Y: np.ndarray, g: np.ndarray, *,
+                        center: bool, n_components: int | float | None,
+                        inner: InnerProduct) -> WeightedComponents:
+    """Return the PCA of the samples ``A_g = U R^T Y^T`` (columns weighted by ``g``).
+
+    ``A_g = [g_1 x_1, ..., g_m x_m]``; the weighted mean is ``mu = A_g g / ||g||^2`` and
+    the centred weighted samples ``A_g (I - h h^T)``, ``h = g / ||g||``. With ``Y``
+    orthonormal and ``y = Y^T h``, ``(I - h h^T) Y = Y (I - y y^T)`` on the left, so the
+    centred samples are ``U R_c^T Z^T`` with ``Z`` orthonormal and the small core
+    ``R_c = (I - y y^T)^(1/2) R``: their SVD is that of ``R_c`` (``O(m k + k^2 p)``).
+
+    Parameters
+    ----------
+    U : ndarray, shape (n_features, p)
+        ``M``-orthonormal left vectors.
+    R : ndarray, shape (k, p)
+        The core.
+    Y : ndarray, shape (m, k)
+        Orthonormal right factor (one row per sample).
+    g : ndarray, shape (m,)
+        The samples' weights.
+    center, n_components, inner
+        As for :func:`pca_components`.
+    """
+    h = g / np.linalg.norm(g)
+    y = Y.T @ h
+    Rc = R
+    mean = np.zeros(U.shape[0])
+    if center:
+        mean = U @ (R.T @ y) / np.linalg.norm(g)
+        ny2 = float(y @ y)
+        if ny2 > 0.0:
+            shrink = (1.0 - math.sqrt(max(1.0 - ny2, 0.0))) / ny2
+            Rc = R - shrink * np.outer(y, y @ R)
+    _, s, Zt = np.linalg.svd(Rc, full_matrices=False)
+    Uc = U @ Zt.T
+    fix_signs(Uc, np.zeros((0, Uc.shape[1])))
+    m = g.size
+    found = pca_components(Uc, s, n_components=n_components, n_samples=m,
+                           energy=float(np.sum(s * s)), inner=inner)
+    variance = np.sum((Uc * s) ** 2, axis=1) / float(g @ g)
+    return WeightedComponents(components=found, mean=mean, variance=variance)
+
+
 def _complement(U: np.ndarray, count: int, inner: InnerProduct) -> np.ndarray:
     """``count`` ``M``-orthonormal directions ``M``-orthogonal to the columns of ``U``.
 

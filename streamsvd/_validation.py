@@ -157,6 +157,19 @@ def check_positive_int(value: Any, name: str, *, allow_none: bool = False) -> in
     return int(value)
 
 
+def check_forget(value: Any) -> float:
+    """Return the forgetting factor as a float in (0, 1]; raise :class:`InputError` otherwise."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = float("nan")
+    if isinstance(value, bool) or not 0.0 < out <= 1.0:
+        raise InputError(
+            f"`forget` must be a number in (0, 1] (1 forgets nothing); got {_describe(value)}."
+        )
+    return out
+
+
 def check_target(
     target_error: Any, error_measure: Any, streaming_share: Any, *, eps: float,
     rtol: float | None,

@@ -28,7 +28,7 @@ from ._pca_model import (
     check_samples,
     features_error,
 )
-from ._validation import check_choice, check_nonnegative, check_positive_int
+from ._validation import check_choice, check_forget, check_nonnegative, check_positive_int
 from .errors import InputError, SparseInputError
 from .inner import InnerProduct, as_inner
 from .rotations import RULES
@@ -45,7 +45,7 @@ _LEARNED = (
 )
 # options the compressor's state is built with: changing one between two ``partial_fit``
 # calls is refused (as ``IncrementalPCA`` refuses a change of ``n_components``)
-_STATEFUL = ("n_components", "tol", "center", "rule", "sweeps")
+_STATEFUL = ("n_components", "tol", "center", "rule", "sweeps", "window", "forget")
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,8 @@ class _Options:
     batch_size: int | None
     rule: str
     sweeps: int | None
+    window: int | None
+    forget: float
 
     @property
     def max_rank(self) -> int | None:
@@ -93,6 +95,8 @@ def _validate_options(est: StreamingSVD, n_features: int) -> _Options:
         batch_size=check_positive_int(est.batch_size, "batch_size", allow_none=True),
         rule=check_choice(est.rule, "rule", RULES),
         sweeps=check_positive_int(est.sweeps, "sweeps", allow_none=True),
+        window=check_positive_int(est.window, "window", allow_none=True),
+        forget=check_forget(est.forget),
     )
 
 
@@ -195,6 +199,21 @@ class StreamingSVD(FittedPCA):
         Inner product ``M`` on feature space (see :func:`streamsvd.as_inner`); the
         components are then ``M``-orthonormal and :meth:`transform` returns the
         coordinates ``(X - mean_) M components_.T``.
+    window : int, optional
+        Fit the ``window`` most recent samples only (:class:`StreamCompressor`'s
+        ``window``: the samples that leave are removed exactly), centred by their mean.
+    forget : float
+        Forgetting factor in (0, 1] (1: none): sample ``j`` of ``m`` weighs
+        ``forget^(m - j)``; the mean is the weighted one, ``sum_j w_j x_j / sum_j w_j``
+        with ``w_j = forget^(2 (m - j))``, and the components are those of the weighted
+        centred samples ``forget^(m - j) (x_j - mean_)``. With ``window`` or ``forget``
+        the samples are absorbed as they are and the compressor keeps its right vectors
+        (``O(window n_features)`` memory with a window, growing with the samples
+        without one); the mean is removed from the expansion afterwards (a rank-one
+        downdate of its small core), and nothing is truncated but by ``tol``, so the
+        result is the PCA of the (weighted) window to rounding. ``n_samples_seen_``
+        then counts the samples in the window, ``explained_variance_`` divides by it
+        minus one.
 
     Attributes
     ----------
@@ -259,6 +278,8 @@ class StreamingSVD(FittedPCA):
         rule: str = "jacobi",
         sweeps: int | None = None,
         inner: Any = None,
+        window: int | None = None,
+        forget: float = 1.0,
     ) -> None:
         self.n_components = n_components
         self.center = center
@@ -268,6 +289,8 @@ class StreamingSVD(FittedPCA):
         self.rule = rule
         self.sweeps = sweeps
         self.inner = inner
+        self.window = window
+        self.forget = forget
 
     # ------------------------------------------------------------------ fitting
     def fit(self, X: Any, y: Any = None) -> StreamingSVD:
@@ -340,6 +363,9 @@ class StreamingSVD(FittedPCA):
         leaves the fitted state as it was.
         """
         n_b, n_features = X.shape
+        if opts.window is not None or opts.forget < 1.0:
+            self._absorb_window(X, opts)
+            return
         first = not hasattr(self, "compressor_")
         if not first:
             _check_unchanged(self, opts)
@@ -360,6 +386,43 @@ class StreamingSVD(FittedPCA):
         self._energy += batch.energy
         self.n_samples_seen_ = batch.n_samples
         self._publish()
+
+    def _absorb_window(self, X: np.ndarray, opts: _Options) -> None:
+        """Absorb the samples themselves into a compressor with a window or forgetting."""
+        n_features = X.shape[1]
+        if hasattr(self, "compressor_"):
+            _check_unchanged(self, opts)
+            sc, inner = self.compressor_, self._inner
+        else:
+            inner = as_inner(self.inner, n_features)
+            sc = StreamCompressor(
+                n_features, inner=inner, rtol=opts.tol, rule=opts.rule, sweeps=opts.sweeps,
+                window=opts.window, forget=opts.forget,
+            )
+        sc.absorb(X.T)
+        if not hasattr(self, "compressor_"):
+            self.compressor_, self._options = sc, opts
+            self._inner_arg, self._inner = self.inner, inner
+            self.n_features_in_ = n_features
+        m = sc.n_seen
+        g = opts.forget ** np.arange(m - 1, -1, -1, dtype=np.float64)
+        state = sc._state
+        assert state.rows is not None
+        found = _pca_math.weighted_components(
+            state.basis.take(state.Gu), state.R, state.rows.value(), g,
+            center=opts.center, n_components=opts.n_components, inner=inner,
+        )
+        self.mean_, self._mu = found.mean, found.mean
+        self.components_ = found.components.components
+        self._projection = found.components.projection
+        self.singular_values_ = found.components.singular_values
+        self.explained_variance_ = found.components.explained_variance
+        self.explained_variance_ratio_ = found.components.explained_variance_ratio
+        self.noise_variance_ = found.components.noise_variance
+        self.var_ = found.variance
+        self.n_samples_seen_ = m
+        self.n_components_ = self.components_.shape[0]
+        self.error_bound_ = sc.error_bound
 
     def _publish(self) -> None:
         """Expose the first ``n_components_`` directions (small arrays only)."""

@@ -58,6 +58,8 @@ class CompressorOptions:
     target_error: float | None = None
     error_measure: str = "relative"
     streaming_share: float = STREAMING_SHARE
+    window: int | None = None
+    forget: float = 1.0
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -80,6 +82,7 @@ class CompressorOptions:
 
         from ._validation import (
             check_choice,
+            check_forget,
             check_nonnegative,
             check_nonnegative_int,
             check_positive_int,
@@ -105,6 +108,13 @@ class CompressorOptions:
             raise InputError(
                 f"`right_vectors` must be True or False; got {v['right_vectors']!r}."
             )
+        window = check_positive_int(v["window"], "window", allow_none=True)
+        if window is not None and not v["right_vectors"]:
+            raise InputError(
+                f"`window` needs the right vectors to remove the snapshots that leave it; "
+                f"got window={window} with right_vectors=False. Pass "
+                "`right_vectors=True`, or use `forget` (which needs none)."
+            )
         return cls(
             eps=eps, rtol=rtol,
             max_rank=check_positive_int(v["max_rank"], "max_rank", allow_none=True),
@@ -118,6 +128,7 @@ class CompressorOptions:
             right_vectors=bool(v["right_vectors"]),
             commit_every=int(check_positive_int(v["commit_every"], "commit_every")),  # type: ignore[arg-type]
             target_error=target, error_measure=measure, streaming_share=share,
+            window=window, forget=check_forget(v["forget"]),
         )
 
     @classmethod
@@ -125,7 +136,9 @@ class CompressorOptions:
         """Return the options a store recorded (its attribute ``options``), validated.
 
         Stores written before ``oversampling`` existed truncated to ``max_rank`` at every
-        update: they continue so; stores written before ``target_error`` existed have none.
+        update: they continue so; stores written before ``target_error`` existed have none,
+        and those written before ``window`` and ``forget`` take the defaults (no window,
+        nothing forgotten).
         """
         return cls.validated(n, **{**_BEFORE_THE_OPTION, **stored})
 
@@ -165,7 +178,8 @@ class CompressorOptions:
 
 
 TREE_OPTIONS = ("inner",) + tuple(
-    name for name in CompressorOptions.names() if name not in ("right_vectors", "commit_every")
+    name for name in CompressorOptions.names()
+    if name not in ("right_vectors", "commit_every", "window", "forget")
 )
 """Options forwarded to every compressor of :func:`streamsvd.parallel.tree_compress`."""
 

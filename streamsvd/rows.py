@@ -25,6 +25,10 @@ When ``wv`` exceeds ``width_limit * p`` the factor is *rebased*, ``V0 <- V0 Vp``
 ``Vp <- I`` (the only operation that reads and writes every row, ``O(m wv p)``), counted
 in :attr:`RowFactor.rebases`.
 
+Removed rows (:mod:`streamsvd.downdate`) stay stored and are listed in
+:attr:`RowFactor.dead`; ``Y`` is the other rows, in order, so a removal writes nothing
+until the live rows are written anew by a replacement.
+
 Between two rebases (or replacements, both counted in :attr:`RowFactor.rewrites`) the
 stored rows only grow: a commit to a store writes the rows appended since the previous
 one, the old rows being unchanged and zero in every column added since.
@@ -50,6 +54,8 @@ class RowFactor:
         self._m = 0
         self._wv = 0
         self.Vp = np.zeros((0, 0))
+        # stored rows removed from Y (streamsvd.downdate), sorted: Y is the other rows
+        self.dead = np.zeros(0, dtype=np.int64)
         self.old_rows_touched = 0
         self.rebases = 0
         self.rewrites = 0  # rebases and replacements: every stored row changed
@@ -88,8 +94,9 @@ class RowFactor:
         self.reallocations += 1
 
     def value(self) -> np.ndarray:
-        """Return ``V = V0 Vp`` (``m x p``, a new array)."""
-        return self.V0 @ self.Vp
+        """Return ``Y = V0 Vp`` over the live rows (a new array)."""
+        V0 = np.delete(self.V0, self.dead, axis=0) if self.dead.size else self.V0
+        return V0 @ self.Vp
 
     # ------------------------------------------------------------------ updates
     def stage(self, Vp_old_part: np.ndarray, N: np.ndarray) -> np.ndarray:
@@ -176,11 +183,14 @@ class RowFactor:
         self._V0[:m, :p] = V
         self._m, self._wv = m, p
         self.Vp = np.eye(p)
+        self.dead = np.zeros(0, dtype=np.int64)
         self.old_rows_touched += m
         self.rewrites += 1
 
-    def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int]) -> None:
+    def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int],
+                dead: np.ndarray | None = None) -> None:
         """Load the factor from a store, with the capacity it was written with."""
+        self.dead = np.zeros(0, dtype=np.int64) if dead is None else dead
         m, wv = V0.shape
         self._V0 = np.zeros((max(capacity[0], m), max(capacity[1], wv)))
         self._V0[:m, :wv] = V0

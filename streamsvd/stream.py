@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from ._core import UpdateRecord, r_factor
-from ._threads import blas_threads, check_threads
+from ._threads import check_threads
 from ._validation import as_float_array, check_choice, check_positive_int
 from .basis import BasisBackend, MemoryBasis
 from .bound import Bound
@@ -67,10 +67,9 @@ from .rotations import RULES
 from .rows import RowFactor
 from .stream_lifecycle import StoreLifecycle
 from .stream_store import KIND, StreamStore
+from .stream_window import Removals
 from .update import (
-    Plan,
     State,
-    apply_plan,
     plan_absorb,
     plan_add,
     plan_finalize,
@@ -83,7 +82,7 @@ __all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
 
 @option_properties
-class StreamCompressor(StoreLifecycle, ExpansionView):
+class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
     """Absorb snapshots (columns) and low-rank increments into an orthonormal expansion.
 
     Parameters
@@ -160,6 +159,16 @@ class StreamCompressor(StoreLifecycle, ExpansionView):
         (``omega`` is the root's share there): on pyMOR's Burgers demo it keeps the
         optimal number of modes, where a share of 0.9 kept up to one more in memory
         and up to four more in the tree (``bench/README.md``).
+    window : int, optional
+        Keep the ``window`` most recent snapshots only: each :meth:`absorb` first
+        removes (:meth:`remove`) the oldest ones that would fall out, so the expansion is
+        that of the last ``window`` snapshots. Needs ``right_vectors=True``.
+    forget : float
+        Forgetting factor ``gamma`` in (0, 1] (1: none): each snapshot is weighted by
+        ``gamma`` to the number of snapshots absorbed after it, so the expansion is that
+        of ``[gamma^(m-1) a_1, ..., gamma a_(m-1), a_m]`` whatever the block sizes (the
+        core, the error bound and the discarded norm are scaled by ``gamma^b`` before a
+        block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).
         One thread is never much slower than all cores and is much faster on a machine
@@ -202,6 +211,7 @@ class StreamCompressor(StoreLifecycle, ExpansionView):
         self._version = 0  # increases with every state change (for the exposure cache)
         self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
         self.source_offset = 0
+        self._start_removals()
         self._persistence: StreamStore | None = None
         if store is not None:
             self._start_store(store, storage_options)
@@ -242,16 +252,22 @@ class StreamCompressor(StoreLifecycle, ExpansionView):
             Position in the source just after this block, recorded in the store so that
             an interrupted ingestion resumes there; default: the previous offset + ``b``.
 
+        With ``window``, the oldest snapshots that would fall out are removed first
+        (:meth:`remove`, an update of its own in :attr:`history`); with ``forget``, the
+        expansion is scaled by ``forget^b`` and the block's columns weighted
+        ``forget^(b-1), ..., 1`` (``b`` the block's width).
+
         On bad input an :class:`~streamsvd.errors.InputError` is raised and the state,
         in memory and in the store, is unchanged.
         """
         t0 = time.perf_counter()
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
+        B, state, ledger, removed = self._windowed(B)
         return self._run(
-            lambda: plan_absorb_by_gram(self._state, B, self._opts, t0=t0)
-            or plan_absorb(self._state, B, self._opts, t0=t0),
-            offset,
+            lambda: plan_absorb_by_gram(state, B, self._opts, t0=t0)
+            or plan_absorb(state, B, self._opts, t0=t0),
+            offset, ledger=ledger, removed=removed,
         )
 
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
@@ -316,6 +332,7 @@ class StreamCompressor(StoreLifecycle, ExpansionView):
         return self._run(
             lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, opts, t0=t0),
             self.source_offset + m_o,
+            ledger=self._ledger.appended(self.n_seen + m_o, prior.bound),
         )
 
     def finalize(
@@ -351,33 +368,6 @@ class StreamCompressor(StoreLifecycle, ExpansionView):
         return record
 
     # ------------------------------------------------------------------ internals
-    def _run(self, make_plan: Callable[[], Plan], source_offset: int) -> UpdateRecord:
-        """Plan an update, persist it when a commit is due, then switch to it.
-
-        The plan runs with the BLAS limited to :attr:`threads` threads.
-        """
-        with blas_threads(self.threads):
-            plan = make_plan()
-        # persist first, then switch the in-memory state: an exception anywhere before
-        # or in the commit leaves both the memory and the store as they were
-        self._history.append(plan.record)
-        p = self._persistence
-        try:
-            if p is not None and p.due():
-                self._commit(plan, source_offset)
-            elif p is not None:
-                p.uncommitted += 1
-        except BaseException:
-            self._history.pop()
-            self._state.basis.discard_planned()
-            raise
-        apply_plan(self._state, plan)
-        if p is not None:
-            p.tracker.settle(self._state, len(self._history))
-        self._version += 1
-        self.source_offset = source_offset
-        return plan.record
-
 
 
 def _merge_operand(
@@ -444,6 +434,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
         "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
+        "n_absorbed": sc.n_absorbed, "removed": sc.removed.tolist(),
         "options": sc.options.as_dict(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),

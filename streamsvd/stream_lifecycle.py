@@ -1,9 +1,11 @@
-"""The lifecycle of a compressor with a store: open, copy, save, flush, close.
+"""The lifecycle of a compressor: open, copy, save, flush, close, and each update.
 
 :class:`StoreLifecycle` is the part of the :class:`~streamsvd.StreamCompressor` facade that
-creates, reopens and closes its store; what a commit writes and how a store is checked
-are :mod:`streamsvd.stream_store`'s. A backend (the tall mode) refines the hooks
-``_reopen``, ``_reopened``, ``_copied_basis`` and ``_committed``.
+creates, reopens and closes its store, and that runs every update
+(:meth:`StoreLifecycle._run`: plan, commit when due, then switch to the new state); what a
+commit writes and how a store is checked are :mod:`streamsvd.stream_store`'s. A backend
+(the tall mode) refines the hooks ``_reopen``, ``_reopened``, ``_copied_basis`` and
+``_committed``.
 """
 
 from __future__ import annotations
@@ -15,15 +17,17 @@ from typing import Any
 import numpy as np
 
 from ._core import UpdateRecord
+from ._threads import blas_threads
 from ._validation import check_choice
 from .basis import BasisBackend
+from .downdate import Ledger
 from .errors import StoreError
 from .inner import InnerProduct
 from .options import CompressorOptions
 from .provenance import SourceRecord
 from .storage import open_storage
 from .stream_store import LAYOUT, StreamStore, open_stream_store, restore_state
-from .update import Plan, State
+from .update import Plan, State, apply_plan
 
 __all__ = ["StoreLifecycle"]
 
@@ -43,6 +47,12 @@ class StoreLifecycle:
     _version: int
     _persistence: StreamStore | None
     _inner_data: dict[str, np.ndarray]
+    _removed: np.ndarray
+    _ledger: Ledger
+    _restore_removals: Callable[[dict[str, Any]], None]
+    _removal_attrs: Callable[[Plan | None], dict[str, Any]]
+    _pending: tuple[Ledger, np.ndarray]
+    threads: int | None
     finalize: Callable[..., UpdateRecord]
     _empty_copy: Callable[..., Any]
 
@@ -83,6 +93,7 @@ class StoreLifecycle:
             sc = cls._reopen(state.n, ip, state.attrs, path, options=options, **backend)
             sc.source_offset, sc._history = restore_state(sc._state, state.arrays,
                                                           state.attrs)
+            sc._restore_removals(state.attrs)
             sc._version += 1
             sc.source_record = SourceRecord.from_attrs(state.attrs.get("source"))
             sc._persistence = StreamStore(st, commit_every=options.commit_every)
@@ -117,6 +128,7 @@ class StoreLifecycle:
         out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)
         out.source_offset = self.source_offset
+        out._removed, out._ledger = self._removed, self._ledger
         return out
 
     def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
@@ -197,6 +209,7 @@ class StoreLifecycle:
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
             "source": None if self.source_record is None else self.source_record.to_attrs(),
+            **self._removal_attrs(plan),
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
@@ -210,3 +223,40 @@ class StoreLifecycle:
 
     def _committed(self, basis_attrs: dict[str, Any]) -> None:
         """Run after every commit (a backend may release what no commit refers to)."""
+
+    def _run(
+        self, make_plan: Callable[[], Plan], source_offset: int, *,
+        ledger: Ledger | None = None, removed: np.ndarray | None = None,
+    ) -> UpdateRecord:
+        """Plan an update, persist it when a commit is due, then switch to it.
+
+        The plan runs with the BLAS limited to :attr:`threads` threads. ``ledger`` and
+        ``removed`` are the error ledger and the removed indices before the update's own
+        discard (default: the current ones).
+        """
+        with blas_threads(self.threads):
+            plan = make_plan()
+        self._pending = (
+            (self._ledger if ledger is None else ledger).appended(plan.m, plan.record.discarded),
+            self._removed if removed is None else removed,
+        )
+        # persist first, then switch the in-memory state: an exception anywhere before
+        # or in the commit leaves both the memory and the store as they were
+        self._history.append(plan.record)
+        p = self._persistence
+        try:
+            if p is not None and p.due():
+                self._commit(plan, source_offset)
+            elif p is not None:
+                p.uncommitted += 1
+        except BaseException:
+            self._history.pop()
+            self._state.basis.discard_planned()
+            raise
+        apply_plan(self._state, plan)
+        self._ledger, self._removed = self._pending
+        if p is not None:
+            p.tracker.settle(self._state, len(self._history))
+        self._version += 1
+        self.source_offset = source_offset
+        return plan.record

@@ -11,7 +11,8 @@ commit writes
   right vectors are kept, and the scalars: the bound's three norms, the source offset,
   the number of snapshots, the basis's wasted width), whose shapes are recorded in the
   attribute ``small_layout``,
-* the attributes the facade gives (options, provenance, counts).
+* the attributes the facade gives (options, provenance, counts, the removed snapshots),
+  and the stored rows of the right factor that removals left dead (``rows_dead``).
 
 :func:`open_stream_store` checks what a store holds (the kind of compressor, the layout
 version :data:`LAYOUT`, the inner product) before anything is restored from it.
@@ -27,6 +28,7 @@ import numpy as np
 from ._core import UpdateRecord, record_from_row
 from .bound import Bound
 from .commits import CommitTracker
+from .downdate import intervals_add
 from .errors import StoreError, StoreFormatError, StoreMismatchError
 from .inner import InnerProduct, as_inner, inner_from_arrays
 from .store import BasisStore, open_store
@@ -154,6 +156,8 @@ class StreamStore:
             **attrs, "source_offset": int(source_offset), "updates": len(history),
             "small_layout": layout, "basis": basis_attrs,
             "rows_capacity": None if state.rows is None else list(state.rows.capacity),
+            "rows_dead": None if state.rows is None else intervals_add(
+                np.zeros((0, 2)), _planned_dead(state.rows.dead, plan)).tolist(),
         }
         k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
         self.tracker.committed(k)
@@ -175,6 +179,15 @@ def _planned_rows(state: State, plan: Plan) -> tuple[np.ndarray, np.ndarray] | N
         return plan.Y_replace, np.eye(plan.Y_replace.shape[1])
     assert plan.Vp is not None
     return state.rows.planned(plan.rows_appended, plan.Vp), plan.Vp
+
+
+def _planned_dead(dead: np.ndarray, plan: Plan | None) -> np.ndarray:
+    """Return the dead stored rows of the right factor once ``plan`` is applied."""
+    if plan is None:
+        return dead
+    if plan.Y_replace is not None:
+        return np.zeros(0, dtype=np.int64)
+    return dead if plan.dead is None else plan.dead
 
 
 def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
@@ -253,7 +266,9 @@ def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
     state.basis.restore(a, attrs["basis"])
     if state.rows is not None:
         assert small.Vp is not None
-        state.rows.restore(a["V0"], small.Vp, capacity=tuple(attrs["rows_capacity"]))
+        dead = [np.arange(a0, b0) for a0, b0 in attrs.get("rows_dead") or []]
+        state.rows.restore(a["V0"], small.Vp, capacity=tuple(attrs["rows_capacity"]),
+                           dead=np.concatenate(dead + [np.zeros(0, dtype=np.int64)]))
     state.Gu, state.H, state.R = small.Gu, small.H, small.R
     state.bound, state.m, state.waste = small.bound, small.m, small.waste
     return small.source_offset, [record_from_row(row) for row in a["history"]]

@@ -112,6 +112,7 @@ class Plan:
     rows_appended: int = 0
     Vp: np.ndarray | None = None
     Y_replace: np.ndarray | None = None
+    dead: np.ndarray | None = None  # the stored rows removed (streamsvd.downdate)
 
 
 def apply_plan(state: State, plan: Plan) -> None:
@@ -126,6 +127,8 @@ def apply_plan(state: State, plan: Plan) -> None:
         else:
             assert plan.Vp is not None
             state.rows.commit(plan.Vp, plan.rows_appended)
+            if plan.dead is not None:
+                state.rows.dead = plan.dead
     state.Gu, state.H, state.R = plan.Gu, plan.H, plan.R
     state.m, state.waste, state.bound = plan.m, plan.waste, plan.bound
 
@@ -269,11 +272,15 @@ def _plan(
     Y_replace: np.ndarray | None = None,
     overlapping: bool = False,
     on_sweep: Callable[[int, float], None] | None = None,
+    Y_map: np.ndarray | None = None,
+    dead: np.ndarray | None = None,
 ) -> Plan:
     """Rotate and truncate the core ``K`` and plan the new factors.
 
     The right factor is ``blockdiag(Y, Y_appended) K`` (``Y_appended`` the identity for an
-    absorbed block, absent after ``finalize``), or ``Y_replace K`` after ``add``.
+    absorbed block, absent after ``finalize``), or ``Y_replace K`` after ``add``; after a
+    removal (:mod:`streamsvd.downdate`) ``Y`` stands for ``Y_live Y_map``, ``dead``
+    being the stored rows no longer live.
     """
     keep_rows = state.rows is not None
     Q_K, K = _core_qr(K, want_q=keep_rows)
@@ -324,7 +331,7 @@ def _plan(
         if Y_replace is not None:
             Y_full = Y_replace @ P
         else:
-            Vp, appended = stage_rows(state, P, Y_appended)
+            Vp, appended = stage_rows(state, P, Y_appended, Y_map=Y_map)
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
         discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
@@ -342,23 +349,26 @@ def _plan(
     )
     return Plan(
         new_directions=r, compact=compact, Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound,
-        record=record, rows_appended=appended, Vp=Vp, Y_replace=Y_full,
+        record=record, rows_appended=appended, Vp=Vp, Y_replace=Y_full, dead=dead,
     )
 
 
 def stage_rows(
-    state: State, P: np.ndarray, Y_appended: np.ndarray | None
+    state: State, P: np.ndarray, Y_appended: np.ndarray | None,
+    *, Y_map: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """Stage ``Y <- blockdiag(Y, Y_appended) P``; return the new ``Vp`` and the rows added.
 
     ``P`` (``(k + k_a) x k_new``) is orthonormal; ``Y_appended`` (the identity when None)
-    holds the new rows' own orthonormal factor.
+    holds the new rows' own orthonormal factor; ``Y_map`` (``k x k'``), when given, maps
+    ``Y`` first (``Y <- Y Y_map``: a removal).
     """
     assert state.rows is not None
-    k = state.R.shape[0]
+    k = state.R.shape[0] if Y_map is None else Y_map.shape[1]
     state.rows.rebase_if_wide()
+    Vp = state.rows.Vp if Y_map is None else state.rows.Vp @ Y_map
     N = P[k:] if Y_appended is None else Y_appended @ P[k:]
-    return state.rows.stage(state.rows.Vp @ P[:k], N), N.shape[0]
+    return state.rows.stage(Vp @ P[:k], N), N.shape[0]
 
 
 # ---------------------------------------------------------------------------- helpers

@@ -232,6 +232,10 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
         "streaming_share": (STREAMING_SHARE if args.streaming_share is None
                             else args.streaming_share),
     }
+    if args.window is not None:
+        options["window"] = args.window
+    if args.forget is not None:
+        options["forget"] = args.forget
     if mode != "tree":
         options["commit_every"] = args.commit_every or DEFAULT_COMMIT_EVERY
     return options

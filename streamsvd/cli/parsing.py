@@ -108,6 +108,13 @@ def _nonnegative_float(text: str) -> float:
     return float(_number(text, float, 0.0, "a finite number >= 0"))
 
 
+def _forget(text: str) -> float:
+    value = float(_number(text, float, 0.0, "a number in (0, 1]"))
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number in (0, 1]; got {text!r}")
+    return value
+
+
 def _threads(text: str) -> int | str:
     if text == "all":
         return text
@@ -270,6 +277,13 @@ def build_parser() -> argparse.ArgumentParser:
     ing.add_argument("--max-rank", metavar="K", type=_positive_int,
                      help="keep K terms in the end: K + --oversampling while streaming, "
                      "cut to K by the final sweeps (default: no limit)")
+    ing.add_argument("--window", metavar="W", type=_positive_int,
+                     help="keep the W most recent snapshots: each block removes exactly "
+                     "those that fall out, in memory and --tall; the tree mode refuses it "
+                     "(default: keep all)")
+    ing.add_argument("--forget", metavar="G", type=_forget,
+                     help="forgetting factor in (0, 1]: each snapshot is weighted by G to "
+                     "the number absorbed after it, in memory and --tall (default: 1, none)")
     ing.add_argument("--oversampling", metavar="P", type=_nonnegative_int,
                      help="extra terms kept while streaming with --max-rank; 0 cuts to K "
                      f"at every update (default: {DEFAULT_OVERSAMPLING})")

@@ -40,6 +40,10 @@ def print_info(summary: dict[str, Any]) -> None:
     print(f"rank          {summary['rank']}  (rule {opts['rule']}, sweeps {sweeps}, "
           f"eps {opts['eps']}, rtol {opts['rtol']}, max_rank {opts['max_rank']}, "
           f"oversampling {opts['oversampling']})")
+    if opts.get("window") is not None or opts.get("forget", 1.0) != 1.0:
+        print(f"window        {opts.get('window') or 'all'} snapshots (forget "
+              f"{opts.get('forget', 1.0)}); {summary['n_absorbed']} absorbed, "
+              f"{summary['n_absorbed'] - summary['n_seen']} removed")
     print("final sweeps  " + (
         "converged: the expansion is the SVD of what was absorbed" if summary["finalized"]
         else "not run: the expansion is as streamed (`streamsvd ingest --resume` without "
