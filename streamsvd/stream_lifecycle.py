@@ -26,7 +26,7 @@ from .inner import InnerProduct
 from .options import CompressorOptions
 from .provenance import SourceRecord
 from .storage import open_storage
-from .stream_store import LAYOUT, StreamStore, open_stream_store, restore_state
+from .stream_store import StreamStore, open_stream_store, restore_state
 from .update import Plan, State, apply_plan
 
 __all__ = ["StoreLifecycle"]
@@ -204,7 +204,7 @@ class StoreLifecycle:
         bound = s.bound if plan is None else plan.bound
         rank = s.rank if plan is None else plan.Gu.shape[1]
         return {
-            "kind": self.KIND, "layout": LAYOUT, "options": self.options.as_dict(),
+            "kind": self.KIND, "options": self.options.as_dict(),
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,

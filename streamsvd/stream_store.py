@@ -15,7 +15,8 @@ commit writes
   and the stored rows of the right factor that removals left dead (``rows_dead``).
 
 :func:`open_stream_store` checks what a store holds (the kind of compressor, the layout
-version :data:`LAYOUT`, the inner product) before anything is restored from it.
+version :data:`LAYOUT`, or :data:`LAYOUT_WITH_REMOVALS` once snapshots were removed; the
+inner product) before anything is restored from it.
 """
 
 from __future__ import annotations
@@ -35,12 +36,18 @@ from .store import BasisStore, open_store
 from .store.format import StoreState
 from .update import Plan, State
 
-__all__ = ["KIND", "LAYOUT", "StreamStore", "open_stream_store", "restore_state"]
+__all__ = [
+    "KIND", "LAYOUT", "LAYOUT_WITH_REMOVALS", "StreamStore", "open_stream_store",
+    "restore_state",
+]
 
 KIND = "streamsvd.StreamCompressor"
 # version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
-# is the orthonormal factor Y of V = Y R)
+# is the orthonormal factor Y of V = Y R; 5: as 4, with snapshots removed, whose rows of
+# V0 are dead: a version that reads 4 only would take them for live ones)
 LAYOUT = 4
+LAYOUT_WITH_REMOVALS = 5
+READABLE_LAYOUTS = (LAYOUT, LAYOUT_WITH_REMOVALS)
 
 
 @dataclass(frozen=True)
@@ -208,11 +215,12 @@ def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
                 "with `streamsvd.parallel.open_compressor`, any other with "
                 "`streamsvd.store.open_store`."
             )
-        if attrs.get("layout") != LAYOUT:
+        if attrs.get("layout") not in READABLE_LAYOUTS:
             raise StoreFormatError(
                 f"`path` {path!s} holds a StreamCompressor of layout "
                 f"{attrs.get('layout', 1)!r}, written by another version of streamsvd; "
-                f"this version reads layout {LAYOUT}. Ingest the snapshots again into a "
+                f"this version reads layouts {LAYOUT} and {LAYOUT_WITH_REMOVALS}. Ingest the "
+                "snapshots again into a "
                 "new store."
             )
         ip = _inner_of(path, state, inner)

@@ -31,6 +31,7 @@ from .downdate import (
 )
 from .errors import InputError
 from .options import CompressorOptions
+from .stream_store import LAYOUT, LAYOUT_WITH_REMOVALS
 from .update import Plan, State, StepOptions
 
 __all__ = ["Removals"]
@@ -64,9 +65,14 @@ class Removals:
         )
 
     def _removal_attrs(self, plan: Plan | None) -> dict[str, Any]:
-        """Return what a commit records of the removals (of the state ``plan`` leads to)."""
+        """Return what a commit records of the removals (of the state ``plan`` leads to).
+
+        A store with snapshots removed has the layout :data:`~streamsvd.stream_store.
+        LAYOUT_WITH_REMOVALS`, which a version that knows no removals refuses.
+        """
         ledger, removed = (self._ledger, self._removed) if plan is None else self._pending
-        return {"removed": removed.tolist(), "ledger": ledger.entries.tolist()}
+        return {"removed": removed.tolist(), "ledger": ledger.entries.tolist(),
+                "layout": LAYOUT_WITH_REMOVALS if removed.size else LAYOUT}
 
     @property
     def n_absorbed(self) -> int:

@@ -455,3 +455,23 @@ def test_bound_holds_through_any_sequence_of_absorbs_and_removals(seed, ops, gam
         err = np.linalg.norm(A - sc.expansion.to_dense())
         assert err <= sc.error_bound + 50 * n * EPS * np.linalg.norm(A)
         assert sc.orthogonality_error() <= 50 * n * EPS
+
+
+def test_a_store_with_removals_has_its_own_layout(rng, tmp_path):
+    """Layout 4 until a snapshot is removed, 5 after: a version that reads layout 4 only
+    (and knows no dead rows) refuses the store instead of taking dead rows for live ones."""
+    from streamsvd.store import open_store
+    from streamsvd.stream_store import LAYOUT, LAYOUT_WITH_REMOVALS
+
+    A = _data(rng, 40, 30, 8, 1e-3)
+    path = tmp_path / "s.zarr"
+    with ss.StreamCompressor(40, store=path) as sc:
+        sc.absorb(A[:, :20])
+        with open_store(path, "r") as st:
+            assert st.read().attrs["layout"] == LAYOUT
+        sc.remove([3, 4])
+        with open_store(path, "r") as st:
+            assert st.read().attrs["layout"] == LAYOUT_WITH_REMOVALS
+        sc.absorb(A[:, 20:])
+    with ss.StreamCompressor.open(path, mode="r") as back:
+        assert back.removed.tolist() == [[3, 5]] and back.n_seen == 28
