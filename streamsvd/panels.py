@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import StoreError, StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
-from .parallel_tree import execute
+from .scheduling import execute
 from .storage import LocalStorage, ObjectStorage
 
 __all__ = ["PanelBasis"]
@@ -208,7 +208,7 @@ class PanelBasis:
         Q0 = self._q()
         parts = [] if Q0 is None else [Q0]
         if r:
-            parts.append(self._block(np.ascontiguousarray(self.planned_new(r)[0])))
+            parts.append(self._block(self.planned_new(r)[0]))
         p = G.shape[1]
         if not parts or p == 0:
             self._staged_compact = ("", 0)

@@ -34,7 +34,7 @@ from .basis import BasisBackend
 from .errors import InputError, ShapeMismatchError, SourceError
 from .inner import DiagonalInner, InnerProduct, as_inner
 from .panels import PanelBasis
-from .parallel_tree import check_client, execute
+from .scheduling import check_client, execute
 from .storage import LocalStorage, ObjectStorage, open_storage
 from .stream import StreamCompressor, UpdateRecord, stored_options
 

@@ -74,8 +74,7 @@ def _final(args: Any) -> bool:
 
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
-    from tqdm import tqdm
-
+    from ..ingest import ingest
     from ..sources import open_source
     from ..stream import StreamCompressor, summary_of
 
@@ -88,16 +87,7 @@ def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any
         try:
             if resume:
                 _check_resume(args, sc, record)
-            start = sc.source_offset
-            bar = tqdm(total=src.m, initial=start, unit="col", disable=args.quiet,
-                       dynamic_ncols=True, desc="ingest", file=sys.stderr)
-            with bar:
-                for offset, X in src.blocks(block=block, start=start):
-                    rec = sc.absorb(X, source_offset=offset + X.shape[1])
-                    # the postfix first, so that the redraw of update() shows this update
-                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
-                                    refresh=False)
-                    bar.update(X.shape[1])
+            ingest(src, sc, block=block, progress=not args.quiet)
             if _final(args) and not sc.finalized:
                 sc.finalize(progress=not args.quiet)
             return summary_of(sc)
