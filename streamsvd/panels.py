@@ -108,8 +108,13 @@ class PanelBasis:
             self._zarrs[name] = z
         return z
 
-    def _write(self, data: Any) -> tuple[str, int]:
-        """Write an ``n x c`` numpy or dask array as a new panel; return its name, width."""
+    def _write(self, data: Any, *also: Any) -> tuple[str, int, list[Any]]:
+        """Write an ``n x c`` numpy or dask array as a new panel; return its name and width.
+
+        ``also``: dask collections computed in the same graph as the write of a dask
+        ``data`` (so that the chunks they share with it are computed once), returned in
+        the list.
+        """
         import dask.array as da
         import zarr
         from zarr.codecs import Crc32cCodec
@@ -123,10 +128,10 @@ class PanelBasis:
         )
         if isinstance(data, np.ndarray):
             z[:] = data
-        else:
-            execute([da.store(data, z, lock=False, compute=False)],  # type: ignore[arg-type]
-                    client=self.client)
-        return name, cols
+            return name, cols, []
+        done = execute([da.store(data, z, lock=False, compute=False), *also],
+                       client=self.client)
+        return name, cols, done[1:]
 
     def _q(self, panels: list[str] | None = None) -> Any:
         """Return the stored columns as one dask array (``n x w``), or None if there are none."""
@@ -188,7 +193,7 @@ class PanelBasis:
     def stage_new(self, r: int) -> None:
         """Write the first ``r`` workspace columns as a new panel (before any commit)."""
         if r:
-            self._staged_new = self._write(self.planned_new(r)[0])
+            self._staged_new = self._write(self.planned_new(r)[0])[:2]
 
     def accept(self, r: int) -> None:
         """Append the staged panel to the stored columns."""
@@ -215,10 +220,9 @@ class PanelBasis:
             return np.zeros((p, p))
         Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
         P = Q.rechunk({1: -1}) @ G
-        name, _ = self._write(P)
+        # one pass: each row chunk of P is written and enters its Gram as it is computed
+        name, _, (H,) = self._write(P, self._weighted(P).T @ P)
         self._staged_compact = (name, p)
-        P = self._q([name])
-        (H,) = execute([self._weighted(P).T @ P], client=self.client)
         H = np.asarray(H)
         return 0.5 * (H + H.T)
 
@@ -289,7 +293,7 @@ class PanelBasis:
         if Q is None:
             self.panels, self.widths = [], []
             return
-        name, width = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
+        name, width, _ = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
         self.panels, self.widths = [name], [width]
 
     def collect(self, keep: set[str]) -> None:
