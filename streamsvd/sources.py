@@ -166,10 +166,7 @@ class Source:
 
     def _read_checked(self, start: int, stop: int) -> np.ndarray:
         try:
-            block = self._data[:, start:stop]
-            if self._compute:
-                block = block.compute()
-            out = _column_major(block, self.block_dtype)
+            out = self._read_slabs(start, stop)
         except Exception as exc:  # any reader failure is reported with its offset
             raise SourceError(
                 f"reading columns {start}:{stop} (offset {start}) of {self.description} "
@@ -177,6 +174,24 @@ class Source:
                 f"resume from offset {start}."
             ) from exc
         self._check_finite(out, start)
+        return out
+
+    def _read_slabs(self, start: int, stop: int) -> np.ndarray:
+        """Read columns ``start:stop`` into a new column-major array, by slabs of rows.
+
+        A slab is a whole number of the data's row chunks, about 32 MiB, so that a read
+        never holds the block twice in the data's layout (a dask array is computed
+        once, whole).
+        """
+        cols = stop - start
+        out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
+        rows = self.n
+        if not self._compute:
+            unit = self.row_chunks or 1
+            rows = max(unit, _READ_BYTES // max(1, cols * self.dtype.itemsize) // unit * unit)
+        for r0 in range(0, self.n, rows):
+            part = self._data[r0:r0 + rows, start:stop]
+            _copy_by_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
 
     def _check_finite(self, block: np.ndarray, start: int) -> None:
@@ -326,21 +341,20 @@ def read_ahead(
         thread.join()
 
 
-_SLAB_BYTES = 1 << 21  # rows copied at a time when a block changes layout (2 MiB)
+_READ_BYTES = 1 << 25  # rows read at a time from the data (32 MiB)
+_COPY_BYTES = 1 << 21  # rows copied at a time when a block changes layout (2 MiB)
 
 
-def _column_major(part: Any, dtype: np.dtype) -> np.ndarray:
-    """Return a new column-major copy of a 2-D block in ``dtype``.
+def _copy_by_slabs(out: np.ndarray, part: Any) -> None:
+    """Copy a 2-D block into the column-major ``out``, converting its dtype.
 
     Row-major data (zarr, HDF5, ``.npy``) is copied by slabs of rows that fit in the
     cache: a transposing copy of the whole block at once runs several times slower.
     """
     part = np.asarray(part)
-    out = np.empty(part.shape, dtype=dtype, order="F")
-    step = max(1, _SLAB_BYTES // max(1, part.shape[1] * dtype.itemsize))
+    step = max(1, _COPY_BYTES // max(1, part.shape[1] * out.itemsize))
     for i in range(0, part.shape[0], step):
         out[i:i + step] = part[i:i + step]
-    return out
 
 
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
