@@ -145,10 +145,14 @@ class PanelBasis:
         return Q.rechunk({0: self._row_chunks(), 1: -1})
 
     def _block(self, X: np.ndarray) -> Any:
+        """Return an in-memory block as a dask array of its row chunks (views, no copy).
+
+        The graph is computed before the block changes: every caller runs it at once.
+        """
         import dask.array as da
 
-        return da.from_array(X, chunks=(self._row_chunks(), (X.shape[1],)),
-                             name=f"streamsvd-block-{uuid.uuid4().hex}")
+        return da.from_array(_Rows(X), chunks=(self._row_chunks(), (X.shape[1],)),
+                             name=f"streamsvd-block-{uuid.uuid4().hex}", meta=X[:0, :0])
 
     def _weighted(self, Y: Any) -> Any:
         """``M Y`` of a dask block (diagonal ``M``)."""
@@ -304,3 +308,19 @@ class PanelBasis:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
                 self._zarrs.pop(entry, None)
                 self.root.delete(f"panels/{entry}")
+
+
+class _Rows:
+    """An in-memory block seen by dask through row slices (views).
+
+    ``dask.array.from_array`` copies a numpy array whole before slicing it (a copy of the
+    ``n x b`` block per product); this wrapper has no ``copy``, so each task takes a view
+    of its rows.
+    """
+
+    def __init__(self, X: np.ndarray) -> None:
+        self.X = X
+        self.shape, self.dtype, self.ndim = X.shape, X.dtype, X.ndim
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        return self.X[key]
