@@ -11,20 +11,23 @@ from _figures import assert_drawn
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
-@pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_outofcore_benchmark_smoke(monkeypatch, tmp_path, dtype):
+@pytest.mark.parametrize(("dtype", "methods"), [
+    ("float32", ("read", "cli-c100", "tall", "tree", "svdc-q1-QR")),
+    ("float64", ("read", "tall")),
+])
+def test_outofcore_benchmark_smoke(monkeypatch, tmp_path, dtype, methods):
     monkeypatch.syspath_prepend(str(BENCH))
     mod = importlib.import_module("outofcore_benchmark")
     report = mod.main(["--sizes", "3000x250", "--dtype", dtype, "--methods",
-                       "read,cli-c100,tall,tree,svdc-q1-QR", "--data", str(tmp_path / "data"),
+                       ",".join(methods), "--data", str(tmp_path / "data"),
                        "--out", str(tmp_path)])
     saved = json.loads((tmp_path / "outofcore_benchmark.json").read_text())
     assert_drawn(tmp_path / "outofcore_benchmark.png")
     (case,) = saved["cases"]
     assert case["dtype"] == dtype and (case["n"], case["m"]) == (3000, 250)
     runs = {r["method"]: r for r in case["runs"]}
-    assert set(runs) == {"read", "cli-c100", "tall", "tree", "svdc-q1-QR"}
-    for name in ("cli-c100", "tall", "tree"):
+    assert set(runs) == set(methods)
+    for name in set(methods) & {"cli-c100", "tall", "tree"}:
         r = runs[name]
         assert r["seconds"] > 0 and r["peak_rss_mb"] > 0 and r["vs_read"] > 0
         # rank 60 of a rank-200 spectrum: streamsvd is within 1e-3 of the optimum
