@@ -78,6 +78,7 @@ class _Window:
         self.shape = (int(data.shape[0]), m)
         self.dtype = data.dtype
         self.is_dask = is_dask
+        self.chunks = data.chunks if is_dask else None  # read by whole dask chunks
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
         rows, cols = key

@@ -180,14 +180,17 @@ class Source:
         """Read columns ``start:stop`` into a new column-major array, by slabs of rows.
 
         A slab is a whole number of the data's row chunks, about 32 MiB, so that a read
-        never holds the block twice in the data's layout (a dask array is computed
-        once, whole).
+        never holds the block twice in the data's layout (a dask array, or data one chunk
+        tall, is read whole).
         """
         cols = stop - start
         out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
         rows = self.n
         if not self._compute:
-            unit = self.row_chunks or 1
+            # whole row chunks (all rows when the data is one chunk tall: never recompute
+            # or decode a chunk twice); single rows for unchunked data
+            chunked = getattr(self._data, "chunks", None) is not None
+            unit = self.row_chunks or (self.n if chunked else 1)
             rows = max(unit, _READ_BYTES // max(1, cols * self.dtype.itemsize) // unit * unit)
         for r0 in range(0, self.n, rows):
             part = self._data[r0:r0 + rows, start:stop]

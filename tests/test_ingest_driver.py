@@ -229,3 +229,37 @@ def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
     want = StreamCompressor(90, max_rank=5)
     ingest(open_source(A), want, block=10)
     np.testing.assert_allclose(got.amplitudes, want.expansion.amplitudes, rtol=1e-12)
+
+
+def test_a_dask_chunk_is_computed_once_per_block_read(rng, monkeypatch):
+    # a tree leaf reads its window of a dask source by slabs of whole dask chunks, even
+    # when a slab of the reader's size holds fewer rows than a chunk
+    import streamsvd.sources
+    from streamsvd.parallel_tree import SourceSpec
+
+    monkeypatch.setattr(streamsvd.sources, "_READ_BYTES", 4 * 5 * 8)  # 4 rows of 5 columns
+
+    computed: list[int] = []
+    A = rng.standard_normal((N, M))
+
+    def record(x, block_info=None):
+        computed.append(block_info[0]["chunk-location"][1])
+        return x
+
+    D = da.from_array(A, chunks=(N, 5)).map_blocks(record, dtype=A.dtype)
+    spec = SourceSpec.of(D).window(5, 15)
+    with spec.open() as src:
+        got = [X for _, X in src.blocks(5, start=5, stop=15)]
+    np.testing.assert_array_equal(np.hstack(got), A[:, 5:15])
+    assert sorted(computed) == [1, 2]
+    computed.clear()
+    with open_source(zarr_of(A, rng)) as src:  # zarr: slabs of whole row chunks
+        got = [X for _, X in src.blocks(5)]
+    np.testing.assert_array_equal(np.hstack(got), A)
+
+
+def zarr_of(A, rng):
+    z = zarr.create_array(zarr.storage.MemoryStore(), shape=A.shape, chunks=(10, 5),
+                          dtype="f8")
+    z[:] = A
+    return z
