@@ -11,8 +11,8 @@ Memory: the block being absorbed (``n x b``) and its Gram-Schmidt workspace are 
 memory, with the next block that :func:`~streamsvd.parallel.tall_compress` reads ahead
 (float32 for a float32 source), plus the small matrices and the right vectors (``m x p``,
 or none with ``right_vectors=False``); the basis (``n x w``) never is. At ``n = 2e5``,
-``b = 100`` that is about 1.1 GB of peak resident memory (``bench/README.md``): it grows
-with ``n``.
+``b = 100`` the process peaks at 1.0 to 1.1 GB (``bench/outofcore_benchmark.py``): the
+peak grows with ``n``.
 
 Crash safety: a plan writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two
