@@ -2,7 +2,8 @@
 
 The mode follows from the options (in memory by default, the tree mode with
 ``--scheduler``, the tall mode with ``--tall``); an option of another mode is refused.
-The in-memory loop lives here; the dask modes run :func:`streamsvd.parallel.ingest`.
+The in-memory mode runs the one ingest driver (:func:`streamsvd.ingest.ingest`) here; the
+dask modes run :func:`streamsvd.parallel.ingest`, which runs it too.
 What is done with an existing STORE (create, continue, refuse, undo a failed start) is
 :mod:`streamsvd.policy`'s.
 
