@@ -5,16 +5,13 @@ A snapshot matrix on disk is a ``.npy`` file (memory-mapped), an HDF5 dataset (`
 zarr array (a ``.zarr`` path or a zarr directory, with an array name, optional when the
 group holds one array); a zarr array may also sit at a URL (:func:`open_zarr_url`).
 :func:`open_file` decides the format of a path once and opens it as an
-:class:`OpenedFile`, from which each reader takes what it needs:
-
-* :func:`streamsvd.sources.open_source` reads blocks from :attr:`OpenedFile.data`;
-* the dask modes (:mod:`streamsvd.parallel`) build a dask array on
-  :meth:`OpenedFile.picklable_data`, which a worker reopens where it runs.
+:class:`OpenedFile`, from whose :attr:`OpenedFile.data` the one block reader
+(:meth:`streamsvd.sources.Source.blocks`) reads, in every mode: the command line, the
+tall mode, and each leaf of the tree mode, which opens the path again where it runs.
 """
 
 from __future__ import annotations
 
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +27,6 @@ __all__ = [
     "NPY_SUFFIXES",
     "ZARR_SUFFIXES",
     "OpenedFile",
-    "as_dask_array",
     "no_dataset",
     "open_file",
     "open_zarr_url",
@@ -64,17 +60,6 @@ class OpenedFile:
     data: Any
     description: str
     close: Callable[[], None]
-
-    def picklable_data(self) -> Any:
-        """Return an array-like of the matrix that a dask worker reopens where it runs.
-
-        A zarr array pickles as its store location; a ``.npy`` file or an HDF5 dataset
-        becomes a :class:`_FileColumns`, which opens the file for each read.
-        """
-        if self.format == "zarr":
-            return self.data
-        name = self.data.name.lstrip("/") if self.format == "hdf5" else None
-        return _FileColumns(str(self.path), name, self.data.shape, self.data.dtype)
 
 
 def _nothing_to_close() -> None:
@@ -136,42 +121,6 @@ def open_file(path: Path, dataset: str | None) -> OpenedFile:
         f"{', '.join(HDF5_SUFFIXES)}, .zarr or a zarr directory. Convert the data to one "
         "of these formats (if it already is one, give the file its extension)."
     )
-
-
-def as_dask_array(path: Path, dataset: str | None, *, chunk_rows: int) -> Any:
-    """Return the snapshot matrix in the file ``path`` as a dask array workers can read.
-
-    A zarr array keeps its own chunks; a ``.npy`` file or an HDF5 dataset is chunked by
-    ``chunk_rows`` rows (all columns), each chunk read by opening the file where the task
-    runs. ``path`` and ``dataset`` are as for :func:`open_file`.
-    """
-    import dask.array as da
-
-    opened = open_file(path, dataset)
-    try:
-        if opened.format == "zarr":
-            return da.from_zarr(opened.data)
-        return da.from_array(opened.picklable_data(), chunks=(chunk_rows, -1),
-                             name=f"streamsvd-file-{uuid.uuid4().hex}")
-    finally:
-        opened.close()
-
-
-class _FileColumns:
-    """A picklable array-like over an HDF5 dataset or a ``.npy`` file, opened per read."""
-
-    def __init__(self, path: str, dataset: str | None, shape: tuple[int, ...],
-                 dtype: Any) -> None:
-        self.path, self.dataset = path, dataset
-        self.shape, self.dtype, self.ndim = tuple(shape), np.dtype(dtype), 2
-
-    def __getitem__(self, key: Any) -> np.ndarray:
-        if self.dataset is None:
-            return np.array(np.load(self.path, mmap_mode="r", allow_pickle=False)[key])
-        import h5py
-
-        with h5py.File(self.path, "r") as h5:
-            return np.asarray(h5[self.dataset][key])
 
 
 def _open_hdf5(path: Path, dataset: str | None) -> OpenedFile:

@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import StoreError, StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
-from .parallel_tree import execute
+from .scheduling import execute
 from .storage import LocalStorage, ObjectStorage
 
 __all__ = ["PanelBasis"]
@@ -108,8 +108,13 @@ class PanelBasis:
             self._zarrs[name] = z
         return z
 
-    def _write(self, data: Any) -> tuple[str, int]:
-        """Write an ``n x c`` numpy or dask array as a new panel; return its name, width."""
+    def _write(self, data: Any, *also: Any) -> tuple[str, int, list[Any]]:
+        """Write an ``n x c`` numpy or dask array as a new panel; return its name and width.
+
+        ``also``: dask collections computed in the same graph as the write of a dask
+        ``data`` (so that the chunks they share with it are computed once), returned in
+        the list.
+        """
         import dask.array as da
         import zarr
         from zarr.codecs import Crc32cCodec
@@ -123,10 +128,10 @@ class PanelBasis:
         )
         if isinstance(data, np.ndarray):
             z[:] = data
-        else:
-            execute([da.store(data, z, lock=False, compute=False)],  # type: ignore[arg-type]
-                    client=self.client)
-        return name, cols
+            return name, cols, []
+        done = execute([da.store(data, z, lock=False, compute=False), *also],
+                       client=self.client)
+        return name, cols, done[1:]
 
     def _q(self, panels: list[str] | None = None) -> Any:
         """Return the stored columns as one dask array (``n x w``), or None if there are none."""
@@ -140,10 +145,14 @@ class PanelBasis:
         return Q.rechunk({0: self._row_chunks(), 1: -1})
 
     def _block(self, X: np.ndarray) -> Any:
+        """Return an in-memory block as a dask array of its row chunks (views, no copy).
+
+        The graph is computed before the block changes: every caller runs it at once.
+        """
         import dask.array as da
 
-        return da.from_array(X, chunks=(self._row_chunks(), (X.shape[1],)),
-                             name=f"streamsvd-block-{uuid.uuid4().hex}")
+        return da.from_array(_Rows(X), chunks=(self._row_chunks(), (X.shape[1],)),
+                             name=f"streamsvd-block-{uuid.uuid4().hex}", meta=X[:0, :0])
 
     def _weighted(self, Y: Any) -> Any:
         """``M Y`` of a dask block (diagonal ``M``)."""
@@ -188,7 +197,7 @@ class PanelBasis:
     def stage_new(self, r: int) -> None:
         """Write the first ``r`` workspace columns as a new panel (before any commit)."""
         if r:
-            self._staged_new = self._write(self.planned_new(r)[0])
+            self._staged_new = self._write(self.planned_new(r)[0])[:2]
 
     def accept(self, r: int) -> None:
         """Append the staged panel to the stored columns."""
@@ -208,17 +217,16 @@ class PanelBasis:
         Q0 = self._q()
         parts = [] if Q0 is None else [Q0]
         if r:
-            parts.append(self._block(np.ascontiguousarray(self.planned_new(r)[0])))
+            parts.append(self._block(self.planned_new(r)[0]))
         p = G.shape[1]
         if not parts or p == 0:
             self._staged_compact = ("", 0)
             return np.zeros((p, p))
         Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
         P = Q.rechunk({1: -1}) @ G
-        name, _ = self._write(P)
+        # one pass: each row chunk of P is written and enters its Gram as it is computed
+        name, _, (H,) = self._write(P, self._weighted(P).T @ P)
         self._staged_compact = (name, p)
-        P = self._q([name])
-        (H,) = execute([self._weighted(P).T @ P], client=self.client)
         H = np.asarray(H)
         return 0.5 * (H + H.T)
 
@@ -289,7 +297,7 @@ class PanelBasis:
         if Q is None:
             self.panels, self.widths = [], []
             return
-        name, width = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
+        name, width, _ = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
         self.panels, self.widths = [name], [width]
 
     def collect(self, keep: set[str]) -> None:
@@ -300,3 +308,19 @@ class PanelBasis:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
                 self._zarrs.pop(entry, None)
                 self.root.delete(f"panels/{entry}")
+
+
+class _Rows:
+    """An in-memory block seen by dask through row slices (views).
+
+    ``dask.array.from_array`` copies a numpy array whole before slicing it (a copy of the
+    ``n x b`` block per product); this wrapper has no ``copy``, so each task takes a view
+    of its rows.
+    """
+
+    def __init__(self, X: np.ndarray) -> None:
+        self.X = X
+        self.shape, self.dtype, self.ndim = X.shape, X.dtype, X.ndim
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        return self.X[key]

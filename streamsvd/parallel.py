@@ -18,8 +18,11 @@ address). Results do not depend on the scheduler, nor on the chunking of the sou
 beyond rounding.
 
 Sources. A numpy array, a ``.npy``/HDF5/zarr path, an h5py dataset, a zarr array or any
-dask array (see :func:`~streamsvd.sources.open_source`); blocks are read one at a time,
-never all at once. On a cluster, paths must be visible to every worker.
+dask array (see :func:`~streamsvd.sources.open_source`). The tall mode reads its blocks
+in this process, the tree's leaves where they run, both through the one block reader
+(:meth:`~streamsvd.sources.Source.blocks`: the next block read in a background thread
+while the current one is absorbed, each block once) driven by
+:func:`streamsvd.ingest.ingest`. On a cluster, paths must be visible to every worker.
 """
 
 from __future__ import annotations
@@ -29,15 +32,15 @@ import logging
 import os
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any, cast
 
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreMismatchError
-from .formats import as_dask_array
-from .parallel_tall import DEFAULT_CHUNK_ROWS, KIND, TallCompressor
-from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, execute, tree_compress
+from .ingest import ingest as ingest_blocks
+from .parallel_tall import KIND, TallCompressor
+from .parallel_tree import COMPRESSOR_OPTIONS, SourceSpec, tree_compress
 from .provenance import SourceRecord
+from .scheduling import execute
 from .storage import open_storage
 from .store import open_store
 from .stream import StreamCompressor, summary_of
@@ -153,7 +156,9 @@ def tall_compress(
     Parameters
     ----------
     source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
-        The ``n x m`` snapshot matrix, read as a dask array by row chunks, each block once.
+        The ``n x m`` snapshot matrix, read by the prefetching block reader
+        (:meth:`~streamsvd.sources.Source.blocks`, each block once, the next one read
+        while the current one is absorbed) and absorbed by :func:`streamsvd.ingest.ingest`.
     block : int
         Columns per update.
     dataset : str, optional
@@ -167,8 +172,8 @@ def tall_compress(
         Continue the existing store (its options and weights are used; ``inner``, if
         passed, is checked against them).
     chunk_rows : int, optional
-        Rows per chunk: by default the source's row chunks when it is a dask or zarr
-        array chunked uniformly by rows, else 16384.
+        Rows per chunk of the panels: by default the source's row chunks when it is a
+        dask, zarr or HDF5 array chunked uniformly by rows, else 16384.
     client : distributed.Client, optional
         Run the row-chunk products on this cluster.
     progress : bool
@@ -187,8 +192,6 @@ def tall_compress(
     """
     block = cast(int, check_positive_int(block, "block"))
     spec = SourceSpec.of(source, dataset=dataset)
-    x = _as_dask(spec, chunk_rows)
-    rows = chunk_rows if chunk_rows is not None else _uniform_rows(x)
     record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
                              description=spec.description)
     if resume:
@@ -198,61 +201,30 @@ def tall_compress(
                 f"`resume` needs `store` and no options but `inner` (the store's are used); "
                 f"got store={store!r} and options {sorted(options)}. Pass only the store."
             )
-        tc = TallCompressor.open(store, inner=inner, client=client,
-                                 storage_options=storage_options)
-        if tc.n != spec.n:
+    with spec.open() as src:
+        if resume:
+            tc = TallCompressor.open(store, inner=inner, client=client,
+                                     storage_options=storage_options)
+            if tc.n != spec.n:
+                tc.close(finalize=False)
+                raise ShapeMismatchError(
+                    f"`source` must have snapshots of size {tc.n} (the store's n); got "
+                    f"{spec.n} from {spec.description}. Pass the source the store was "
+                    "built from."
+                )
+            tc.source_record = record
+        else:
+            rows = chunk_rows if chunk_rows is not None else src.row_chunks
+            tc = TallCompressor(spec.n, store=store, storage_options=storage_options,
+                                chunk_rows=rows, client=client, source_record=record,
+                                **options)
+        try:
+            ingest_blocks(src, tc, block=block, progress=progress, desc="tall")
+            tc.flush()
+        except BaseException:
             tc.close(finalize=False)
-            raise ShapeMismatchError(
-                f"`source` must have snapshots of size {tc.n} (the store's n); got {spec.n} "
-                f"from {spec.description}. Pass the source the store was built from."
-            )
-        tc.source_record = record
-    else:
-        tc = TallCompressor(spec.n, store=store, storage_options=storage_options,
-                            chunk_rows=rows, client=client,
-                            source_record=record, **options)
-    try:
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=spec.m, initial=tc.source_offset, unit="col", desc="tall",
-                       dynamic_ncols=True)
-        with bar if bar is not None else contextlib.nullcontext():
-            for a in range(tc.source_offset, spec.m, block):
-                stop = min(a + block, spec.m)
-                rec = tc.absorb(x[:, a:stop], source_offset=stop)
-                if bar is not None:  # the postfix first: the redraw shows this update
-                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
-                                    refresh=False)
-                    bar.update(stop - a)
-        tc.flush()
-    except BaseException:
-        tc.close(finalize=False)
-        raise
+            raise
     return tc
-
-
-def _as_dask(spec: SourceSpec, chunk_rows: int | None) -> Any:
-    """Return the source as a dask array, chunked by rows, that workers can read."""
-    import dask.array as da
-
-    rows = chunk_rows or DEFAULT_CHUNK_ROWS
-    if spec.kind == "dask":
-        return spec.obj
-    if spec.kind == "zarr":
-        return da.from_zarr(spec.obj)
-    if spec.kind == "array":
-        return da.from_array(spec.obj, chunks=(rows, -1))
-    # a path, already checked by open_source
-    return as_dask_array(Path(spec.obj), spec.dataset, chunk_rows=rows)
-
-
-def _uniform_rows(x: Any) -> int | None:
-    rows = x.chunks[0]
-    if len(rows) > 1 and all(c == rows[0] for c in rows[:-1]):
-        return int(rows[0])
-    return None
 
 
 # --------------------------------------------------------------------------------- CLI

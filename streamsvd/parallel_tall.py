@@ -8,8 +8,11 @@ step, the options, ``add``, ``merge``, the error bound, the history and the stor
 in-memory compressor's (one implementation), so both give the same basis to rounding.
 
 Memory: the block being absorbed (``n x b``) and its Gram-Schmidt workspace are held in
-memory, plus the small matrices and the right vectors (``m x p``, or none with
-``right_vectors=False``); the basis (``n x w``) never is.
+memory, with the next block that :func:`~streamsvd.parallel.tall_compress` reads ahead
+(float32 for a float32 source), plus the small matrices and the right vectors (``m x p``,
+or none with ``right_vectors=False``); the basis (``n x w``) never is. At ``n = 2e5``,
+``b = 100`` the process peaks at 1.0 to 1.1 GB (``bench/outofcore_benchmark.py``): the
+peak grows with ``n``.
 
 Crash safety: a plan writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two
@@ -35,7 +38,7 @@ from .errors import InputError, ShapeMismatchError, SourceError
 from .inner import DiagonalInner, InnerProduct, as_inner
 from .options import CompressorOptions
 from .panels import PanelBasis
-from .parallel_tree import check_client, execute
+from .scheduling import check_client, execute
 from .storage import LocalStorage, ObjectStorage, open_storage
 from .stream import StreamCompressor, UpdateRecord
 

@@ -29,8 +29,6 @@ from __future__ import annotations
 import logging
 import os
 import uuid
-from collections.abc import Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, cast
 
@@ -39,92 +37,24 @@ from threadpoolctl import threadpool_limits
 
 from ._validation import check_positive_int
 from .errors import InputError, ShapeMismatchError, StoreError
+from .ingest import ingest
 from .inner import as_inner
 from .options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 from .options import CompressorOptions
 from .provenance import SourceRecord
+from .scheduling import blas_threads_per_task, check_client, execute
 from .sources import Source, open_source, open_zarr_url
 from .storage import is_url, open_storage
 from .stream import StreamCompressor
 
-__all__ = ["COMPRESSOR_OPTIONS", "check_client", "execute", "tree_compress"]
+__all__ = ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"]
 
 logger = logging.getLogger(__name__)
 
 
 
 
-# ----------------------------------------------------------------------- scheduling
-
-
 TREE_OVERSAMPLING = 2  # the oversampling of the tree's nodes, in the compressor's
-
-
-def check_client(client: Any) -> Any:
-    """Return ``client`` if it is None or a :class:`distributed.Client`; raise otherwise."""
-    if client is None:
-        return None
-    try:
-        from distributed import Client
-    except ImportError:  # pragma: no cover - distributed is a dependency
-        Client = ()  # type: ignore[assignment,misc]
-    if not isinstance(client, Client):
-        raise InputError(
-            f"`client` must be None (the threaded scheduler) or a dask.distributed.Client; "
-            f"got {type(client).__name__}. Create one with `Client(LocalCluster())` or "
-            "`Client('tcp://host:8786')`."
-        )
-    if client.status not in ("running", "newly-created"):
-        raise InputError(
-            f"`client` must be connected; got a client with status {client.status!r}. "
-            "Reconnect it or create a new one."
-        )
-    return client
-
-
-def execute(collections: list[Any], *, client: Any = None, progress: bool = False) -> list[Any]:
-    """Compute dask collections on the threaded scheduler or on ``client``'s cluster.
-
-    Parameters
-    ----------
-    collections : list
-        Dask collections (delayed objects, arrays) computed together, so that tasks they
-        share run once.
-    client : distributed.Client, optional
-        Run on this cluster; the threaded scheduler of this process when omitted (even if
-        a default client is registered), with one BLAS thread per task.
-    progress : bool
-        Show dask's progress bar (:class:`dask.diagnostics.ProgressBar`, or
-        :func:`distributed.progress` on a cluster).
-
-    Returns
-    -------
-    list
-        The computed values, in the order of ``collections``.
-    """
-    import dask
-
-    if client is None:
-        # the threaded scheduler runs a task per core: one BLAS thread each, or the
-        # cores are oversubscribed (tasks that limit themselves keep their own limit)
-        with threadpool_limits(limits=1, user_api="blas"):
-            if progress:
-                import sys
-
-                from dask.diagnostics import ProgressBar
-
-                with ProgressBar(out=sys.stderr):
-                    return list(dask.compute(*collections, scheduler="threads"))
-            return list(dask.compute(*collections, scheduler="threads"))
-    futures = client.compute(list(collections))
-    try:
-        if progress:
-            from distributed import progress as show_progress
-
-            show_progress(futures)
-        return list(client.gather(futures))
-    finally:
-        client.cancel(futures)
 
 
 # -------------------------------------------------------------------------- sources
@@ -146,6 +76,7 @@ class _Window:
         self.shape = (int(data.shape[0]), m)
         self.dtype = data.dtype
         self.is_dask = is_dask
+        self.chunks = data.chunks if is_dask else None  # read by whole dask chunks
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
         rows, cols = key
@@ -223,25 +154,6 @@ class SourceSpec:
         return f"SourceSpec({self.kind}, {self.description}, n={self.n}, m={self.m})"
 
 
-def read_range(src: Source, start: int, stop: int, block: int) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(offset, X)`` for the blocks of columns ``start:stop``, one read ahead."""
-    offsets = list(range(start, stop, block))
-    if not offsets:
-        return
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="streamsvd-leaf-read")
-    try:
-        pending: Future[np.ndarray] = pool.submit(src.read, start, min(start + block, stop))
-        for k, offset in enumerate(offsets):
-            current = pending.result()
-            if k + 1 < len(offsets):
-                nxt = offsets[k + 1]
-                pending = pool.submit(src.read, nxt, min(nxt + block, stop))
-            yield offset, current
-            del current
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
 # ---------------------------------------------------------------------------- tasks
 
 
@@ -256,8 +168,7 @@ def _compress_leaf(
     """Compress columns ``start:stop`` of the source (runs on a worker)."""
     sc = StreamCompressor(spec.n, **options)
     with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
-        for offset, X in read_range(src, start, stop, block):
-            sc.absorb(X, source_offset=offset + X.shape[1])
+        ingest(src, sc, start=start, stop=stop, block=block)
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
                 sc.error_bound)
     return sc
@@ -278,23 +189,6 @@ def _merge_pair(
     logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
                 out.rank, out.error_bound)
     return out
-
-
-def blas_threads_per_task(client: Any) -> int:
-    """BLAS threads each task may use: this machine's cores over the tasks run at once.
-
-    With dask's threaded scheduler (``client=None``) as many tasks run as there are
-    cores, so each gets one BLAS thread; on a cluster, a worker's threads share the cores
-    of its host (workers on this host are counted together).
-    """
-    cores = os.cpu_count() or 1
-    if client is None:
-        return 1
-    try:
-        threads = sum(client.nthreads().values())
-    except Exception:  # a client that cannot report its workers: stay conservative
-        return 1
-    return max(1, cores // max(threads, 1))
 
 
 # ---------------------------------------------------------------------- validation

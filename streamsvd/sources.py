@@ -19,19 +19,29 @@
 Files and URLs are opened by :mod:`streamsvd.formats`, the one place that knows their
 formats.
 
-``Source.blocks`` can read the next block in a background thread while the caller works
-on the current one (one block ahead, so at most two blocks are in memory), which hides
-the read time of compressed on-disk data behind the update of the basis. Every block read
-is checked for NaN and infinite entries, which are reported by their row and column in
-the source (not by their index inside the block).
+``Source.blocks`` is the one block reader of the package (the command line, the tall
+mode and the tree leaves all read through it, driven by :func:`streamsvd.ingest.ingest`):
+a background thread reads the next blocks while the caller works on the current one,
+through a bounded queue (``depth`` blocks ahead, one by default, so at most two blocks
+are in memory), and each block of the range is read exactly once. That hides the read
+time of compressed on-disk data behind the update of the basis. Every block read is
+checked for NaN and infinite entries, which are reported by their row and column in the
+source (not by their index inside the block).
+
+Blocks are column-major (the layout the update's BLAS-3 products and copies want) and
+keep a float32 source's dtype: half the bytes in memory and in the queue. The compressor
+converts each block to float64 when it absorbs it (:meth:`StreamCompressor.absorb
+<streamsvd.StreamCompressor.absorb>`), so every product is computed in float64 on the
+float32 values exactly as stored; any other dtype is read as float64.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import queue
+import threading
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
@@ -52,8 +62,9 @@ class Source:
     """An ``n x m`` snapshot matrix read by column blocks.
 
     Build one with :func:`open_source`. Columns are snapshots: ``n`` is the size of one
-    snapshot and ``m`` the number of snapshots. Every read returns a new float64 array
-    that does not share memory with the underlying data.
+    snapshot and ``m`` the number of snapshots. Every read returns a new column-major
+    array of dtype :attr:`block_dtype` that does not share memory with the underlying
+    data.
 
     Parameters
     ----------
@@ -75,7 +86,9 @@ class Source:
     m : int
         Number of columns (number of snapshots).
     dtype : numpy.dtype
-        Dtype of the underlying data (blocks are always float64).
+        Dtype of the underlying data.
+    block_dtype : numpy.dtype
+        Dtype of the blocks read: float32 for float32 data, float64 otherwise.
     description : str
         How the source is named in messages.
     """
@@ -97,6 +110,7 @@ class Source:
         self.n = int(shape[0])
         self.m = int(shape[1])
         self.dtype = dtype
+        self.block_dtype = np.dtype(np.float32 if dtype == np.float32 else np.float64)
         self.description = description
 
     @property
@@ -104,8 +118,28 @@ class Source:
         """``(n, m)``."""
         return (self.n, self.m)
 
+    @property
+    def row_chunks(self) -> int | None:
+        """Rows per chunk when the data is chunked uniformly by rows (zarr, HDF5, dask).
+
+        None for unchunked data (numpy arrays, ``.npy`` files, contiguous HDF5) or chunks
+        of several sizes (the last chunk may be shorter).
+        """
+        chunks = getattr(self._data, "chunks", None)
+        if not chunks:
+            return None
+        rows = chunks[0]
+        if isinstance(rows, int | np.integer):
+            return int(rows)
+        rows = tuple(rows)
+        if len(rows) > 1 and all(c == rows[0] for c in rows[:-1]):
+            return int(rows[0])
+        return None
+
     def read(self, start: int, stop: int) -> np.ndarray:
-        """Return columns ``start:stop`` as a new float64 array of shape ``(n, stop-start)``.
+        """Return columns ``start:stop`` as a new array of shape ``(n, stop-start)``.
+
+        The array is column-major, of dtype :attr:`block_dtype`.
 
         Parameters
         ----------
@@ -132,12 +166,7 @@ class Source:
 
     def _read_checked(self, start: int, stop: int) -> np.ndarray:
         try:
-            block = self._data[:, start:stop]
-            if self._compute:
-                block = block.compute()
-            out = np.asarray(block, dtype=np.float64)
-            if isinstance(self._data, np.ndarray) and np.may_share_memory(out, self._data):
-                out = out.copy()
+            out = self._read_slabs(start, stop)
         except Exception as exc:  # any reader failure is reported with its offset
             raise SourceError(
                 f"reading columns {start}:{stop} (offset {start}) of {self.description} "
@@ -145,6 +174,27 @@ class Source:
                 f"resume from offset {start}."
             ) from exc
         self._check_finite(out, start)
+        return out
+
+    def _read_slabs(self, start: int, stop: int) -> np.ndarray:
+        """Read columns ``start:stop`` into a new column-major array, by slabs of rows.
+
+        A slab is a whole number of the data's row chunks, about 32 MiB, so that a read
+        never holds the block twice in the data's layout (a dask array, or data one chunk
+        tall, is read whole).
+        """
+        cols = stop - start
+        out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
+        rows = self.n
+        if not self._compute:
+            # whole row chunks (all rows when the data is one chunk tall: never recompute
+            # or decode a chunk twice); single rows for unchunked data
+            chunked = getattr(self._data, "chunks", None) is not None
+            unit = self.row_chunks or (self.n if chunked else 1)
+            rows = max(unit, _READ_BYTES // max(1, cols * self.dtype.itemsize) // unit * unit)
+        for r0 in range(0, self.n, rows):
+            part = self._data[r0:r0 + rows, start:stop]
+            _copy_by_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
 
     def _check_finite(self, block: np.ndarray, start: int) -> None:
@@ -168,23 +218,30 @@ class Source:
         )
 
     def blocks(
-        self, block: int = 100, *, start: int = 0, prefetch: bool = True
+        self, block: int = 100, *, start: int = 0, stop: int | None = None,
+        prefetch: bool = True, depth: int = 1,
     ) -> Iterator[tuple[int, np.ndarray]]:
-        """Yield ``(offset, X)`` for consecutive column blocks, from column ``start`` on.
+        """Yield ``(offset, X)`` for consecutive column blocks of columns ``start:stop``.
 
-        ``X`` holds columns ``offset:offset + b`` as a float64 array of shape ``(n, b)``,
-        with ``b = block`` except for the last, shorter block.
+        ``X`` holds columns ``offset:offset + b`` as a column-major array of dtype
+        :attr:`block_dtype` and shape ``(n, b)``, with ``b = block`` except for the last,
+        shorter block. Each block is read exactly once.
 
         Parameters
         ----------
         block : int
             Number of columns per block, >= 1.
         start : int
-            First column, ``0 <= start <= m`` (``start = m`` yields nothing); used to
+            First column, ``0 <= start <= m`` (``start = stop`` yields nothing); used to
             resume from a recorded source offset.
+        stop : int, optional
+            End of the range, ``start <= stop <= m`` (default ``m``).
         prefetch : bool
-            Read the next block in a background thread while the caller works on the
-            current one (one block ahead, so at most two blocks are in memory).
+            Read ahead in a background thread while the caller works on the current
+            block.
+        depth : int
+            Blocks read ahead with ``prefetch`` (>= 1): at most ``depth + 1`` blocks are
+            in memory, the caller's included.
 
         Yields
         ------
@@ -196,7 +253,8 @@ class Source:
         Raises
         ------
         InputError
-            When ``block < 1`` or ``start`` is outside ``[0, m]``.
+            When ``block < 1``, ``depth < 1`` or the range is outside ``[0, m]`` or
+            reversed.
         NonFiniteError
             When a block holds NaN or infinite entries; raised when the caller asks for
             that block, naming the first one by its row and column in the source.
@@ -205,33 +263,17 @@ class Source:
             its offset in the message and the original exception chained.
         """
         block = cast(int, check_positive_int(block, "block"))
+        depth = cast(int, check_positive_int(depth, "depth"))
         start = _check_index(start, "start", self.m)
-        return self._iter_blocks(block, start, bool(prefetch))
-
-    def _iter_blocks(
-        self, block: int, start: int, prefetch: bool
-    ) -> Iterator[tuple[int, np.ndarray]]:
-        offsets = range(start, self.m, block)
-        if not prefetch:
-            for offset in offsets:
-                yield offset, self._read_checked(offset, min(offset + block, self.m))
-            return
-        if not offsets:
-            return
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="streamsvd-prefetch")
-        try:
-            pending: Future[np.ndarray] = pool.submit(
-                self._read_checked, start, min(start + block, self.m)
+        stop = self.m if stop is None else _check_index(stop, "stop", self.m)
+        if stop < start:
+            raise InputError(
+                f"`stop` must be >= `start` ({start}); got {stop}. Pass an increasing range."
             )
-            for offset in offsets:
-                current = pending.result()  # re-raises the reader's SourceError here
-                nxt = offset + block
-                if nxt < self.m:
-                    pending = pool.submit(self._read_checked, nxt, min(nxt + block, self.m))
-                yield offset, current
-                del current
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        ranges = [(a, min(a + block, stop)) for a in range(start, stop, block)]
+        if not prefetch:
+            return ((a, self._read_checked(a, b)) for a, b in ranges)
+        return read_ahead(self._read_checked, ranges, depth)
 
     def close(self) -> None:
         """Release what the source opened (an HDF5 file, for instance); idempotent."""
@@ -255,6 +297,67 @@ class Source:
 
     def __repr__(self) -> str:
         return f"Source({self.description}, n={self.n}, m={self.m}, dtype={self.dtype})"
+
+
+def read_ahead(
+    read: Callable[[int, int], np.ndarray], ranges: list[tuple[int, int]], depth: int
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(a, read(a, b))`` for each range, read by a background thread.
+
+    The thread reads at most ``depth`` ranges ahead of the one the caller holds (a
+    semaphore of ``depth + 1`` permits, one given back each time the caller asks for the
+    next block); an exception of ``read`` is raised to the caller when it asks for that
+    range, after every range before it was yielded. Closing the generator stops the
+    thread (after the read in progress) and waits for it.
+    """
+    if not ranges:
+        return
+    done: queue.SimpleQueue[tuple[int, np.ndarray | None, BaseException | None]] = (
+        queue.SimpleQueue())
+    permits = threading.Semaphore(depth + 1)
+    stopping = threading.Event()
+
+    def reader() -> None:
+        for a, b in ranges:
+            permits.acquire()
+            if stopping.is_set():
+                return
+            try:
+                done.put((a, read(a, b), None))
+            except BaseException as exc:  # handed to the caller, at this block
+                done.put((a, None, exc))
+                return
+
+    thread = threading.Thread(target=reader, name="streamsvd-reader", daemon=True)
+    thread.start()
+    try:
+        for _ in ranges:
+            a, X, exc = done.get()
+            if exc is not None:
+                raise exc
+            yield a, cast(np.ndarray, X)
+            del X
+            permits.release()
+    finally:
+        stopping.set()
+        permits.release()
+        thread.join()
+
+
+_READ_BYTES = 1 << 25  # rows read at a time from the data (32 MiB)
+_COPY_BYTES = 1 << 21  # rows copied at a time when a block changes layout (2 MiB)
+
+
+def _copy_by_slabs(out: np.ndarray, part: Any) -> None:
+    """Copy a 2-D block into the column-major ``out``, converting its dtype.
+
+    Row-major data (zarr, HDF5, ``.npy``) is copied by slabs of rows that fit in the
+    cache: a transposing copy of the whole block at once runs several times slower.
+    """
+    part = np.asarray(part)
+    step = max(1, _COPY_BYTES // max(1, part.shape[1] * out.itemsize))
+    for i in range(0, part.shape[0], step):
+        out[i:i + step] = part[i:i + step]
 
 
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:

@@ -2,7 +2,8 @@
 
 The mode follows from the options (in memory by default, the tree mode with
 ``--scheduler``, the tall mode with ``--tall``); an option of another mode is refused.
-The in-memory loop lives here; the dask modes run :func:`streamsvd.parallel.ingest`.
+The in-memory mode runs the one ingest driver (:func:`streamsvd.ingest.ingest`) here; the
+dask modes run :func:`streamsvd.parallel.ingest`, which runs it too.
 What is done with an existing STORE (create, continue, refuse, undo a failed start) is
 :mod:`streamsvd.policy`'s.
 
@@ -74,8 +75,7 @@ def _final(args: Any) -> bool:
 
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
-    from tqdm import tqdm
-
+    from ..ingest import ingest
     from ..sources import open_source
     from ..stream import StreamCompressor, summary_of
 
@@ -88,16 +88,7 @@ def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any
         try:
             if resume:
                 _check_resume(args, sc, record)
-            start = sc.source_offset
-            bar = tqdm(total=src.m, initial=start, unit="col", disable=args.quiet,
-                       dynamic_ncols=True, desc="ingest", file=sys.stderr)
-            with bar:
-                for offset, X in src.blocks(block=block, start=start):
-                    rec = sc.absorb(X, source_offset=offset + X.shape[1])
-                    # the postfix first, so that the redraw of update() shows this update
-                    bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}",
-                                    refresh=False)
-                    bar.update(X.shape[1])
+            ingest(src, sc, block=block, progress=not args.quiet)
             if _final(args) and not sc.finalized:
                 sc.finalize(progress=not args.quiet)
             return summary_of(sc)

@@ -1,0 +1,128 @@
+"""The one ingest driver: read a source block by block and absorb every block.
+
+:func:`ingest` is the loop that the command line (``streamsvd ingest``), the tall mode
+(:func:`streamsvd.parallel.tall_compress`) and the leaves of the tree mode
+(:func:`streamsvd.parallel.tree_compress`) run: the blocks come from the source's
+prefetching reader (:meth:`streamsvd.sources.Source.blocks`, a background thread
+reading ahead through a bounded queue, each block read once), and each is handed to
+``compressor.absorb`` with the source offset just after it, so that a store records
+where to resume.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from .sources import Source
+
+__all__ = ["IngestResult", "ingest"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """What :func:`ingest` did.
+
+    Attributes
+    ----------
+    start, stop : int
+        The columns absorbed, ``start:stop``.
+    blocks : int
+        Number of updates (blocks absorbed).
+    seconds : float
+        Wall time of the loop.
+    waiting : float
+        Part of it spent waiting for the reader (0 when every read was hidden behind
+        the updates).
+    """
+
+    start: int
+    stop: int
+    blocks: int
+    seconds: float
+    waiting: float
+
+
+def ingest(
+    source: Source,
+    compressor: Any,
+    *,
+    start: int | None = None,
+    stop: int | None = None,
+    block: int = 100,
+    depth: int = 1,
+    progress: bool = False,
+    desc: str = "ingest",
+) -> IngestResult:
+    """Absorb columns ``start:stop`` of ``source`` into ``compressor``, block by block.
+
+    Parameters
+    ----------
+    source : Source
+        The snapshots (see :func:`streamsvd.sources.open_source`).
+    compressor : StreamCompressor or TallCompressor
+        Anything with ``absorb(X, source_offset=...)`` and ``source_offset``.
+    start : int, optional
+        First column; default ``compressor.source_offset`` (where the store resumes).
+    stop : int, optional
+        End of the range; default ``source.m``.
+    block : int
+        Columns per update.
+    depth : int
+        Blocks the reader keeps ahead of the update (at most ``depth + 1`` blocks in
+        memory).
+    progress : bool
+        Show a progress bar over the columns (tqdm, on stderr) with the rank and the
+        error bound.
+    desc : str
+        The progress bar's label.
+
+    Returns
+    -------
+    IngestResult
+
+    Raises
+    ------
+    SourceError, NonFiniteError
+        A block cannot be read or holds NaN or infinite entries; every block before it
+        was absorbed (and committed as the compressor's ``commit_every`` says).
+    """
+    first = int(compressor.source_offset if start is None else start)
+    last = source.m if stop is None else int(stop)
+    t0 = time.perf_counter()
+    waiting = 0.0
+    count = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=last, initial=first, unit="col", dynamic_ncols=True, desc=desc,
+                   file=sys.stderr)
+    blocks = source.blocks(block, start=first, stop=last, depth=depth)
+    try:
+        while True:
+            t = time.perf_counter()
+            item = next(blocks, None)
+            waiting += time.perf_counter() - t
+            if item is None:
+                break
+            offset, X = item
+            rec = compressor.absorb(X, source_offset=offset + X.shape[1])
+            count += 1
+            if bar is not None:  # the postfix first: the redraw shows this update
+                bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}", refresh=False)
+                bar.update(X.shape[1])
+            del X, item
+    finally:
+        blocks.close()  # stops the reader thread now, also on an error
+        if bar is not None:
+            bar.close()
+    result = IngestResult(first, last, count, time.perf_counter() - t0, waiting)
+    logger.info("absorbed columns %d:%d of %s in %d blocks, %.2f s (%.2f s waiting for "
+                "reads)", first, last, source.description, count, result.seconds, waiting)
+    return result

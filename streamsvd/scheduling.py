@@ -1,0 +1,120 @@
+"""Where dask graphs run: the threaded scheduler, the one set in dask's configuration, or a cluster.
+
+:func:`execute` is the one place where the package computes a dask collection (the
+tall mode's products over the row panels, the tree's leaves and merges, the writes of
+panels); :func:`check_client` validates a ``client=`` argument and
+:func:`blas_threads_per_task` sizes the BLAS of the tasks that set their own limit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+from ._threads import blas_threads
+from .errors import InputError
+
+__all__ = ["LOCAL_SCHEDULERS", "blas_threads_per_task", "check_client", "execute"]
+
+LOCAL_SCHEDULERS = (
+    "sync", "synchronous", "single-threaded", "threads", "threading", "processes",
+    "multiprocessing",
+)
+"""Schedulers of ``dask.config`` that :func:`execute` honours without a client."""
+
+
+def check_client(client: Any) -> Any:
+    """Return ``client`` if it is None or a :class:`distributed.Client`; raise otherwise."""
+    if client is None:
+        return None
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - distributed is a dependency
+        Client = ()  # type: ignore[assignment,misc]
+    if not isinstance(client, Client):
+        raise InputError(
+            f"`client` must be None (the threaded scheduler) or a dask.distributed.Client; "
+            f"got {type(client).__name__}. Create one with `Client(LocalCluster())` or "
+            "`Client('tcp://host:8786')`."
+        )
+    if client.status not in ("running", "newly-created"):
+        raise InputError(
+            f"`client` must be connected; got a client with status {client.status!r}. "
+            "Reconnect it or create a new one."
+        )
+    return client
+
+
+def execute(collections: list[Any], *, client: Any = None, progress: bool = False) -> list[Any]:
+    """Compute dask collections on the threaded scheduler or on ``client``'s cluster.
+
+    Parameters
+    ----------
+    collections : list
+        Dask collections (delayed objects, arrays) computed together, so that tasks they
+        share run once.
+    client : distributed.Client, optional
+        Run on this cluster. When omitted, in this process: on the local scheduler set
+        with ``dask.config.set(scheduler=...)`` (``"synchronous"``, ``"threads"``,
+        ``"processes"``), else on the threaded scheduler (even if a default client is
+        registered); the threaded scheduler runs one BLAS thread per task.
+    progress : bool
+        Show dask's progress bar (:class:`dask.diagnostics.ProgressBar`, or
+        :func:`distributed.progress` on a cluster).
+
+    Returns
+    -------
+    list
+        The computed values, in the order of ``collections``.
+    """
+    import dask
+
+    if client is None:
+        chosen = dask.config.get("scheduler", None)
+        scheduler = chosen if chosen in LOCAL_SCHEDULERS else "threads"
+        # the threaded scheduler runs a task per core: one BLAS thread each, or the
+        # cores are oversubscribed (tasks that limit themselves keep their own limit)
+        limit = 1 if scheduler in ("threads", "threading") else None
+        with blas_threads(limit), _progress_bar(progress):
+            return list(dask.compute(*collections, scheduler=scheduler))
+    futures = client.compute(list(collections))
+    try:
+        if progress:
+            from distributed import progress as show_progress
+
+            show_progress(futures)
+        return list(client.gather(futures))
+    finally:
+        client.cancel(futures)
+
+
+def blas_threads_per_task(client: Any) -> int:
+    """BLAS threads each task may use: this machine's cores over the tasks run at once.
+
+    With dask's threaded scheduler (``client=None``) as many tasks run as there are
+    cores, so each gets one BLAS thread; on a cluster, a worker's threads share the cores
+    of its host (workers on this host are counted together).
+    """
+    cores = os.cpu_count() or 1
+    if client is None:
+        return 1
+    try:
+        threads = sum(client.nthreads().values())
+    except Exception:  # a client that cannot report its workers: stay conservative
+        return 1
+    return max(1, cores // max(threads, 1))
+
+
+@contextlib.contextmanager
+def _progress_bar(show: bool) -> Iterator[None]:
+    """Show dask's progress bar (on stderr) around local computations when ``show``."""
+    if not show:
+        yield
+        return
+    from dask.diagnostics import ProgressBar
+
+    with ProgressBar(out=sys.stderr):
+        yield
