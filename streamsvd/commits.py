@@ -7,9 +7,10 @@ commit that are unchanged:
 
 * ``Q`` (and ``MQ`` for a non-Euclidean inner product), by columns: the columns of the
   previous commit are unchanged unless the basis was compacted since
-  (``basis.compactions`` moved, or the plan compacts), when it is written anew;
+  (the compactions counted in :class:`~streamsvd.update.Extents` moved, or the plan
+  compacts), when it is written anew;
 * ``V0``, by rows: the rows of the previous commit are unchanged unless the factor was
-  rebased or replaced since (``rows.rewrites`` moved, or the plan replaces it); the
+  rebased or replaced since (the rewrites of the extents moved, or the plan replaces it); the
   columns added since are zero in those rows;
 * ``history``, one row per update, only appended;
 * the inner product's data (``inner_weights``, ``inner_matrix`` or the CSR arrays
@@ -30,7 +31,7 @@ import numpy as np
 
 from ._core import HISTORY_FIELDS, UpdateRecord, history_array
 from .segments import Appended
-from .update import State
+from .update import Extents
 
 __all__ = ["CommitTracker"]
 
@@ -40,10 +41,7 @@ class _Mark:
     """Extents of the arrays a generation holds, and the epochs they belong to."""
 
     generation: int
-    compactions: int
-    columns: int
-    rewrites: int
-    rows: int
+    extents: Extents
     records: int
     inner: bool  # whether the generation holds the inner product's data
 
@@ -62,7 +60,7 @@ class CommitTracker:
     def appended(
         self,
         generation: int,
-        state: State,
+        extents: Extents,
         *,
         basis: dict[str, np.ndarray],
         compact: bool,
@@ -73,6 +71,7 @@ class CommitTracker:
     ) -> dict[str, Appended]:
         """Return the appended arrays of a commit on top of generation ``generation``.
 
+        ``extents`` are the current state's (:meth:`streamsvd.update.State.extents`);
         ``basis`` holds the planned basis arrays (``Q``, ``MQ``), ``compact`` whether
         the plan compacts it; ``V0`` the planned rows, ``replaced`` whether the plan
         replaces them; ``history`` the records including the planned one; ``inner`` the
@@ -83,10 +82,10 @@ class CommitTracker:
             mark = None
         columns = rows = records = 0
         if mark is not None:
-            if not compact and state.basis.compactions == mark.compactions:
-                columns = mark.columns
-            if not replaced and state.rows is not None and state.rows.rewrites == mark.rewrites:
-                rows = mark.rows
+            if not compact and extents.compactions == mark.extents.compactions:
+                columns = mark.extents.columns
+            if not replaced and V0 is not None and extents.rewrites == mark.extents.rewrites:
+                rows = mark.extents.rows
             records = min(mark.records, self._valid)
         out = {
             name: Appended(a, axis=1, unchanged=min(columns, a.shape[1]))
@@ -114,25 +113,18 @@ class CommitTracker:
         """Record that ``generation`` was committed; :meth:`settle` follows the switch."""
         self._pending = generation
 
-    def settle(self, state: State, records: int) -> None:
+    def settle(self, extents: Extents, records: int) -> None:
         """Remember the extents of the committed state (the compressor switched to it)."""
         if self._pending is None:
             return
-        self._mark = _Mark(
-            generation=self._pending,
-            compactions=state.basis.compactions,
-            columns=state.basis.width,
-            rewrites=0 if state.rows is None else state.rows.rewrites,
-            rows=0 if state.rows is None else state.rows.m,
-            records=records,
-            inner=self._inner_pending,
-        )
+        self._mark = _Mark(generation=self._pending, extents=extents, records=records,
+                           inner=self._inner_pending)
         self._valid = records
         self._pending = None
         self._inner_pending = True
 
     def restored(
-        self, generation: int, state: State, history: np.ndarray, *, inner: bool
+        self, generation: int, extents: Extents, history: np.ndarray, *, inner: bool
     ) -> None:
         """Remember the extents of a state restored from ``generation``.
 
@@ -143,4 +135,4 @@ class CommitTracker:
         self._valid = self._rows.shape[0]
         self._pending = generation
         self._inner_pending = inner
-        self.settle(state, self._valid)
+        self.settle(extents, self._valid)

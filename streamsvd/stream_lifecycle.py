@@ -99,7 +99,7 @@ class StoreLifecycle:
             sc._persistence = StreamStore(st, commit_every=options.commit_every)
             if state.arrays:
                 sc._persistence.tracker.restored(
-                    state.generation, sc._state, state.arrays["history"],
+                    state.generation, sc._state.extents(), state.arrays["history"],
                     inner=all(name in state.arrays for name in sc._inner_data),
                 )
             sc._reopened(mode)
@@ -256,7 +256,7 @@ class StoreLifecycle:
         apply_plan(self._state, plan)
         self._ledger, self._removed = self._pending
         if p is not None:
-            p.tracker.settle(self._state, len(self._history))
+            p.tracker.settle(self._state.extents(), len(self._history))
         self._version += 1
         self.source_offset = source_offset
         return plan.record

@@ -154,7 +154,7 @@ class StreamStore:
                            plan.bound, source_offset, plan.m, plan.waste)
         # only what changed since the previous commit is written (streamsvd.commits)
         appended = self.tracker.appended(
-            self.handle.generation, state, basis=dict(basis), compact=compact,
+            self.handle.generation, state.extents(), basis=dict(basis), compact=compact,
             V0=None if rows is None else rows[0], replaced=replaced, history=history,
             inner=inner_data,
         )
@@ -170,7 +170,7 @@ class StreamStore:
         self.tracker.committed(k)
         self.uncommitted = 0
         if plan is None:
-            self.tracker.settle(state, len(history))
+            self.tracker.settle(state.extents(), len(history))
         return basis_attrs
 
     def close(self) -> None:

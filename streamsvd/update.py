@@ -48,8 +48,8 @@ from .inner import InnerProduct
 from .rows import RowFactor
 
 __all__ = [
-    "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add", "plan_finalize",
-    "gram_orthogonality", "plan_merge", "stage_rows",
+    "Extents", "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add",
+    "plan_finalize", "gram_orthogonality", "plan_merge", "stage_rows",
 ]
 
 logger = logging.getLogger(__name__)
@@ -94,6 +94,28 @@ class State:
     def orthogonality(self) -> float:
         """``||U^T M U - I||_2`` from the small Gram matrices."""
         return gram_orthogonality(self.Gu, self.H)
+
+    def extents(self) -> Extents:
+        """Return what the stored arrays hold, and the epochs in which they only grow."""
+        rows = self.rows
+        return Extents(
+            compactions=self.basis.compactions, columns=self.basis.width,
+            rewrites=0 if rows is None else rows.rewrites, rows=0 if rows is None else rows.m,
+        )
+
+
+@dataclass(frozen=True)
+class Extents:
+    """The stored columns of the basis and rows of ``Y``, with their epochs.
+
+    Between two compactions the basis's columns only grow; between two rewrites (a rebase
+    or a replacement) the stored rows of ``Y`` only grow (:mod:`streamsvd.commits`).
+    """
+
+    compactions: int
+    columns: int
+    rewrites: int
+    rows: int
 
 
 @dataclass(frozen=True)
