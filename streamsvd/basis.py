@@ -1,7 +1,8 @@
 """The n-sized factor of an expansion: the stored basis ``Q`` and the few products on it.
 
 An update of a compressor touches the ``n``-sized data only through a handful of
-operations, all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
+operations (:class:`BasisAlgebra`; how a planned basis is switched to and committed is
+:class:`BasisStaging`), all BLAS-3 (written once in :mod:`streamsvd.update`, as pyMOR writes
 ``gram_schmidt`` once over its vector arrays):
 
 * ``project(X, G)``: ``G^T (MQ^T X)``, the coefficients of a block on the basis ``Q G``;
@@ -33,16 +34,15 @@ import scipy.linalg.blas as blas
 
 from .inner import InnerProduct
 
-__all__ = ["BasisBackend", "MemoryBasis"]
+__all__ = ["BasisAlgebra", "BasisBackend", "BasisStaging", "MemoryBasis"]
 
 _GROWTH = 2.0  # capacity factor when the buffers are full
 
 
-class BasisBackend(Protocol):
-    """What an update needs from the n-sized factor (see the module docstring)."""
+class BasisAlgebra(Protocol):
+    """The products an update computes on the n-sized factor (module docstring)."""
 
     n: int
-    compactions: int  # number of swaps: the stored columns were all replaced
 
     @property
     def width(self) -> int:
@@ -61,14 +61,23 @@ class BasisBackend(Protocol):
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Return views ``(Y, MY)`` of ``b`` columns after the stored ones."""
 
+    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
+        """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
+
+    def take(self, G: np.ndarray) -> np.ndarray:
+        """Return ``Q G`` as a new array."""
+
+
+class BasisStaging(Protocol):
+    """How a planned basis becomes the stored one, and what a commit of it writes."""
+
+    compactions: int  # number of swaps: the stored columns were all replaced
+
     def accept(self, r: int) -> None:
         """Make the first ``r`` workspace columns stored columns."""
 
     def stage_new(self, r: int) -> None:
         """Make the first ``r`` workspace columns durable before a commit refers to them."""
-
-    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
-        """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
 
     def swap(self, p: int) -> None:
         """Make the basis written by ``compact_planned`` the stored one."""
@@ -82,8 +91,9 @@ class BasisBackend(Protocol):
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
         """Load the basis a commit wrote."""
 
-    def take(self, G: np.ndarray) -> np.ndarray:
-        """Return ``Q G`` as a new array."""
+
+class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
+    """What an update needs from the n-sized factor: its algebra and its staging."""
 
 
 class MemoryBasis:
