@@ -111,7 +111,10 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         Rotation rule of the sweeps (see :func:`streamsvd.compress`).
     sweeps : int or None
         Rotation sweeps per update; ``None`` sweeps to convergence (the exact SVD of the
-        current expansion, as Brand's incremental SVD).
+        current expansion, as Brand's incremental SVD): pair it with ``rule="jacobi"``,
+        which converges in a few sweeps, where the paper's rule converges linearly and
+        can take the 200 sweeps allowed on clustered amplitudes (``bench/README.md``,
+        windows).
     reject_tol : float, optional
         Gram-Schmidt rejection threshold relative to a column's norm; default ``n * eps``.
     reorth_tol : float, optional

@@ -24,4 +24,7 @@ def test_window_benchmark_tiny(tmp_path, monkeypatch):
     assert s["max_orthogonality"] <= 50 * 600 * EPS
     assert s["forget_sv_error"] <= 50 * 600 * EPS
     assert s["bound_over_true"][0] >= 1.0
+    exact = s["exact_window"]  # nothing truncated: the window's SVD to rounding
+    assert exact["max_sv_rel"] <= 1e3 * 600 * EPS
+    assert exact["max_orthogonality"] <= 50 * 600 * EPS
     assert_drawn(tmp_path / "window_benchmark.png")
