@@ -36,14 +36,29 @@ one, the old rows being unchanged and zero in every column added since.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["RowFactor"]
+__all__ = ["RowAppend", "RowFactor"]
 
 COND_LIMIT = 16.0  # largest cond(Vp) through which new rows are written
 WIDTH_LIMIT = 4.0  # rebase when wv > WIDTH_LIMIT * p
 _GROWTH = 2.0
 _CHUNK_ROWS = 4096  # rows per block of an in-place rebase
+
+
+@dataclass(frozen=True)
+class RowAppend:
+    """New rows of ``V0`` and the small factor after them (:meth:`RowFactor.plan_append`).
+
+    ``rebase``: the plan was made in the coordinates after a rebase, which
+    :meth:`RowFactor.stage` writes first.
+    """
+
+    Vp: np.ndarray
+    rows: np.ndarray
+    rebase: bool
 
 
 class RowFactor:
@@ -60,6 +75,7 @@ class RowFactor:
         self.rebases = 0
         self.rewrites = 0  # rebases and replacements: every stored row changed
         self.reallocations = 0
+        self._staged: RowAppend | None = None
 
     # ------------------------------------------------------------------ buffer
     @property
@@ -99,18 +115,31 @@ class RowFactor:
         return V0 @ self.Vp
 
     # ------------------------------------------------------------------ updates
-    def stage(self, Vp_old_part: np.ndarray, N: np.ndarray) -> np.ndarray:
-        """Write the new rows ``N`` after the stored ones; return the new ``Vp``.
+    @property
+    def wide(self) -> bool:
+        """Whether the next update rebases first (``wv > WIDTH_LIMIT * p``).
+
+        Decided from the stored factor, exactly as a store holds it, so that a stream
+        resumed from its store rebases at the same update, bit for bit.
+        """
+        return self._wv > WIDTH_LIMIT * max(self.Vp.shape[1], 1)
+
+    def plan_append(self, Vp_old_part: np.ndarray, N: np.ndarray, *, rebase: bool
+                    ) -> RowAppend:
+        """Return the new rows ``N`` in the stored form, and the new ``Vp`` (writes nothing).
 
         Parameters
         ----------
         Vp_old_part : ndarray, shape (wv, p')
-            ``Vp T_old``: the old rows' factor after the update.
+            ``Vp T_old``: the old rows' factor after the update (in the coordinates after
+            the rebase when ``rebase``, where ``Vp`` is the identity).
         N : ndarray, shape (b, p')
             The new rows in the update's coordinates.
+        rebase : bool
+            Whether ``V0 <- V0 Vp`` is written first (:attr:`wide`).
 
-        The rows are written beyond the stored ones (scratch until :meth:`commit`), and
-        new columns are zero in every old row, so the stored ``V`` is unchanged until then.
+        New columns of ``V0`` are zero in every old row, so the stored ``V`` is unchanged
+        until :meth:`commit`.
         """
         wv, p = Vp_old_part.shape
         b = N.shape[0]
@@ -133,32 +162,37 @@ class RowFactor:
         g = s * s
         g[bad] += scale * scale
         rows = ((N @ Zt.T) / g) @ Bt if p else np.zeros((b, Vp.shape[0]))
-        self._ensure(self._m + b, Vp.shape[0])
+        return RowAppend(Vp=Vp, rows=rows, rebase=rebase)
+
+    def stage(self, append: RowAppend) -> np.ndarray:
+        """Write ``append``'s rows after the stored ones; return the rows it leads to (a view).
+
+        The staged rows are scratch until :meth:`commit` (a commit to a store writes them
+        first). A rebase the plan was made for is written here: it changes the
+        representation, never ``V``, so an update abandoned afterwards leaves ``V`` as it
+        was.
+        """
+        b, width = append.rows.shape
+        if self._staged is append:
+            return self._V0[: self._m + b, :width]
+        if append.rebase:
+            self.rebase()
+        self._ensure(self._m + b, width)
         # the whole row span is written: a staged row never keeps a stale entry from an
         # update that failed before its commit
         self._V0[self._m : self._m + b, :] = 0.0
-        self._V0[self._m : self._m + b, : Vp.shape[0]] = rows
-        return Vp
+        self._V0[self._m : self._m + b, :width] = append.rows
+        self._staged = append
+        return self._V0[: self._m + b, :width]
 
-    def planned(self, b: int, Vp: np.ndarray) -> np.ndarray:
-        """Return the stored rows after ``commit(Vp, b)`` (a view, before any rebase)."""
-        return self._V0[: self._m + b, : Vp.shape[0]]
-
-    def commit(self, Vp: np.ndarray, b: int) -> None:
-        """Make the ``b`` staged rows stored rows and ``Vp`` the small factor."""
-        self._m += int(b)
-        self._wv = int(Vp.shape[0])
-        self.Vp = Vp
-
-    def rebase_if_wide(self) -> None:
-        """Rebase when ``wv > WIDTH_LIMIT * p``: before an update plans its rows.
-
-        The rebase leaves ``V`` unchanged; done at the start of an update (not at the end
-        of the previous one) it sees exactly the state a store holds, so that a stream
-        resumed from its store rebases at the same update, bit for bit.
-        """
-        if self._wv > WIDTH_LIMIT * max(self.Vp.shape[1], 1):
-            self.rebase()
+    def commit(self, append: RowAppend) -> None:
+        """Make ``append``'s rows stored rows and its ``Vp`` the small factor."""
+        if self._staged is not append:
+            self.stage(append)
+        self._m += append.rows.shape[0]
+        self._wv = int(append.Vp.shape[0])
+        self.Vp = append.Vp
+        self._staged = None
 
     def rebase(self) -> None:
         """``V0 <- V0 Vp``, ``Vp <- I``, in place by blocks of rows."""
@@ -186,6 +220,7 @@ class RowFactor:
         self.dead = np.zeros(0, dtype=np.int64)
         self.old_rows_touched += m
         self.rewrites += 1
+        self._staged = None
 
     def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int],
                 dead: np.ndarray | None = None) -> None:
@@ -196,3 +231,4 @@ class RowFactor:
         self._V0[:m, :wv] = V0
         self._m, self._wv = m, wv
         self.Vp = Vp
+        self._staged = None

@@ -234,23 +234,28 @@ class StoreLifecycle:
         ``removed`` are the error ledger and the removed indices before the update's own
         discard (default: the current ones).
         """
-        with blas_threads(self.threads):
-            plan = make_plan()
-        self._pending = (
-            (self._ledger if ledger is None else ledger).appended(plan.m, plan.record.discarded),
-            self._removed if removed is None else removed,
-        )
-        # persist first, then switch the in-memory state: an exception anywhere before
-        # or in the commit leaves both the memory and the store as they were
-        self._history.append(plan.record)
+        # plan, then persist, then switch the in-memory state: an exception anywhere
+        # before the switch leaves both the memory and the store as they were, and the
+        # backend drops what the plan wrote in its workspace
         p = self._persistence
         try:
-            if p is not None and p.due():
-                self._commit(plan, source_offset)
-            elif p is not None:
-                p.uncommitted += 1
+            with blas_threads(self.threads):
+                plan = make_plan()
+            self._pending = (
+                (self._ledger if ledger is None else ledger).appended(
+                    plan.m, plan.record.discarded),
+                self._removed if removed is None else removed,
+            )
+            self._history.append(plan.record)
+            try:
+                if p is not None and p.due():
+                    self._commit(plan, source_offset)
+                elif p is not None:
+                    p.uncommitted += 1
+            except BaseException:
+                self._history.pop()
+                raise
         except BaseException:
-            self._history.pop()
             self._state.basis.discard_planned()
             raise
         apply_plan(self._state, plan)

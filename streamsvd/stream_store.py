@@ -34,7 +34,7 @@ from .errors import StoreError, StoreFormatError, StoreMismatchError
 from .inner import InnerProduct, as_inner, inner_from_arrays
 from .store import BasisStore, open_store
 from .store.format import StoreState
-from .update import Plan, State
+from .update import Plan, State, stage_plan
 
 __all__ = [
     "KIND", "LAYOUT", "LAYOUT_WITH_REMOVALS", "StreamStore", "open_stream_store",
@@ -146,10 +146,11 @@ class StreamStore:
             small = _Small(state.Gu, state.H, state.R, None if rows is None else rows[1],
                            state.bound, source_offset, state.m, state.waste)
         else:
-            basis, basis_attrs = state.basis.persisted(plan.new_directions,
-                                                       compacted=plan.compact)
+            stage_plan(state, plan)
+            w = plan.writes
+            basis, basis_attrs = state.basis.persisted(w.columns, compacted=w.compacted)
             rows = _planned_rows(state, plan)
-            compact, replaced = plan.compact, plan.Y_replace is not None
+            compact, replaced = w.compacted, w.rows_replaced is not None
             small = _Small(plan.Gu, plan.H, plan.R, None if rows is None else rows[1],
                            plan.bound, source_offset, plan.m, plan.waste)
         # only what changed since the previous commit is written (streamsvd.commits)
@@ -182,19 +183,20 @@ def _planned_rows(state: State, plan: Plan) -> tuple[np.ndarray, np.ndarray] | N
     """Return ``(V0, Vp)`` the plan leads to (views, for a commit); None without rows."""
     if state.rows is None:
         return None
-    if plan.Y_replace is not None:
-        return plan.Y_replace, np.eye(plan.Y_replace.shape[1])
-    assert plan.Vp is not None
-    return state.rows.planned(plan.rows_appended, plan.Vp), plan.Vp
+    w = plan.writes
+    if w.rows_replaced is not None:
+        return w.rows_replaced, np.eye(w.rows_replaced.shape[1])
+    assert w.rows is not None
+    return state.rows.stage(w.rows), w.rows.Vp
 
 
 def _planned_dead(dead: np.ndarray, plan: Plan | None) -> np.ndarray:
     """Return the dead stored rows of the right factor once ``plan`` is applied."""
     if plan is None:
         return dead
-    if plan.Y_replace is not None:
+    if plan.writes.rows_replaced is not None:
         return np.zeros(0, dtype=np.int64)
-    return dead if plan.dead is None else plan.dead
+    return dead if plan.writes.dead_rows is None else plan.writes.dead_rows
 
 
 def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any

@@ -13,12 +13,15 @@ with ``Y`` is rounded relative to 1. Each update replaces ``Y`` by
 ``Y R diag(1 / ||r_i||)`` are orthonormal to the Jacobi tolerance ``sqrt(m) eps``.
 
 Every update is planned first (:func:`plan_absorb`, :func:`plan_add`,
-:func:`plan_merge`): the new directions are orthonormalised in the backend's workspace,
-the small core ``K`` is rotated, sorted and truncated (:func:`streamsvd._core.core_step`),
-a compaction ``Q <- [Q, Q_new] Gu`` is written into the backend's spare buffer when it
-pays, and the new rows of ``V`` are written after the stored ones. Nothing stored changes
-until :func:`apply_plan`, so an exception anywhere in the planning, or in a commit to a
-store between the two, leaves the state exactly as it was.
+:func:`plan_merge`, :func:`plan_finalize`): the new directions are orthonormalised in the
+backend's workspace, the small core ``K`` is rotated, sorted and truncated
+(:func:`streamsvd._core.core_step`), and when a compaction ``Q <- [Q, Q_new] Gu`` pays it
+is computed into the workspace too, so that its Gram is measured from the columns
+themselves. A plan is small matrices and a list of deferred :class:`Writes` (the columns
+that become stored, the new rows of ``Y``); it writes nothing that the state or a store
+refers to. :func:`stage_plan` makes those writes durable for a commit (the persistence
+adapter calls it) and :func:`apply_plan` switches to them, so an exception anywhere in
+the planning, or in a commit between the two, leaves the state exactly as it was.
 
 Cost of absorbing ``b`` columns at rank ``p`` (stored width ``w``): one or two block
 projections (``4 n w b`` flops each, the second only for the columns the first cancelled),
@@ -45,11 +48,11 @@ from .basis import BasisBackend
 from .bound import Bound
 from .gram_schmidt import BasisExtension, extend_basis
 from .inner import InnerProduct
-from .rows import RowFactor
+from .rows import RowAppend, RowFactor
 
 __all__ = [
     "Extents", "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add",
-    "plan_finalize", "gram_orthogonality", "plan_merge", "stage_rows",
+    "plan_finalize", "gram_orthogonality", "plan_merge", "plan_rows", "stage_plan", "Writes",
 ]
 
 logger = logging.getLogger(__name__)
@@ -119,11 +122,28 @@ class Extents:
 
 
 @dataclass(frozen=True)
-class Plan:
-    """Everything an update computed, applied by :func:`apply_plan`."""
+class Writes:
+    """What applying a plan writes to the stored factors (nothing is written while planning).
 
-    new_directions: int
-    compact: bool
+    ``columns``: workspace columns that become stored columns of the basis; ``compacted``:
+    the compacted basis (written in the backend's workspace by
+    :meth:`~streamsvd.basis.BasisAlgebra.compact_planned`) replaces the stored one;
+    ``rows``: new rows of ``Y`` and its new small factor; ``rows_replaced``: ``Y`` written
+    anew whole (``add``, or a removal that orthonormalises the live rows again);
+    ``dead_rows``: the stored rows no longer live (:mod:`streamsvd.downdate`).
+    """
+
+    columns: int = 0
+    compacted: bool = False
+    rows: RowAppend | None = None
+    rows_replaced: np.ndarray | None = None
+    dead_rows: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything an update computed: the small matrices, and the writes deferred to apply."""
+
     Gu: np.ndarray
     H: np.ndarray
     R: np.ndarray
@@ -131,26 +151,37 @@ class Plan:
     waste: float
     bound: Bound
     record: UpdateRecord
-    rows_appended: int = 0
-    Vp: np.ndarray | None = None
-    Y_replace: np.ndarray | None = None
-    dead: np.ndarray | None = None  # the stored rows removed (streamsvd.downdate)
+    writes: Writes
+
+
+def stage_plan(state: State, plan: Plan) -> None:
+    """Make the plan's new columns and rows durable before a commit refers to them.
+
+    Nothing stored changes: the staged columns and rows are scratch until
+    :func:`apply_plan` (a rebase of the rows changes their representation, never ``V``).
+    """
+    w = plan.writes
+    if not w.compacted:
+        state.basis.stage_new(w.columns)
+    if state.rows is not None and w.rows is not None:
+        state.rows.stage(w.rows)
 
 
 def apply_plan(state: State, plan: Plan) -> None:
-    """Switch the state to the planned one (cannot fail half-way)."""
-    if plan.compact:
+    """Switch the state to the planned one, writing what the plan deferred."""
+    w = plan.writes
+    if w.compacted:
         state.basis.swap(plan.Gu.shape[1])
     else:
-        state.basis.accept(plan.new_directions)
+        state.basis.accept(w.columns)
     if state.rows is not None:
-        if plan.Y_replace is not None:
-            state.rows.replace(plan.Y_replace)
+        if w.rows_replaced is not None:
+            state.rows.replace(w.rows_replaced)
         else:
-            assert plan.Vp is not None
-            state.rows.commit(plan.Vp, plan.rows_appended)
-            if plan.dead is not None:
-                state.rows.dead = plan.dead
+            assert w.rows is not None
+            state.rows.commit(w.rows)
+            if w.dead_rows is not None:
+                state.rows.dead = w.dead_rows
     state.Gu, state.H, state.R = plan.Gu, plan.H, plan.R
     state.m, state.waste, state.bound = plan.m, plan.waste, plan.bound
 
@@ -333,7 +364,6 @@ def _plan(
         Gu, waste = np.eye(p_new), 0.0
     else:
         H = _extended_gram(state, ext)
-        state.basis.stage_new(r)
     orth = gram_orthogonality(Gu, H)
     if orth > opts.reorth_tol:
         # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged (V = Y R, so
@@ -343,8 +373,7 @@ def _plan(
         Gu = scipy.linalg.solve_triangular(L, Gu.T, lower=True).T
         R = R @ L
         orth = gram_orthogonality(Gu, H)
-    Vp = Y_full = None
-    appended = 0
+    rows = Y_full = None
     if state.rows is not None:
         # Y <- blockdiag(Y, Y_appended) P, P = Q_K Q_R orthonormal
         P = np.eye(K.shape[0]) if Q_K is None else Q_K
@@ -353,7 +382,7 @@ def _plan(
         if Y_replace is not None:
             Y_full = Y_replace @ P
         else:
-            Vp, appended = stage_rows(state, P, Y_appended, Y_map=Y_map)
+            rows = plan_rows(state, P, Y_appended, Y_map=Y_map)
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
         discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
@@ -369,28 +398,34 @@ def _plan(
         "%s of %d columns: %d passes over the basis, %d sweeps, rank %d", kind, columns,
         ext.passes, step.sweeps, p_new,
     )
-    return Plan(
-        new_directions=r, compact=compact, Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound,
-        record=record, rows_appended=appended, Vp=Vp, Y_replace=Y_full, dead=dead,
+    writes = Writes(
+        columns=0 if compact else r, compacted=compact, rows=rows, rows_replaced=Y_full,
+        dead_rows=dead,
     )
+    return Plan(Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound, record=record, writes=writes)
 
 
-def stage_rows(
+def plan_rows(
     state: State, P: np.ndarray, Y_appended: np.ndarray | None,
     *, Y_map: np.ndarray | None = None,
-) -> tuple[np.ndarray, int]:
-    """Stage ``Y <- blockdiag(Y, Y_appended) P``; return the new ``Vp`` and the rows added.
+) -> RowAppend:
+    """Plan ``Y <- blockdiag(Y, Y_appended) P``: the new rows and the new ``Vp``.
 
     ``P`` (``(k + k_a) x k_new``) is orthonormal; ``Y_appended`` (the identity when None)
     holds the new rows' own orthonormal factor; ``Y_map`` (``k x k'``), when given, maps
-    ``Y`` first (``Y <- Y Y_map``: a removal).
+    ``Y`` first (``Y <- Y Y_map``: a removal). When the stored factor is too wide
+    (:attr:`~streamsvd.rows.RowFactor.wide`) the plan is made in the coordinates after a
+    rebase, which staging writes.
     """
-    assert state.rows is not None
+    rows = state.rows
+    assert rows is not None
     k = state.R.shape[0] if Y_map is None else Y_map.shape[1]
-    state.rows.rebase_if_wide()
-    Vp = state.rows.Vp if Y_map is None else state.rows.Vp @ Y_map
+    rebase = rows.wide
+    Vp = np.eye(rows.Vp.shape[1]) if rebase else rows.Vp
+    if Y_map is not None:
+        Vp = Vp @ Y_map
     N = P[k:] if Y_appended is None else Y_appended @ P[k:]
-    return state.rows.stage(Vp @ P[:k], N), N.shape[0]
+    return rows.plan_append(Vp @ P[:k], N, rebase=rebase)
 
 
 # ---------------------------------------------------------------------------- helpers

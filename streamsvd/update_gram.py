@@ -53,7 +53,7 @@ import scipy.linalg
 from ._blocks import apply_into, gram, scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
-from .update import Plan, State, StepOptions, gram_orthogonality, stage_rows
+from .update import Plan, State, StepOptions, Writes, gram_orthogonality, plan_rows
 
 __all__ = ["plan_absorb_by_gram"]
 
@@ -180,7 +180,7 @@ def plan_absorb_by_gram(
     L = np.linalg.cholesky(H)
     Gu = scipy.linalg.solve_triangular(L, np.eye(keep), lower=True).T  # L^{-T}
     R = amps[:keep, np.newaxis] * L
-    Vp, appended = (None, 0) if state.rows is None else stage_rows(state, W[:, :keep], None)
+    rows = None if state.rows is None else plan_rows(state, W[:, :keep], None)
     discarded = math.ldexp(math.sqrt(float(np.sum(lam[keep:])) + allowance), top)
     bound = state.bound.step(discarded, 0.0, overlapping=False)
     orth = gram_orthogonality(Gu, H)
@@ -190,7 +190,5 @@ def plan_absorb_by_gram(
         orthogonality=orth, error_bound=bound.bound, seconds=time.perf_counter() - t0,
         passes=2,
     )
-    return Plan(
-        new_directions=b, compact=True, Gu=Gu, H=H, R=R, m=m, waste=0.0, bound=bound,
-        record=record, rows_appended=appended, Vp=Vp,
-    )
+    return Plan(Gu=Gu, H=H, R=R, m=m, waste=0.0, bound=bound, record=record,
+                writes=Writes(compacted=True, rows=rows))

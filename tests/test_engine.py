@@ -49,7 +49,7 @@ def test_row_factor_extends_instead_of_inverting_an_ill_conditioned_vp(rng):
     columns, zero in every old row. A rebase changes the representation, not V."""
     rows = RowFactor()
     N0 = rng.standard_normal((50, 4))
-    rows.commit(rows.stage(np.zeros((0, 4)), N0), 50)
+    rows.commit(rows.plan_append(np.zeros((0, 4)), N0, rebase=False))
     np.testing.assert_array_equal(rows.value(), N0)
     # an update that nearly rotates term 3 out of the old rows, and adds a fifth term
     T_old = np.linalg.qr(rng.standard_normal((4, 4)))[0] @ np.diag([1, 1, 1, 1e-9])
@@ -57,8 +57,8 @@ def test_row_factor_extends_instead_of_inverting_an_ill_conditioned_vp(rng):
     Vp_old = rows.Vp @ T_old
     N = rng.standard_normal((7, 5))
     before = rows.old_rows_touched
-    Vp = rows.stage(Vp_old, N)
-    rows.commit(Vp, 7)
+    append = rows.plan_append(Vp_old, N, rebase=False)
+    rows.commit(append)
     assert rows.old_rows_touched == before and rows.width == 6  # two directions added
     assert np.linalg.cond(rows.Vp) <= COND_LIMIT * 1.01
     V = rows.value()
