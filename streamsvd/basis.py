@@ -12,9 +12,10 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
   written aside first so that nothing stored changes before ``swap``; its Gram is
   measured from the written columns;
-* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``: what a commit to a store needs;
-  ``compactions`` counts the swaps, so a commit tells the columns appended since the
-  previous one (the others are unchanged) from a basis replaced whole.
+* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``, ``collect(...)``: what a commit
+  to a store needs, and what it may delete afterwards; ``compactions`` counts the swaps,
+  so a commit tells the columns appended since the previous one (the others are
+  unchanged) from a basis replaced whole.
 * ``take(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
   Gram-Schmidt with ``project``, never formed again.)
 
@@ -23,18 +24,31 @@ column-major buffers whose capacity grows geometrically, so appending columns ne
 copies the basis (the buffers are reallocated ``O(log)`` times over a stream, counted in
 :attr:`MemoryBasis.reallocations`); a compaction writes into a second buffer of the same
 capacity, swapped in by ``swap``.
+
+A compressor does not choose its basis class: it is given a :class:`Backend`, which
+makes its basis and says what that choice implies (the kind of store it writes, how a
+copy gets its own basis, how a block reaches memory). :class:`MemoryBackend` is the
+default; :class:`streamsvd.parallel_tall.PanelBackend` keeps the basis in zarr panels.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+import copy
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg.blas as blas
 
 from .inner import InnerProduct
 
-__all__ = ["BasisAlgebra", "BasisBackend", "BasisStaging", "MemoryBasis"]
+__all__ = [
+    "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "MEMORY_KIND", "MemoryBackend",
+    "MemoryBasis",
+]
+
+MEMORY_KIND = "streamsvd.StreamCompressor"
+"""The kind recorded in the store of a compressor whose basis is in memory."""
 
 _GROWTH = 2.0  # capacity factor when the buffers are full
 
@@ -91,9 +105,67 @@ class BasisStaging(Protocol):
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
         """Load the basis a commit wrote."""
 
+    def collect(self, committed: Sequence[dict]) -> None:
+        """Delete stored data that neither the state nor these commits' attributes use."""
+
 
 class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
     """What an update needs from the n-sized factor: its algebra and its staging."""
+
+
+class Backend(Protocol):
+    """Where a compressor keeps its n-sized factor, and what that choice implies."""
+
+    kind: str  # recorded in the store: a store is reopened with the backend that wrote it
+    temporary: bool  # the basis is removed by close() (nothing left to finalise)
+
+    def new_basis(self, n: int, inner: InnerProduct) -> BasisBackend:
+        """Return an empty basis for snapshots of size ``n`` in the inner product ``inner``."""
+
+    def fresh(self) -> Backend:
+        """Return a backend of the same settings whose basis is independent of this one."""
+
+    def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
+        """Return ``basis`` copied for a compressor whose own empty basis is ``blank``."""
+
+    def load(self, columns: Any, *, rows: int, first: int) -> Any:
+        """Return a block of ``rows`` rows in memory (``first``: its offset, for errors)."""
+
+    def describe(self, basis: BasisBackend) -> str:
+        """Return what ``repr`` of a compressor shows of its basis (may be empty)."""
+
+    def close(self) -> None:
+        """Release what the backend holds (a temporary directory, ...)."""
+
+
+class MemoryBackend:
+    """The basis in memory (:class:`MemoryBasis`): the default of every compressor."""
+
+    kind = MEMORY_KIND
+    temporary = False
+
+    def new_basis(self, n: int, inner: InnerProduct) -> MemoryBasis:
+        """Return an empty in-memory basis."""
+        return MemoryBasis(n, inner)
+
+    def fresh(self) -> MemoryBackend:
+        """Return this backend (it holds nothing)."""
+        return self
+
+    def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
+        """Return a deep copy of the buffers."""
+        return copy.deepcopy(basis)
+
+    def load(self, columns: Any, *, rows: int, first: int) -> Any:
+        """Return the block as given (the facade checks and converts it)."""
+        return columns
+
+    def describe(self, basis: BasisBackend) -> str:
+        """Nothing beyond the compressor's own fields."""
+        return ""
+
+    def close(self) -> None:
+        """Nothing to release."""
 
 
 class MemoryBasis:
@@ -253,6 +325,9 @@ class MemoryBasis:
         Q, MQ = self._planned(r, compacted=compacted)
         arrays = {"Q": Q} if self.inner.is_euclidean else {"Q": Q, "MQ": MQ}
         return arrays, {"capacity": self.capacity}
+
+    def collect(self, committed: Sequence[dict]) -> None:
+        """Nothing to delete: the buffers are in memory."""
 
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
         """Load the stored columns, with the capacity they were written with."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -300,9 +301,9 @@ class PanelBasis:
         name, width, _ = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
         self.panels, self.widths = [name], [width]
 
-    def collect(self, keep: set[str]) -> None:
-        """Delete the panels that neither the state nor ``keep`` refers to."""
-        live = set(self.panels) | keep
+    def collect(self, committed: Sequence[dict]) -> None:
+        """Delete the panels that neither the state nor these commits' attributes refer to."""
+        live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)

@@ -1,7 +1,9 @@
 """Out-of-core streaming for tall snapshots: the stream compressor over zarr row panels.
 
-:class:`TallCompressor` is :class:`~streamsvd.StreamCompressor` with its n-sized factor in
-a :class:`~streamsvd.panels.PanelBasis`: the basis lives in zarr panels chunked by rows
+:class:`PanelBackend` is the backend (:class:`~streamsvd.basis.Backend`) that keeps a
+compressor's n-sized factor in a :class:`~streamsvd.panels.PanelBasis`, and
+:class:`TallCompressor` is :class:`~streamsvd.StreamCompressor` built with it (a
+constructor and nothing else): the basis lives in zarr panels chunked by rows
 in the store directory (``<store>/panels/``), and every product with it runs over row
 chunks with dask, on the threaded scheduler or on a ``distributed`` cluster. The update
 step, the options, ``add``, ``merge``, the error bound, the history and the store are the
@@ -14,7 +16,7 @@ or none with ``right_vectors=False``); the basis (``n x w``) never is. At ``n = 
 ``b = 100`` the process peaks at 1.0 to 1.1 GB (``bench/outofcore_benchmark.py``): the
 peak grows with ``n``.
 
-Crash safety: a plan writes its new panel (or the compacted basis) before the commit
+Crash safety: an update writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two
 commits refer to it, so a process or worker killed at any instant leaves the last commit
 readable; leftovers are removed when the store is reopened for writing.
@@ -27,7 +29,7 @@ import shutil
 import tempfile
 import weakref
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -35,14 +37,13 @@ from ._scaling import safe_column_norms
 from ._validation import check_positive_int
 from .basis import BasisBackend
 from .errors import InputError, ShapeMismatchError, SourceError
-from .inner import DiagonalInner, InnerProduct, as_inner
-from .options import CompressorOptions
+from .inner import DiagonalInner, InnerProduct
 from .panels import PanelBasis
 from .scheduling import check_client, execute
 from .storage import LocalStorage, ObjectStorage, open_storage
-from .stream import StreamCompressor, UpdateRecord
+from .stream import StreamCompressor
 
-__all__ = ["DEFAULT_CHUNK_ROWS", "KIND", "TallCompressor"]
+__all__ = ["DEFAULT_CHUNK_ROWS", "KIND", "PanelBackend", "TallCompressor"]
 
 logger = logging.getLogger(__name__)
 
@@ -52,8 +53,145 @@ DEFAULT_CHUNK_ROWS = 16384
 KIND = "streamsvd.TallCompressor"
 
 
+class PanelBackend:
+    """The basis in zarr panels chunked by rows (:class:`~streamsvd.panels.PanelBasis`).
+
+    Parameters
+    ----------
+    root : LocalStorage or ObjectStorage
+        Where the ``panels/`` prefix is: the store's root, or a work directory.
+    chunk_rows : int
+        Rows per chunk of the panels and of the products.
+    client : distributed.Client or None
+        Where the row-chunk products run (the threaded scheduler when None).
+    temporary : bool
+        ``root`` is a temporary directory of this backend, removed by :meth:`close` (or
+        when the backend is garbage collected).
+    """
+
+    kind = KIND
+
+    def __init__(self, root: LocalStorage | ObjectStorage, *, chunk_rows: int, client: Any,
+                 temporary: bool = False) -> None:
+        self.root = root
+        self.chunk_rows = int(chunk_rows)
+        self.client = client
+        self.temporary = temporary
+        self._cleanup = (
+            weakref.finalize(self, shutil.rmtree, cast(LocalStorage, root).root, True)
+            if temporary else None
+        )
+
+    @classmethod
+    def create(
+        cls, *, store: Any, workdir: Any, chunk_rows: int | None, client: Any,
+        storage_options: dict[str, Any] | None,
+    ) -> PanelBackend:
+        """Check the tall mode's arguments; return its backend (panels in ``store``, or else)."""
+        if store is not None and workdir is not None:
+            raise InputError(
+                f"`workdir` must be None when `store` is given (the panels live in the "
+                f"store); got workdir={workdir!r}. Drop one of them."
+            )
+        rows = int(check_positive_int(  # type: ignore[arg-type]
+            DEFAULT_CHUNK_ROWS if chunk_rows is None else chunk_rows, "chunk_rows"))
+        client = check_client(client)
+        if store is not None:
+            root = open_storage(store, storage_options=storage_options, argument="store")
+        elif workdir is None:
+            return cls.temporary_for(chunk_rows=rows, client=client)
+        else:
+            root = open_storage(workdir, storage_options=storage_options, argument="workdir")
+            root.prepare()
+        return cls(root, chunk_rows=rows, client=client)
+
+    @classmethod
+    def temporary_for(cls, *, chunk_rows: int, client: Any) -> PanelBackend:
+        """Return a backend whose panels live in a new temporary directory."""
+        root = LocalStorage(Path(tempfile.mkdtemp(prefix="streamsvd-tall-")))
+        return cls(root, chunk_rows=chunk_rows, client=client, temporary=True)
+
+    def new_basis(self, n: int, inner: InnerProduct) -> PanelBasis:
+        """Return an empty basis of panels; ``inner`` must be Euclidean or diagonal."""
+        if not (inner.is_euclidean or isinstance(inner, DiagonalInner)):
+            raise InputError(
+                f"`inner` must be Euclidean or diagonal weights out of core; got {inner!r}, "
+                "which couples the row chunks. Use the in-memory StreamCompressor, or "
+                "lump the mass matrix into weights."
+            )
+        return PanelBasis(n, inner, chunk_rows=self.chunk_rows, client=self.client,
+                          root=self.root)
+
+    @classmethod
+    def for_store(cls, basis_attrs: dict[str, Any], root: Any, *, client: Any) -> PanelBackend:
+        """Return the backend of the store at ``root``, with the row chunks it recorded."""
+        storage = open_storage(root, argument="path")
+        storage.prepare()
+        return cls(storage, chunk_rows=int(basis_attrs["chunk_rows"]), client=client)
+
+    def fresh(self) -> PanelBackend:
+        """Return a backend with the same settings and its own temporary directory."""
+        return PanelBackend.temporary_for(chunk_rows=self.chunk_rows, client=self.client)
+
+    def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
+        """Return the panels copied into ``blank``'s root, as one panel.
+
+        The copy is written chunk by chunk (``O(n w)`` on disk, never in memory), so the
+        copy outlives the original and its store.
+        """
+        assert isinstance(basis, PanelBasis) and isinstance(blank, PanelBasis)
+        blank.adopt(basis)
+        return blank
+
+    def load(self, columns: Any, *, rows: int, first: int) -> Any:
+        """Return a block in memory: a dask array is read by row chunks (on the cluster).
+
+        Raises :class:`~streamsvd.errors.SourceError` when the read fails, naming the
+        columns; a numpy block is returned as it is.
+        """
+        import dask.array as da
+
+        if not isinstance(columns, da.Array):
+            return columns
+        if columns.ndim != 2 or columns.shape[0] != rows:
+            raise ShapeMismatchError(
+                f"`columns` must have {rows} rows; got shape {columns.shape}. Pass "
+                "snapshots as columns."
+            )
+        if columns.dtype.kind not in "biuf":
+            raise InputError(
+                f"`columns` must hold real numbers; got dtype {columns.dtype}. "
+                "Convert it with `.astype(float)`."
+            )
+        if columns.shape[1] == 0:
+            raise InputError(f"`columns` must not be empty; got shape {columns.shape}.")
+        try:
+            (block,) = execute([columns.astype(np.float64)], client=self.client)
+        except Exception as exc:
+            raise SourceError(
+                f"absorbing columns {first}:{first + columns.shape[1]} (offset {first}) "
+                f"failed: {type(exc).__name__}: {exc}. The basis is unchanged and a store "
+                f"holds its last commit; fix the cause and resume from offset {first}."
+            ) from exc
+        return np.asarray(block)
+
+    def describe(self, basis: BasisBackend) -> str:
+        """Return the number of panels and the rows per chunk."""
+        assert isinstance(basis, PanelBasis)
+        return f"panels={len(basis.panels)}, chunk_rows={self.chunk_rows}, "
+
+    def close(self) -> None:
+        """Remove a temporary directory with its panels."""
+        if self._cleanup is not None:
+            self._cleanup()
+            self._cleanup = None
+
+
 class TallCompressor(StreamCompressor):
     """Stream snapshots into a basis kept out of core, in zarr panels chunked by rows.
+
+    A :class:`~streamsvd.StreamCompressor` whose backend is a :class:`PanelBackend`: this
+    class only builds it from the arguments below.
 
     Parameters
     ----------
@@ -81,7 +219,7 @@ class TallCompressor(StreamCompressor):
         ``key``, ``secret``, ``endpoint_url``, ...).
     **options
         ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
-        ``reject_tol``, ``reorth_tol``, ``right_vectors``, ``commit_every``: as for
+        ``reject_tol``, ``reorth_tol``, ``right_vectors``, ``commit_every``, ...: as for
         :class:`~streamsvd.StreamCompressor`.
 
     Notes
@@ -89,7 +227,11 @@ class TallCompressor(StreamCompressor):
     Cost of absorbing ``b`` columns at stored width ``w``: the in-memory update's flops
     (:mod:`streamsvd.update`), each product with the basis a dask graph over the row
     chunks that reads the panels once; a new panel of ``n x r`` (or the compacted basis
-    ``n x p``) is written per update.
+    ``n x p``) is written per update. A dask block is read by row chunks (on the cluster
+    when there is one) into memory first; on any error (bad input, a failing read, a lost
+    worker) the state in memory and in the store is unchanged, and what the update wrote
+    is removed. Without ``store`` or ``workdir``, :meth:`close` removes the panels and
+    finalises nothing.
     """
 
     KIND = KIND
@@ -106,48 +248,12 @@ class TallCompressor(StreamCompressor):
         storage_options: dict[str, Any] | None = None,
         **options: Any,
     ) -> None:
-        n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
-        ip = as_inner(inner, n)
-        if not (ip.is_euclidean or isinstance(ip, DiagonalInner)):
-            raise InputError(
-                f"`inner` must be Euclidean or diagonal weights out of core; got {ip!r}, "
-                "which couples the row chunks. Use the in-memory StreamCompressor, or "
-                "lump the mass matrix into weights."
-            )
-        if store is not None and workdir is not None:
-            raise InputError(
-                f"`workdir` must be None when `store` is given (the panels live in the "
-                f"store); got workdir={workdir!r}. Drop one of them."
-            )
-        self.chunk_rows = int(check_positive_int(  # type: ignore[arg-type]
-            DEFAULT_CHUNK_ROWS if chunk_rows is None else chunk_rows, "chunk_rows"))
-        self.client = check_client(client)
-        self._cleanup: Any = None
-        self._root: LocalStorage | ObjectStorage
-        if store is not None:
-            self._root = store = open_storage(store, storage_options=storage_options,
-                                              argument="store")
-        elif workdir is None:
-            self._root = LocalStorage(Path(tempfile.mkdtemp(prefix="streamsvd-tall-")))
-            self._cleanup = weakref.finalize(self, shutil.rmtree, self._root.root, True)
-        else:
-            self._root = open_storage(workdir, storage_options=storage_options,
-                                      argument="workdir")
-            self._root.prepare()
-        self._commits: tuple[set[str], set[str]] = (set(), set())
-        super().__init__(n, inner=ip, store=store, **options)
+        check_positive_int(n, "n")
+        backend = PanelBackend.create(store=store, workdir=workdir, chunk_rows=chunk_rows,
+                                      client=client, storage_options=storage_options)
+        super().__init__(n, inner=inner, store=None if store is None else backend.root,
+                         backend=backend, **options)
 
-    def _new_basis(self) -> PanelBasis:
-        return PanelBasis(self.n, self.inner, chunk_rows=self.chunk_rows, client=self.client,
-                          root=self._root)
-
-    @property
-    def _panels(self) -> PanelBasis:
-        basis = self._state.basis
-        assert isinstance(basis, PanelBasis)
-        return basis
-
-    # --------------------------------------------------------------- persistence
     @classmethod
     def open(
         cls, path: Any, *, inner: Any = None, mode: str = "a", client: Any = None,
@@ -169,85 +275,33 @@ class TallCompressor(StreamCompressor):
         storage_options : dict, optional
             Options of the object store of a URL ``path``.
         """
-        return cls._open(path, inner=inner, mode=mode, backend={"client": client},
-                         storage_options=storage_options)
+        client = check_client(client)
+        return cls._open(
+            path, inner=inner, mode=mode, kind=KIND,
+            backend=lambda attrs, root: PanelBackend.for_store(attrs, root, client=client),
+            storage_options=storage_options,
+        )
 
-    @classmethod
-    def _reopen(cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, *,
-                options: CompressorOptions, **backend: Any) -> Any:
-        return cls(n, inner=inner, workdir=path, client=backend.get("client"),
-                   chunk_rows=int(attrs["basis"]["chunk_rows"]), **options.as_dict())
+    @property
+    def chunk_rows(self) -> int:
+        """Rows per chunk of the panels."""
+        return self._panel_backend.chunk_rows
 
-    def _reopened(self, mode: str) -> None:
-        self._commits = (set(self._panels.panels), set())
-        if mode == "a":
-            self._panels.collect(set())
+    @property
+    def client(self) -> Any:
+        """The cluster the row-chunk products run on (None: the threaded scheduler)."""
+        return self._panel_backend.client
 
-    def _committed(self, basis_attrs: dict[str, Any]) -> None:
-        """Keep the panels of the current and previous commits; delete the others."""
-        self._commits = (set(basis_attrs["panels"]), self._commits[0])
-        self._panels.collect(self._commits[0] | self._commits[1])
+    @property
+    def _panel_backend(self) -> PanelBackend:
+        backend = self._backend
+        assert isinstance(backend, PanelBackend)
+        return backend
 
-    def close(self, *, finalize: bool = True) -> None:
-        """Finalise, commit what is pending, release the store's lock, remove a workdir.
-
-        As :meth:`StreamCompressor.close <streamsvd.StreamCompressor.close>`; a
-        temporary workdir (no store, no ``workdir``) is removed with its panels, and
-        nothing is finalised then.
-        """
-        super().close(finalize=finalize and self._cleanup is None)
-        if self._cleanup is not None:
-            self._cleanup()
-            self._cleanup = None
-
-    def __enter__(self) -> TallCompressor:
-        return self
-
-    # ------------------------------------------------------------------ updates
-    def absorb(self, columns: Any, *, source_offset: int | None = None) -> UpdateRecord:
-        """Append a block of snapshots (``n x b``, a numpy or dask array).
-
-        A dask array is read by row chunks (on the cluster when there is one) into
-        memory first. On any error (bad input, a failing read, a lost worker) the state in
-        memory and in the store is unchanged, and what the update wrote is removed.
-        """
-        import dask.array as da
-
-        if isinstance(columns, da.Array):
-            if columns.ndim != 2 or columns.shape[0] != self.n:
-                raise ShapeMismatchError(
-                    f"`columns` must have {self.n} rows; got shape {columns.shape}. Pass "
-                    "snapshots as columns."
-                )
-            if columns.dtype.kind not in "biuf":
-                raise InputError(
-                    f"`columns` must hold real numbers; got dtype {columns.dtype}. "
-                    "Convert it with `.astype(float)`."
-                )
-            if columns.shape[1] == 0:
-                raise InputError(f"`columns` must not be empty; got shape {columns.shape}.")
-            try:
-                (columns,) = execute([columns.astype(np.float64)], client=self.client)
-            except Exception as exc:
-                a = self.source_offset
-                kept = "" if self._persistence is None else " and the store holds its last commit"
-                raise SourceError(
-                    f"absorbing columns {a}:{a + columns.shape[1]} (offset {a}) failed: "
-                    f"{type(exc).__name__}: {exc}. The basis is unchanged{kept}; fix the "
-                    f"cause and resume from offset {a}."
-                ) from exc
-            columns = np.asarray(columns)
-        try:
-            return super().absorb(columns, source_offset=source_offset)
-        except BaseException:
-            self._panels.discard_planned()  # the panels a failed plan wrote
-            raise
-
-    # --------------------------------------------------------------- properties
     @property
     def stored_width(self) -> int:
         """Number of stored columns of the basis (all panels)."""
-        return self._panels.width
+        return self._state.basis.width
 
     def factors(self) -> tuple[Any, np.ndarray]:
         """Return the expansion as ``(U, V)``: ``U`` lazy (dask, over the panels), ``V`` in memory.
@@ -259,35 +313,12 @@ class TallCompressor(StreamCompressor):
         ``right_vectors=True``.
         """
         s = self._state
+        basis = s.basis
+        assert isinstance(basis, PanelBasis)
         V = self.right_factor()
         perm = np.argsort(-safe_column_norms(V), kind="stable")
-        U = self._panels.lazy(s.Gu[:, perm])
+        U = basis.lazy(s.Gu[:, perm])
         top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client)
         signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`
         return U * signs, V[:, perm] * signs
-
-    def _empty_copy(self, **changes: Any) -> TallCompressor:
-        return TallCompressor(
-            self.n, chunk_rows=self.chunk_rows, client=self.client, inner=self.inner,
-            source_record=self.source_record, threads=self.threads,
-            **{**self.options.as_dict(), **changes},
-        )
-
-    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
-        """Return the panels copied into the copy's own work directory, as one panel.
-
-        The copy is written chunk by chunk (``O(n w)`` on disk, never in memory), so the
-        copy outlives the original and its store.
-        """
-        assert isinstance(blank, PanelBasis)
-        blank.adopt(self._panels)
-        return blank
-
-    def __repr__(self) -> str:
-        return (
-            f"TallCompressor(n={self.n}, n_seen={self.n_seen}, rank={self.rank}, "
-            f"panels={len(self._panels.panels)}, chunk_rows={self.chunk_rows}, "
-            f"rule={self.rule!r}, sweeps={self.sweeps}, eps={self.eps}, rtol={self.rtol}, "
-            f"max_rank={self.max_rank})"
-        )

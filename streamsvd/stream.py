@@ -55,7 +55,7 @@ import numpy as np
 from ._core import UpdateRecord, r_factor
 from ._threads import check_threads
 from ._validation import as_float_array, check_choice, check_positive_int
-from .basis import BasisBackend, MemoryBasis
+from .basis import MEMORY_KIND, Backend, MemoryBackend
 from .bound import Bound
 from .errors import InputError
 from .expansion import Expansion
@@ -66,7 +66,7 @@ from .provenance import SourceRecord
 from .rotations import RULES
 from .rows import RowFactor
 from .stream_lifecycle import StoreLifecycle
-from .stream_store import KIND, StreamStore
+from .stream_store import StreamStore
 from .stream_window import Removals
 from .update import (
     State,
@@ -172,6 +172,10 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         of ``[gamma^(m-1) a_1, ..., gamma a_(m-1), a_m]`` whatever the block sizes (the
         core, the error bound and the discarded norm are scaled by ``gamma^b`` before a
         block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
+    backend : Backend, optional
+        Where the n-sized factor lives (:class:`~streamsvd.basis.MemoryBackend`, the
+        default; :class:`~streamsvd.parallel_tall.PanelBackend` keeps it in zarr panels,
+        as :class:`~streamsvd.parallel.TallCompressor` builds it).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).
         One thread is never much slower than all cores and is much faster on a machine
@@ -193,9 +197,11 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         source_record: SourceRecord | None = None,
         storage_options: dict[str, Any] | None = None,
         threads: int | None = 1,
+        backend: Backend | None = None,
         **options: Any,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
+        self._backend: Backend = MemoryBackend() if backend is None else backend
         self.threads = check_threads(threads)
         self.inner: InnerProduct = as_inner(inner, self.n)
         if source_record is not None and not isinstance(source_record, SourceRecord):
@@ -207,7 +213,7 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         self.options = CompressorOptions.validated(self.n, **options)
         self._opts = self.options.step_options(self.inner)
         self._state = State(
-            basis=self._new_basis(),
+            basis=self._backend.new_basis(self.n, self.inner),
             rows=RowFactor() if self.options.right_vectors else None,
         )
         self._history: list[UpdateRecord] = []
@@ -219,26 +225,30 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         if store is not None:
             self._start_store(store, storage_options)
 
-    KIND = KIND
+    KIND = MEMORY_KIND
 
     @functools.cached_property
     def _inner_data(self) -> dict[str, np.ndarray]:
         """The inner product's arrays that the store keeps (none for an unknown class)."""
         return inner_arrays(self.inner) or {}
 
-    def _new_basis(self) -> BasisBackend:
-        """Return the n-sized backend of this facade (in memory)."""
-        return MemoryBasis(self.n, self.inner)
+    @classmethod
+    def _built(cls, n: int, *, backend: Backend, **arguments: Any) -> Any:
+        """Return a compressor of this class around ``backend`` (its constructor skipped)."""
+        sc = cls.__new__(cls)
+        StreamCompressor.__init__(sc, n, backend=backend, **arguments)
+        return sc
 
-    def _empty_copy(self, **changes: Any) -> StreamCompressor:
+    def _empty_copy(self, **changes: Any) -> Any:
         """Return a compressor with these options (but ``changes``), nothing absorbed."""
-        return StreamCompressor(self.n, inner=self.inner, source_record=self.source_record,
-                                threads=self.threads,
-                                **{**self.options.as_dict(), **changes})
+        return self._built(self.n, backend=self._backend.fresh(), inner=self.inner,
+                           source_record=self.source_record, threads=self.threads,
+                           **{**self.options.as_dict(), **changes})
 
     def __repr__(self) -> str:
         return (
-            f"StreamCompressor(n={self.n}, n_seen={self.n_seen}, rank={self.rank}, "
+            f"{type(self).__name__}(n={self.n}, n_seen={self.n_seen}, rank={self.rank}, "
+            f"{self._backend.describe(self._state.basis)}"
             f"rule={self.rule!r}, sweeps={self.sweeps}, eps={self.eps}, rtol={self.rtol}, "
             f"max_rank={self.max_rank})"
         )
@@ -264,6 +274,7 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         in memory and in the store, is unchanged.
         """
         t0 = time.perf_counter()
+        columns = self._backend.load(columns, rows=self.n, first=self.source_offset)
         B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
         B, state, ledger, removed = self._windowed(B)

@@ -3,9 +3,9 @@
 :class:`StoreLifecycle` is the part of the :class:`~streamsvd.StreamCompressor` facade that
 creates, reopens and closes its store, and that runs every update
 (:meth:`StoreLifecycle._run`: plan, commit when due, then switch to the new state); what a
-commit writes and how a store is checked are :mod:`streamsvd.stream_store`'s. A backend
-(the tall mode) refines the hooks ``_reopen``, ``_reopened``, ``_copied_basis`` and
-``_committed``.
+commit writes, what it lets the basis delete and how a store is checked are
+:mod:`streamsvd.stream_store`'s; what differs where the basis is out of core is the
+compressor's :class:`~streamsvd.basis.Backend`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from ._core import UpdateRecord
 from ._threads import blas_threads
 from ._validation import check_choice
-from .basis import BasisBackend
+from .basis import MEMORY_KIND, Backend, MemoryBackend
 from .downdate import Ledger
 from .errors import StoreError
 from .inner import InnerProduct
@@ -35,7 +35,6 @@ __all__ = ["StoreLifecycle"]
 class StoreLifecycle:
     """Open, copy, save, flush and close a compressor's store (see the module docstring)."""
 
-    KIND: str
     n: int
     inner: InnerProduct
     options: CompressorOptions
@@ -55,6 +54,8 @@ class StoreLifecycle:
     threads: int | None
     finalize: Callable[..., UpdateRecord]
     _empty_copy: Callable[..., Any]
+    _backend: Backend
+    _built: Callable[..., Any]
 
     @classmethod
     def open(
@@ -77,45 +78,41 @@ class StoreLifecycle:
             Options of the object store of a URL ``path`` (``s3://``: ``key``,
             ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
         """
-        return cls._open(path, inner=inner, mode=mode, backend={},
+        return cls._open(path, inner=inner, mode=mode, kind=MEMORY_KIND,
+                         backend=lambda attrs, root: MemoryBackend(),
                          storage_options=storage_options)
 
     @classmethod
-    def _open(cls, path: Any, *, inner: Any, mode: str, backend: dict[str, Any],
+    def _open(cls, path: Any, *, inner: Any, mode: str, kind: str,
+              backend: Callable[[dict[str, Any], Any], Backend],
               storage_options: dict[str, Any] | None = None) -> Any:
-        """Open a store and restore the compressor it holds (``backend``: for ``_reopen``)."""
+        """Open a store of ``kind`` and restore the compressor it holds.
+
+        ``backend(basis_attrs, root)`` returns the backend of the store at ``root``.
+        """
         mode = check_choice(mode, "mode", ("a", "r"))
         path = open_storage(path, storage_options=storage_options)
-        st, state, ip = open_stream_store(path, kind=cls.KIND, name=cls.__name__, mode=mode,
+        st, state, ip = open_stream_store(path, kind=kind, name=cls.__name__, mode=mode,
                                           inner=inner)
         try:
             options = CompressorOptions.from_stored(state.n, state.attrs["options"])
-            sc = cls._reopen(state.n, ip, state.attrs, path, options=options, **backend)
+            sc = cls._built(state.n, backend=backend(state.attrs.get("basis", {}), path),
+                            inner=ip, **options.as_dict())
             sc.source_offset, sc._history = restore_state(sc._state, state.arrays,
                                                           state.attrs)
             sc._restore_removals(state.attrs)
             sc._version += 1
             sc.source_record = SourceRecord.from_attrs(state.attrs.get("source"))
             sc._persistence = StreamStore(st, commit_every=options.commit_every)
-            if state.arrays:
-                sc._persistence.tracker.restored(
-                    state.generation, sc._state.extents(), state.arrays["history"],
-                    inner=all(name in state.arrays for name in sc._inner_data),
-                )
-            sc._reopened(mode)
+            sc._persistence.restored(
+                sc._state, state.generation, state.attrs.get("basis", {}),
+                state.arrays.get("history"),
+                inner=all(name in state.arrays for name in sc._inner_data),
+            )
         except BaseException:
             st.close()
             raise
         return sc
-
-    @classmethod
-    def _reopen(cls, n: int, inner: InnerProduct, attrs: dict[str, Any], path: Any, *,
-                options: CompressorOptions, **backend: Any) -> Any:
-        """Return a compressor with a store's options, before its state is restored."""
-        return cls(n, inner=inner, **options.as_dict())
-
-    def _reopened(self, mode: str) -> None:
-        """Run once a store was reopened (a backend may clean what it left)."""
 
     def copy(self) -> Any:
         """Return an independent copy of the compressor (without its store)."""
@@ -124,16 +121,12 @@ class StoreLifecycle:
     def _copy_with(self, **changes: Any) -> Any:
         """Return an independent copy whose options differ by ``changes``."""
         out = self._empty_copy(**changes)
-        basis = self._copied_basis(out._state.basis)
+        basis = self._backend.copied(self._state.basis, out._state.basis)
         out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)
         out.source_offset = self.source_offset
         out._removed, out._ledger = self._removed, self._ledger
         return out
-
-    def _copied_basis(self, blank: BasisBackend) -> BasisBackend:
-        """Return the stored basis copied for :meth:`copy` (``blank``: the copy's own)."""
-        return copy.deepcopy(self._state.basis)
 
     def _start_store(self, path: Any, storage_options: dict[str, Any] | None) -> None:
         """Create the store at ``path`` and commit the current state to it."""
@@ -175,17 +168,19 @@ class StoreLifecycle:
         finalize : bool
             Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
             closed expansion is the SVD, truncated to ``max_rank``. A store opened
-            read-only is never finalised.
+            read-only is never finalised, nor a basis that closing removes (a
+            temporary backend's).
         """
         p = self._persistence
         writable = p is None or p.writable
-        if finalize and writable and not self.finalized:
+        if finalize and writable and not self.finalized and not self._backend.temporary:
             self.finalize()
         if p is not None:
             if writable:
                 self.flush()
             p.close()
             self._persistence = None
+        self._backend.close()
 
     def __enter__(self) -> Any:
         return self
@@ -204,7 +199,7 @@ class StoreLifecycle:
         bound = s.bound if plan is None else plan.bound
         rank = s.rank if plan is None else plan.Gu.shape[1]
         return {
-            "kind": self.KIND, "options": self.options.as_dict(),
+            "kind": self._backend.kind, "options": self.options.as_dict(),
             "n_seen": s.m if plan is None else plan.m, "rank": rank,
             "source_offset": self.source_offset, "updates": len(self._history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
@@ -215,14 +210,10 @@ class StoreLifecycle:
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
         """Write the current state, or the state ``plan`` leads to, as a new generation."""
         assert self._persistence is not None
-        basis_attrs = self._persistence.commit(
+        self._persistence.commit(
             self._state, plan, attrs=self._attrs(plan), history=self._history,
             inner_data=self._inner_data, source_offset=source_offset,
         )
-        self._committed(basis_attrs)
-
-    def _committed(self, basis_attrs: dict[str, Any]) -> None:
-        """Run after every commit (a backend may release what no commit refers to)."""
 
     def _run(
         self, make_plan: Callable[[], Plan], source_offset: int, *,

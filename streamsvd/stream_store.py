@@ -37,11 +37,11 @@ from .store.format import StoreState
 from .update import Plan, State, stage_plan
 
 __all__ = [
-    "KIND", "LAYOUT", "LAYOUT_WITH_REMOVALS", "StreamStore", "open_stream_store",
+    "LAYOUT", "LAYOUT_WITH_REMOVALS", "StreamStore", "open_stream_store",
     "restore_state",
 ]
 
-KIND = "streamsvd.StreamCompressor"
+
 # version of the arrays a StreamCompressor commits (3: Q, V0, history appended; 4: V0 Vp
 # is the orthonormal factor Y of V = Y R; 5: as 4, with snapshots removed, whose rows of
 # V0 are dead: a version that reads 4 only would take them for live ones)
@@ -101,6 +101,7 @@ class StreamStore:
         self.commit_every = commit_every
         self.tracker = CommitTracker()
         self.uncommitted = 0
+        self._recent: tuple[dict[str, Any], ...] = ()  # the basis of the last two commits
 
     @classmethod
     def create(cls, path: Any, *, n: int, inner_fingerprint: str, attrs: dict[str, Any],
@@ -128,11 +129,10 @@ class StreamStore:
 
     def commit(self, state: State, plan: Plan | None, *, attrs: dict[str, Any],
                history: list[UpdateRecord], inner_data: dict[str, np.ndarray],
-               source_offset: int) -> dict[str, Any]:
+               source_offset: int) -> None:
         """Write ``state``, or the state ``plan`` leads to, as a new generation.
 
-        Returns the basis backend's attributes of what was written. Raises
-        :class:`~streamsvd.errors.StoreError` on a store opened read-only.
+        Raises :class:`~streamsvd.errors.StoreError` on a store opened read-only.
         """
         if not self.writable:
             raise StoreError(
@@ -172,7 +172,23 @@ class StreamStore:
         self.uncommitted = 0
         if plan is None:
             self.tracker.settle(state.extents(), len(history))
-        return basis_attrs
+        # what neither the state nor the last two commits use may go (a reader may
+        # still be on the previous generation)
+        self._recent = (basis_attrs, *self._recent[:1])
+        state.basis.collect(self._recent)
+
+    def restored(self, state: State, generation: int, basis_attrs: dict[str, Any],
+                 history: Any, *, inner: bool) -> None:
+        """Take up the commit ``state`` was restored from (see :meth:`CommitTracker.restored`).
+
+        ``history`` is None for a store killed before its first commit. Opened for
+        writing, the basis deletes what an interrupted update left.
+        """
+        if history is not None:
+            self.tracker.restored(generation, state.extents(), history, inner=inner)
+        self._recent = (basis_attrs,)
+        if self.writable:
+            state.basis.collect(self._recent)
 
     def close(self) -> None:
         """Release the store (and its writer lock)."""
