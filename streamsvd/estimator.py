@@ -13,7 +13,6 @@ of samples seen: the compressor is created with ``right_vectors=False`` and only
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,8 +29,10 @@ from ._pca_model import (
 )
 from ._validation import check_choice, check_forget, check_nonnegative, check_positive_int
 from .errors import InputError, SparseInputError
+from .ingest import ingest
 from .inner import InnerProduct, as_inner
 from .rotations import RULES
+from .sources import Source
 from .stream import StreamCompressor
 
 __all__ = ["NotFittedError", "StreamingSVD"]
@@ -100,21 +101,32 @@ def _validate_options(est: StreamingSVD, n_features: int) -> _Options:
     )
 
 
-def _gen_batches(n: int, batch_size: int, min_batch_size: int) -> Iterator[slice]:
-    """Consecutive slices of ``batch_size`` rows, the last one at least ``min_batch_size``.
+class _SparseSamples:
+    """A sparse ``X`` seen as the matrix of its samples as columns, densified by block."""
 
-    The batches of scikit-learn's ``gen_batches`` (what ``IncrementalPCA.fit`` uses): a
-    remainder shorter than ``min_batch_size`` is appended to the previous batch.
-    """
-    start = 0
-    for _ in range(n // batch_size):
-        end = start + batch_size
-        if end + min_batch_size > n:
-            continue
-        yield slice(start, end)
-        start = end
-    if start < n:
-        yield slice(start, n)
+    def __init__(self, X: Any) -> None:
+        self._X = X.tocsr()
+        self.shape = (X.shape[1], X.shape[0])
+        self.dtype = np.dtype(np.float64)
+        self.chunks = (X.shape[1], 1)  # one read takes every row (feature)
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        features, samples = key
+        return np.asarray(self._X[samples].toarray(), dtype=np.float64)[:, features].T
+
+
+class _Batches:
+    """A fitting estimator as the ingest driver sees it: a block of columns is a batch."""
+
+    def __init__(self, est: StreamingSVD, opts: _Options) -> None:
+        self._est, self._opts = est, opts
+        self.source_offset = 0
+
+    def absorb(self, X: np.ndarray, *, source_offset: int) -> Any:
+        """Absorb the samples ``X.T`` (a view: the block is column-major)."""
+        self._est._absorb(X.T, self._opts)
+        self.source_offset = source_offset
+        return self._est.compressor_.history[-1]
 
 
 def _new_compressor(opts: _Options, *, n_features: int, inner: InnerProduct,
@@ -314,12 +326,11 @@ class StreamingSVD(FittedPCA):
             if name in self.__dict__:
                 delattr(self, name)
         self.batch_size_ = opts.batch_size or 5 * X.shape[1]
-        min_batch = opts.max_rank or 0
-        for rows in _gen_batches(X.shape[0], self.batch_size_, min_batch):
-            batch = X[rows]
-            if sp.issparse(batch):
-                batch = np.asarray(batch.toarray(), dtype=np.float64)
-            self._absorb(batch, opts)
+        # the batches of scikit-learn's gen_batches: a remainder shorter than
+        # n_components joins the batch before it
+        samples = Source(_SparseSamples(X) if sp.issparse(X) else X.T, "`X`")
+        ingest(samples, _Batches(self, opts), start=0, block=self.batch_size_,
+               min_last=opts.max_rank or 0)
         return self
 
     def partial_fit(self, X: Any, y: Any = None) -> StreamingSVD:

@@ -1,12 +1,12 @@
 """The one ingest driver: read a source block by block and absorb every block.
 
 :func:`ingest` is the loop that the command line (``streamsvd ingest``), the tall mode
-(:func:`streamsvd.parallel.tall_compress`) and the leaves of the tree mode
-(:func:`streamsvd.parallel.tree_compress`) run: the blocks come from the source's
-prefetching reader (:meth:`streamsvd.sources.Source.blocks`, a background thread
-reading ahead through a bounded queue, each block read once), and each is handed to
-``compressor.absorb`` with the source offset just after it, so that a store records
-where to resume.
+(:func:`streamsvd.parallel.tall_compress`), the leaves of the tree mode
+(:func:`streamsvd.parallel.tree_compress`) and :meth:`streamsvd.StreamingSVD.fit` run:
+the blocks come from the source's prefetching reader
+(:meth:`streamsvd.sources.Source.blocks`, a background thread reading ahead through a
+bounded queue, each block read once), and each is handed to ``compressor.absorb`` with
+the source offset just after it, so that a store records where to resume.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ def ingest(
     stop: int | None = None,
     block: int = 100,
     depth: int = 1,
+    min_last: int = 0,
     progress: bool = False,
     desc: str = "ingest",
 ) -> IngestResult:
@@ -76,6 +77,9 @@ def ingest(
     depth : int
         Blocks the reader keeps ahead of the update (at most ``depth + 1`` blocks in
         memory).
+    min_last : int
+        A last block shorter than this joins the one before it (:meth:`Source.blocks
+        <streamsvd.sources.Source.blocks>`).
     progress : bool
         Show a progress bar over the columns (tqdm, on stderr) with the rank and the
         error bound.
@@ -103,7 +107,7 @@ def ingest(
 
         bar = tqdm(total=last, initial=first, unit="col", dynamic_ncols=True, desc=desc,
                    file=sys.stderr)
-    blocks = source.blocks(block, start=first, stop=last, depth=depth)
+    blocks = source.blocks(block, start=first, stop=last, depth=depth, min_last=min_last)
     try:
         while True:
             t = time.perf_counter()

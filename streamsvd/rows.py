@@ -37,10 +37,11 @@ one, the old rows being unchanged and zero in every column added since.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-__all__ = ["RowAppend", "RowFactor"]
+__all__ = ["RightFactor", "RowAppend", "RowFactor"]
 
 COND_LIMIT = 16.0  # largest cond(Vp) through which new rows are written
 WIDTH_LIMIT = 4.0  # rebase when wv > WIDTH_LIMIT * p
@@ -59,6 +60,57 @@ class RowAppend:
     Vp: np.ndarray
     rows: np.ndarray
     rebase: bool
+
+
+class RightFactor(Protocol):
+    """What an update and a commit need from the m-sized factor ``Y`` (module docstring).
+
+    Planning reads it (:attr:`Vp`, :attr:`wide`, :meth:`plan_append`, and the rows a
+    removal reads, :attr:`V0`, :attr:`dead`); a commit stages the planned rows
+    (:meth:`stage`) and writes what it reports (:attr:`V0`, :attr:`capacity`,
+    :attr:`rewrites`); applying a plan writes it (:meth:`commit`, :meth:`replace`);
+    opening a store loads it (:meth:`restore`).
+    """
+
+    Vp: np.ndarray
+    dead: np.ndarray
+    rewrites: int
+
+    @property
+    def m(self) -> int:
+        """Number of stored rows."""
+
+    @property
+    def capacity(self) -> tuple[int, int]:
+        """Rows and columns the storage holds."""
+
+    @property
+    def V0(self) -> np.ndarray:
+        """The stored rows (``m x wv``)."""
+
+    @property
+    def wide(self) -> bool:
+        """Whether the next update rebases first."""
+
+    def value(self) -> np.ndarray:
+        """Return ``Y`` over the live rows."""
+
+    def plan_append(self, Vp_old_part: np.ndarray, N: np.ndarray, *, rebase: bool
+                    ) -> RowAppend:
+        """Return the new rows in the stored form and the new ``Vp`` (writes nothing)."""
+
+    def stage(self, append: RowAppend) -> np.ndarray:
+        """Write ``append``'s rows as scratch; return the stored rows it leads to."""
+
+    def commit(self, append: RowAppend) -> None:
+        """Make ``append``'s rows stored rows."""
+
+    def replace(self, V: np.ndarray) -> None:
+        """Set ``Y`` outright."""
+
+    def restore(self, V0: np.ndarray, Vp: np.ndarray, *, capacity: tuple[int, int],
+                dead: np.ndarray | None = None) -> None:
+        """Load the factor a commit wrote."""
 
 
 class RowFactor:

@@ -219,13 +219,13 @@ class Source:
 
     def blocks(
         self, block: int = 100, *, start: int = 0, stop: int | None = None,
-        prefetch: bool = True, depth: int = 1,
+        prefetch: bool = True, depth: int = 1, min_last: int = 0,
     ) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(offset, X)`` for consecutive column blocks of columns ``start:stop``.
 
         ``X`` holds columns ``offset:offset + b`` as a column-major array of dtype
         :attr:`block_dtype` and shape ``(n, b)``, with ``b = block`` except for the last,
-        shorter block. Each block is read exactly once.
+        shorter block (or a longer one, with ``min_last``). Each block is read exactly once.
 
         Parameters
         ----------
@@ -242,6 +242,9 @@ class Source:
         depth : int
             Blocks read ahead with ``prefetch`` (>= 1): at most ``depth + 1`` blocks are
             in memory, the caller's included.
+        min_last : int
+            A last block shorter than this joins the one before it, as often as needed
+            (the batches of scikit-learn's ``gen_batches`` with ``min_batch_size``).
 
         Yields
         ------
@@ -271,6 +274,9 @@ class Source:
                 f"`stop` must be >= `start` ({start}); got {stop}. Pass an increasing range."
             )
         ranges = [(a, min(a + block, stop)) for a in range(start, stop, block)]
+        while len(ranges) > 1 and ranges[-1][1] - ranges[-1][0] < min_last:
+            last = ranges.pop()
+            ranges[-1] = (ranges[-1][0], last[1])
         if not prefetch:
             return ((a, self._read_checked(a, b)) for a, b in ranges)
         return read_ahead(self._read_checked, ranges, depth)

@@ -48,7 +48,7 @@ from .basis import BasisBackend
 from .bound import Bound
 from .gram_schmidt import BasisExtension, extend_basis
 from .inner import InnerProduct
-from .rows import RowAppend, RowFactor
+from .rows import RightFactor, RowAppend
 
 __all__ = [
     "Extents", "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add",
@@ -81,7 +81,7 @@ class State:
     """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`."""
 
     basis: BasisBackend
-    rows: RowFactor | None
+    rows: RightFactor | None
     Gu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))

@@ -11,7 +11,8 @@ import scipy.sparse as sp
 
 import streamsvd as ss
 from streamsvd.errors import SparseInputError
-from streamsvd.estimator import NotFittedError, StreamingSVD, _gen_batches
+from streamsvd.estimator import NotFittedError, StreamingSVD
+from streamsvd.sources import Source
 from streamsvd.stream import StreamCompressor
 from streamsvd.testing import with_spectrum
 
@@ -115,8 +116,11 @@ def test_fit_batches_as_incremental_pca(rng):
     skd = pytest.importorskip("sklearn.decomposition")
     from sklearn.utils import gen_batches
 
-    for n, size, low in [(7, 3, 0), (7, 3, 2), (6, 3, 0), (2, 3, 0), (100, 20, 20), (101, 20, 5)]:
-        assert list(_gen_batches(n, size, low)) == list(gen_batches(n, size, min_batch_size=low))
+    for n, size, low in [(7, 3, 0), (7, 3, 2), (6, 3, 0), (2, 3, 0), (100, 20, 20), (101, 20, 5),
+                         (25, 10, 17), (20, 10, 15)]:
+        blocks = Source(np.zeros((1, n)), "x").blocks(size, min_last=low, prefetch=False)
+        ours = [slice(a, a + X.shape[1]) for a, X in blocks]
+        assert ours == list(gen_batches(n, size, min_batch_size=low))
     X = rng.standard_normal((300, 12)) @ rng.standard_normal((12, 12)) + 1.0
     ours = StreamingSVD(n_components=4).fit(X)
     ipca = skd.IncrementalPCA(n_components=4).fit(X)
