@@ -35,6 +35,7 @@ from collections.abc import Iterator
 from typing import Any, cast
 
 from ._validation import check_positive_int
+from .basis import MEMORY_KIND
 from .errors import InputError, ShapeMismatchError, StoreMismatchError
 from .ingest import ingest as ingest_blocks
 from .parallel_tall import KIND, TallCompressor
@@ -48,10 +49,12 @@ from .stream import StreamCompressor, summary_of
 __all__ = [
     "COMPRESSOR_OPTIONS",
     "TallCompressor",
+    "compressor_class",
     "connect",
     "execute",
     "ingest",
     "open_compressor",
+    "stored_kind",
     "tall_compress",
     "tree_compress",
 ]
@@ -111,6 +114,17 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
         yield client
 
 
+def compressor_class(kind: Any) -> type[StreamCompressor] | None:
+    """Return the class whose stores record ``kind`` (None for any other kind)."""
+    return {MEMORY_KIND: StreamCompressor, KIND: TallCompressor}.get(kind)
+
+
+def stored_kind(path: Any, *, storage_options: dict[str, Any] | None = None) -> Any:
+    """Return the kind a basis store records (which compressor wrote it)."""
+    with open_store(open_storage(path, storage_options=storage_options), "r") as st:
+        return st.read().attrs.get("kind")
+
+
 def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
                     storage_options: dict[str, Any] | None = None,
                     ) -> StreamCompressor | TallCompressor:
@@ -123,11 +137,11 @@ def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: An
     :meth:`StreamCompressor.open`); ``storage_options`` for a URL ``path`` that needs them.
     """
     storage = open_storage(path, storage_options=storage_options)
-    with open_store(storage, "r") as st:
-        kind = st.read().attrs.get("kind")
-    if kind == KIND:
+    kind = stored_kind(storage)
+    cls = compressor_class(kind)
+    if cls is TallCompressor:
         return TallCompressor.open(storage, mode=mode, client=client, inner=inner)
-    if kind == "streamsvd.StreamCompressor":
+    if cls is StreamCompressor:
         return StreamCompressor.open(storage, mode=mode, inner=inner)
     raise StoreMismatchError(
         f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "

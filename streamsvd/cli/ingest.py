@@ -142,20 +142,20 @@ def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
 
 def _check_store_kind(store: Storage, *, tall: bool) -> None:
     """Raise a command-line error when STORE was written in the other mode."""
-    from ..store import open_store
+    from ..parallel import TallCompressor, compressor_class, stored_kind
 
     try:
-        with open_store(store, "r") as st:
-            kind = st.read().attrs.get("kind")
+        cls = compressor_class(stored_kind(store))
     except (StoreError, ValueError):
         return
-    if tall and kind == "streamsvd.StreamCompressor":
+    if cls is None or tall == (cls is TallCompressor):
+        return
+    if tall:
         raise StoreMismatchError(
             f"STORE {store} was written without --tall (in memory or by a tree); resume "
             "it without --tall."
         )
-    if not tall and kind == "streamsvd.TallCompressor":
-        raise StoreMismatchError(f"STORE {store} was written with --tall; resume it with --tall.")
+    raise StoreMismatchError(f"STORE {store} was written with --tall; resume it with --tall.")
 
 
 def _mode(args: Any) -> str:
