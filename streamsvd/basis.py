@@ -12,11 +12,11 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
   written aside first so that nothing stored changes before ``swap``; its Gram is
   measured from the written columns;
-* ``stage_new(r)``, ``persisted(...)``, ``restore(...)``, ``collect(...)``: what a commit
+* ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``: what a commit
   to a store needs, and what it may delete afterwards; ``compactions`` counts the swaps,
   so a commit tells the columns appended since the previous one (the others are
   unchanged) from a basis replaced whole.
-* ``take(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
+* ``lincomb(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
   Gram-Schmidt with ``project``, never formed again.)
 
 :class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
@@ -63,8 +63,8 @@ class BasisAlgebra(Protocol):
         """Number of stored columns ``w``."""
 
     @property
-    def room(self) -> int:
-        """Columns the basis can hold without growing its storage."""
+    def capacity(self) -> int:
+        """Columns the basis can hold (stored and workspace) without growing its storage."""
 
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
         """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
@@ -78,7 +78,7 @@ class BasisAlgebra(Protocol):
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
 
-    def take(self, G: np.ndarray) -> np.ndarray:
+    def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
 
 
@@ -99,7 +99,7 @@ class BasisStaging(Protocol):
     def discard_planned(self) -> None:
         """Forget what a plan staged (the update was abandoned)."""
 
-    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
         """Return the arrays and attributes a commit of the planned basis writes."""
 
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
@@ -199,7 +199,7 @@ class MemoryBasis:
 
     @property
     def capacity(self) -> int:
-        """Number of columns the buffers hold."""
+        """Columns the buffers hold (stored and workspace) before they must grow."""
         return int(self._bufs[0].shape[1])
 
     def _ensure(self, cols: int) -> None:
@@ -219,11 +219,6 @@ class MemoryBasis:
     def width(self) -> int:
         """Number of stored columns ``w``."""
         return self._w
-
-    @property
-    def room(self) -> int:
-        """Columns the buffers hold (stored and workspace) before they must grow."""
-        return self.capacity
 
     @property
     def Q(self) -> np.ndarray:
@@ -316,11 +311,11 @@ class MemoryBasis:
         self._w = p
         self.compactions += 1
 
-    def take(self, G: np.ndarray) -> np.ndarray:
+    def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
         return self.Q @ G
 
-    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
         """Return the arrays (views) and attributes a commit of the planned basis writes."""
         Q, MQ = self._planned(r, compacted=compacted)
         arrays = {"Q": Q} if self.inner.is_euclidean else {"Q": Q, "MQ": MQ}

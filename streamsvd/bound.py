@@ -81,7 +81,7 @@ class Bound:
         coupling_root: float,
         *,
         overlapping: bool,
-        extra_root: float = 0.0,
+        rejection_root: float = 0.0,
     ) -> Bound:
         """Advance by a discard of norm ``discarded`` (``d_t``).
 
@@ -93,7 +93,7 @@ class Bound:
             ``sqrt(||V_kept^T V_cut||_*)`` of this update's truncation.
         overlapping : bool
             Whether the update touched columns received before (``add``).
-        extra_root : float
+        rejection_root : float
             ``sqrt(d_rej ||B||)`` for the residuals this update rejected.
         """
         b, d = self.bound, float(discarded)
@@ -110,7 +110,7 @@ class Bound:
             new = scale * math.sqrt(bs * bs + ds * ds + 2.0 * min(cs2, ds * bs))
         return Bound(
             new,
-            _sqrt_sum_sq(c, coupling_root, extra_root),
+            _sqrt_sum_sq(c, coupling_root, rejection_root),
             _sqrt_sum_sq(self.discarded, d),
         )
 

@@ -309,6 +309,7 @@ def plan_remove(
             opts.truncation, max_rank=k_new if cap is None else min(cap, k_new)))
     return _plan(
         state, ext, K, opts, kind="remove", columns=int(positions.size), m=m, t0=t0,
-        d_rej=dropped, extra_root=0.0, prior=prior, Y_replace=Y_replace, Y_map=Y_map,
+        d_rej=dropped, rejection_root=0.0, prior=prior, Y_replace=Y_replace,
+        Y_map=Y_map,
         dead=None if Y_replace is not None else dead,
     )

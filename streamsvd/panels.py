@@ -81,7 +81,7 @@ class PanelBasis:
         return int(sum(self.widths))
 
     @property
-    def room(self) -> int:
+    def capacity(self) -> int:
         """Columns the basis can hold without growing: panels are added, never grown."""
         return np.iinfo(np.int64).max
 
@@ -248,7 +248,7 @@ class PanelBasis:
                 self.root.delete(f"panels/{staged[0]}")
         self._staged_new = self._staged_compact = None
 
-    def take(self, G: np.ndarray) -> np.ndarray:
+    def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` in memory (``n x p``)."""
         Q = self._q()
         if Q is None:
@@ -266,7 +266,7 @@ class PanelBasis:
         return Q @ G
 
     # ------------------------------------------------------------------ persistence
-    def persisted(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
+    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
         """Return what a commit writes: no array, the planned list of panels."""
         if compacted:
             assert self._staged_compact is not None

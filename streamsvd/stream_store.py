@@ -61,7 +61,7 @@ class _Small:
     bound: Bound
     source_offset: int
     m: int
-    waste: float
+    wasted_flops: float
 
     def pack(self) -> tuple[np.ndarray, list[list[int]]]:
         """Return the flat array and the shapes of its pieces."""
@@ -69,7 +69,7 @@ class _Small:
         # as -1, since a store holds finite numbers only
         norms = np.where(np.isinf(self.bound.to_array()), -1.0, self.bound.to_array())
         scalars = np.concatenate([norms, [float(self.source_offset), float(self.m),
-                                          self.waste]])
+                                          self.wasted_flops]])
         pieces = [self.Gu, self.H, self.R, scalars]
         if self.Vp is not None:
             pieces.insert(3, self.Vp)
@@ -89,7 +89,8 @@ class _Small:
             Gu=pieces[0], H=pieces[1], R=pieces[2],
             Vp=pieces[3] if len(pieces) == 5 else None,
             bound=Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3])),
-            source_offset=int(scalars[3]), m=int(scalars[4]), waste=float(scalars[5]),
+            source_offset=int(scalars[3]), m=int(scalars[4]),
+            wasted_flops=float(scalars[5]),
         )
 
 
@@ -140,19 +141,19 @@ class StreamStore:
                 "`StreamCompressor.open(path, mode='a')` to continue the stream."
             )
         if plan is None:
-            basis, basis_attrs = state.basis.persisted(0, compacted=False)
+            basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
             rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
             compact = replaced = False
             small = _Small(state.Gu, state.H, state.R, None if rows is None else rows[1],
-                           state.bound, source_offset, state.m, state.waste)
+                           state.bound, source_offset, state.m, state.wasted_flops)
         else:
             stage_plan(state, plan)
             w = plan.writes
-            basis, basis_attrs = state.basis.persisted(w.columns, compacted=w.compacted)
+            basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
             rows = _planned_rows(state, plan)
             compact, replaced = w.compacted, w.rows_replaced is not None
             small = _Small(plan.Gu, plan.H, plan.R, None if rows is None else rows[1],
-                           plan.bound, source_offset, plan.m, plan.waste)
+                           plan.bound, source_offset, plan.m, plan.wasted_flops)
         # only what changed since the previous commit is written (streamsvd.commits)
         appended = self.tracker.appended(
             self.handle.generation, state.extents(), basis=dict(basis), compact=compact,
@@ -296,5 +297,5 @@ def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
         state.rows.restore(a["V0"], small.Vp, capacity=tuple(attrs["rows_capacity"]),
                            dead=np.concatenate(dead + [np.zeros(0, dtype=np.int64)]))
     state.Gu, state.H, state.R = small.Gu, small.H, small.R
-    state.bound, state.m, state.waste = small.bound, small.m, small.waste
+    state.bound, state.m, state.wasted_flops = small.bound, small.m, small.wasted_flops
     return small.source_offset, [record_from_row(row) for row in a["history"]]

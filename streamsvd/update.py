@@ -86,7 +86,7 @@ class State:
     H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     m: int = 0
-    waste: float = 0.0
+    wasted_flops: float = 0.0
     bound: Bound = field(default_factory=Bound)
 
     @property
@@ -148,7 +148,7 @@ class Plan:
     H: np.ndarray
     R: np.ndarray
     m: int
-    waste: float
+    wasted_flops: float
     bound: Bound
     record: UpdateRecord
     writes: Writes
@@ -183,7 +183,7 @@ def apply_plan(state: State, plan: Plan) -> None:
             if w.dead_rows is not None:
                 state.rows.dead = w.dead_rows
     state.Gu, state.H, state.R = plan.Gu, plan.H, plan.R
-    state.m, state.waste, state.bound = plan.m, plan.waste, plan.bound
+    state.m, state.wasted_flops, state.bound = plan.m, plan.wasted_flops, plan.bound
 
 
 # ---------------------------------------------------------------------------- planning
@@ -209,7 +209,7 @@ def plan_absorb(
     block_norm = ext.block_norm
     return _plan(
         state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0, d_rej=d_rej,
-        extra_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
+        rejection_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
     )
 
 
@@ -241,7 +241,7 @@ def plan_add(
     Y_new, K = np.linalg.qr(V_new)
     return _plan(
         state, ext, K, opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
-        t0=t0, Y_replace=Y_new, d_rej=ext.rejected_norm(V_k), extra_root=0.0,
+        t0=t0, Y_replace=Y_new, d_rej=ext.rejected_norm(V_k), rejection_root=0.0,
         prior=state.bound, overlapping=True,
     )
 
@@ -282,7 +282,7 @@ def plan_merge(
     return _plan(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
         Y_appended=Y_o, d_rej=d_rej,
-        extra_root=math.sqrt(d_rej) * math.sqrt(_norm(R_o)), prior=prior,
+        rejection_root=math.sqrt(d_rej) * math.sqrt(_norm(R_o)), prior=prior,
     )
 
 
@@ -304,7 +304,7 @@ def plan_finalize(
     ext = BasisExtension.empty(p, state.basis.width)
     return _plan(
         state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
-        d_rej=0.0, extra_root=0.0, prior=state.bound, on_sweep=on_sweep,
+        d_rej=0.0, rejection_root=0.0, prior=state.bound, on_sweep=on_sweep,
     )
 
 
@@ -319,7 +319,7 @@ def _plan(
     m: int,
     t0: float,
     d_rej: float,
-    extra_root: float,
+    rejection_root: float,
     prior: Bound,
     Y_appended: np.ndarray | None = None,
     Y_replace: np.ndarray | None = None,
@@ -351,17 +351,18 @@ def _plan(
     # and a block (a compaction is then cheaper than growing it); a smaller buffer grows
     # (geometrically, when the next block's workspace is taken), else a tight buffer
     # would compact at every update
-    waste = state.waste + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1)
-    room, block = state.basis.room, ext.accepted.size
+    wasted_flops = (state.wasted_flops
+                    + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1))
+    capacity, block = state.basis.capacity, ext.accepted.size
     compact = (
-        waste >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
+        wasted_flops >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
         or p_new == 0
-        or (w + r + block > room and room >= 2 * p_new + block)
+        or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )
     Gu = np.vstack([state.Gu @ T[:p], T[p:]])
     if compact:
         H = state.basis.compact_planned(Gu, r)
-        Gu, waste = np.eye(p_new), 0.0
+        Gu, wasted_flops = np.eye(p_new), 0.0
     else:
         H = _extended_gram(state, ext)
     orth = gram_orthogonality(Gu, H)
@@ -385,7 +386,8 @@ def _plan(
             rows = plan_rows(state, P, Y_appended, Y_map=Y_map)
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
-        discarded, step.coupling_root, overlapping=overlapping, extra_root=extra_root
+        discarded, step.coupling_root, overlapping=overlapping,
+        rejection_root=rejection_root,
     )
     record = UpdateRecord(
         kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,
@@ -402,7 +404,8 @@ def _plan(
         columns=0 if compact else r, compacted=compact, rows=rows, rows_replaced=Y_full,
         dead_rows=dead,
     )
-    return Plan(Gu=Gu, H=H, R=R, m=m, waste=waste, bound=bound, record=record, writes=writes)
+    return Plan(Gu=Gu, H=H, R=R, m=m, wasted_flops=wasted_flops, bound=bound, record=record,
+                writes=writes)
 
 
 def plan_rows(

@@ -190,5 +190,5 @@ def plan_absorb_by_gram(
         orthogonality=orth, error_bound=bound.bound, seconds=time.perf_counter() - t0,
         passes=2,
     )
-    return Plan(Gu=Gu, H=H, R=R, m=m, waste=0.0, bound=bound, record=record,
+    return Plan(Gu=Gu, H=H, R=R, m=m, wasted_flops=0.0, bound=bound, record=record,
                 writes=Writes(compacted=True, rows=rows))
