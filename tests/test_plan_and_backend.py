@@ -1,0 +1,85 @@
+"""Planning writes nothing the state or a commit refers to; the backend is composed."""
+
+import time
+
+import numpy as np
+import pytest
+
+from streamsvd import StreamCompressor
+from streamsvd import rows as rows_module
+from streamsvd.basis import MemoryBackend
+from streamsvd.parallel import TallCompressor, open_compressor
+from streamsvd.parallel_tall import PanelBackend
+from streamsvd.update import apply_plan, plan_absorb, stage_plan
+
+
+def _panels(basis):
+    return sorted(e for e in basis.root.list("panels") if e.startswith("p"))
+
+
+def test_planning_a_panel_update_writes_no_panel_until_staged(rng):
+    """The new columns of an update that does not compact are written when the plan is
+    staged for a commit (or applied), never while it is planned."""
+    A = rng.standard_normal((300, 24))
+    with TallCompressor(300, chunk_rows=64) as tc:  # no cut: the exact path, no compaction
+        tc.absorb(A[:, :8])
+        s, opts = tc._state, tc._opts
+        before = _panels(s.basis)
+        plan = plan_absorb(s, A[:, 8:16], opts, t0=time.perf_counter())
+        assert not plan.writes.compacted and plan.writes.columns == 8
+        assert _panels(s.basis) == before  # planned: nothing written
+        stage_plan(s, plan)
+        staged = _panels(s.basis)
+        assert len(staged) == len(before) + 1  # staged: the new panel, not yet stored
+        assert s.basis.width == 8
+        apply_plan(s, plan)
+        assert s.basis.width == 16 and _panels(s.basis) == staged
+        np.testing.assert_allclose(tc.expansion.to_dense(), A[:, :16], atol=1e-12)
+
+
+def test_planning_leaves_the_rows_and_their_rebase_to_staging(rng, monkeypatch):
+    """A plan made when the row factor is due for a rebase writes no row and does not
+    rebase; staging does both, and V is unchanged by the rebase."""
+    monkeypatch.setattr(rows_module, "WIDTH_LIMIT", 0.5)  # a rebase before every update
+    sc = StreamCompressor(80, max_rank=4, oversampling=0, rule="jacobi", sweeps=None)
+    A = rng.standard_normal((80, 40))
+    sc.absorb(A[:, :36])
+    s, rows = sc._state, sc._state.rows
+    assert rows.wide
+    V_before, buffer = sc.right_factor(), rows._V0.copy()
+    rebases = rows.rebases
+    plan = plan_absorb(s, A[:, 36:40], sc._opts, t0=time.perf_counter())
+    assert plan.writes.rows is not None and plan.writes.rows.rebase
+    assert rows.rebases == rebases and np.array_equal(rows._V0, buffer)  # nothing written
+    stage_plan(s, plan)
+    assert rows.rebases == rebases + 1
+    np.testing.assert_allclose(sc.right_factor(), V_before, atol=1e-13)  # V unchanged
+    apply_plan(s, plan)
+    assert sc._state.m == 40
+
+
+def test_a_backend_is_given_not_subclassed(rng, tmp_path):
+    """StreamCompressor with a PanelBackend is the tall mode: the same factors bit for bit
+    as TallCompressor, a tall store, reopened as a TallCompressor."""
+    A = rng.standard_normal((200, 30))
+    opts = dict(max_rank=6, rule="jacobi", sweeps=None)
+    backend = PanelBackend.create(store=tmp_path / "s.zarr", workdir=None, chunk_rows=48,
+                                  client=None, storage_options=None)
+    with StreamCompressor(200, store=backend.root, backend=backend, **opts) as sc, \
+            TallCompressor(200, chunk_rows=48, **opts) as tc:
+        for j in range(0, 30, 10):
+            sc.absorb(A[:, j:j + 10])
+            tc.absorb(A[:, j:j + 10])
+        assert "panels=" in repr(sc) and "chunk_rows=48" in repr(tc)
+        np.testing.assert_array_equal(sc.left_vectors, tc.left_vectors)
+        np.testing.assert_array_equal(sc.amplitudes, tc.amplitudes)
+    assert sc.finalized and sc.rank == 6  # closing finalised the stored compressor
+    back = open_compressor(tmp_path / "s.zarr")
+    try:
+        assert isinstance(back, TallCompressor) and back.chunk_rows == 48
+        np.testing.assert_array_equal(back.amplitudes, sc.amplitudes)
+    finally:
+        back.close()
+    with pytest.raises(Exception, match="TallCompressor"):
+        StreamCompressor.open(tmp_path / "s.zarr", mode="r")
+    assert isinstance(StreamCompressor(5)._backend, MemoryBackend)
