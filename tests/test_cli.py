@@ -1,6 +1,7 @@
 """The streamsvd command: ingest, info, export, plot, output streams and one-line errors."""
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -851,7 +852,7 @@ def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
     proc = subprocess.Popen(
         [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "1",
          "--max-rank", "5", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
+        text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # wait for a few commits (not timing the process)
         try:
@@ -862,7 +863,12 @@ def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
             pass
         time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
+    try:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:  # say where it was: faulthandler dumps on SIGABRT
+        proc.send_signal(signal.SIGABRT)
+        out, err = proc.communicate()
+        pytest.fail(f"the interrupted ingest did not stop; its threads:\n{err[-8000:]}")
     assert proc.returncode == 130, err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "Traceback" not in err
