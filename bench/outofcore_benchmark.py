@@ -20,8 +20,10 @@ float32 array, the optimum of the stored rounded values, from the float64 eigenv
 Contenders (block 100, rank 60):
 
 * ``read``: ``da.from_zarr(A).sum()``;
-* ``cli``: ``streamsvd ingest A S --max-rank 60`` (one commit per update, the default);
-  ``cli-c100``: the same with ``--commit-every 100`` (one commit at the end);
+* ``cli``: ``streamsvd ingest A S --max-rank 60`` (the default ``--commit-every auto``:
+  commits timed to take about a tenth of the time); ``cli-c1``: the same with
+  ``--commit-every 1`` (one commit per update); ``cli-c100``: with ``--commit-every 100``
+  (one commit at the end);
 * ``tall``: :func:`streamsvd.parallel.tall_compress` (``U`` in zarr panels), finalised;
 * ``tree``: :func:`streamsvd.parallel.tree_compress` with two leaves on the two cores;
 * ``svdc-q{0,1,2}-{power,QR}``: ``dask.array.linalg.svd_compressed(A, 60,
@@ -50,9 +52,9 @@ import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
 
 RANK, SIGNAL, BLOCK, CHUNK = 60, 200, 100, (10000, 50)
-METHODS = ("read", "cli", "cli-c100", "tall", "tree", "svdc-q0-power", "svdc-q1-power",
+METHODS = ("read", "cli", "cli-c1", "cli-c100", "tall", "tree", "svdc-q0-power", "svdc-q1-power",
            "svdc-q1-QR", "svdc-q2-power", "svdc-q2-QR", "tsqr")
-STREAMSVD = ("cli", "cli-c100", "tall", "tree")
+STREAMSVD = ("cli", "cli-c1", "cli-c100", "tall", "tree")
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -150,8 +152,8 @@ def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[st
         store = work / "S"
         cmd = [sys.executable, "-m", "streamsvd", "ingest", str(path), str(store),
                "--max-rank", str(RANK), "--block", str(BLOCK), "--quiet"]
-        if method == "cli-c100":
-            cmd += ["--commit-every", "100"]
+        if method.startswith("cli-c"):
+            cmd += ["--commit-every", method[len("cli-c"):]]
     else:
         cmd = [sys.executable, __file__, "--child", method, "--path", str(path),
                "--work", str(work)]
@@ -165,7 +167,12 @@ def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[st
     if status != 0:
         raise RuntimeError(f"{method} failed with status {status}")
     if method.startswith("cli"):
-        result = {"seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024.0}
+        from streamsvd.store import open_store
+
+        with open_store(work / "S", "r") as st:  # generations: the commits, creation's too
+            commits = st.generation
+        result = {"seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024.0,
+                  "commits": commits}
         if errors:
             _cli_factors(work / "S", work)
     else:
@@ -247,7 +254,7 @@ def run_size(n: int, m: int, dtype: str, methods: list[str], data: Path) -> dict
 def plot(report: dict[str, Any], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5))
-    markers = dict(zip(METHODS, "o^v<>sDpPX*", strict=True))
+    markers = dict(zip(METHODS, "o1^v<>sDpPX*", strict=True))
     for case in report["cases"]:
         for r in case["runs"]:
             if "error_over_optimum" not in r:

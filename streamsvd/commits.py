@@ -21,10 +21,17 @@ The small state (``Gu``, ``H``, ``R``, ``Vp``, the scalars) is written whole by 
 compressor. :class:`CommitTracker` remembers those extents for the generation a commit
 wrote, once the compressor switched to the committed state; a commit to any other
 generation (after a failed commit, say) writes every array anew.
+
+:class:`CommitSchedule` decides which updates are committed: every ``commit_every``
+updates, or with ``commit_every="auto"`` once the time since the previous commit is a
+multiple of what that commit cost, so that commits take a bounded share of the time.
 """
 
 from __future__ import annotations
 
+import contextlib
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +40,63 @@ from ._core import HISTORY_FIELDS, UpdateRecord, history_array
 from .segments import Appended
 from .update import Extents
 
-__all__ = ["CommitTracker"]
+__all__ = ["AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
+
+#: The ``commit_every`` value that schedules commits by their cost (:class:`CommitSchedule`).
+AUTO = "auto"
+#: The time spent committing per unit of time spent between commits, with :data:`AUTO`.
+COMMIT_OVERHEAD = 0.1
+
+
+class CommitSchedule:
+    """Which updates are committed: every ``every`` updates, or by cost with ``"auto"``.
+
+    With an integer ``every``, an update is committed when it is the ``every``-th since
+    the previous commit. With ``every="auto"``, an update is committed when the time
+    since the end of the previous commit, measured once the update is planned, is at
+    least the time that commit took over ``overhead``::
+
+        now - end_of_previous_commit >= duration_of_previous_commit / overhead
+
+    so that the commits take at most ``overhead / (1 + overhead)`` of the wall time
+    (9 % at the default 0.1) plus one update's worth of slack, whatever the store (a
+    local disk, an object store) and the size of what a commit writes. A process killed
+    between two commits loses the updates since the last one: about ``1 / overhead``
+    times the last commit's duration. The first update after the schedule starts is
+    committed (nothing was timed yet, or only the commit of a new, empty store).
+
+    Parameters
+    ----------
+    every : int or "auto"
+        Updates per commit, or :data:`AUTO`.
+    overhead : float
+        With :data:`AUTO`, the time spent committing per unit of time spent between
+        commits.
+    clock : callable, optional
+        Returns the time in seconds (default :func:`time.monotonic`).
+    """
+
+    def __init__(self, every: int | str, *, overhead: float = COMMIT_OVERHEAD,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.every = every
+        self.overhead = overhead
+        self._clock = time.monotonic if clock is None else clock
+        self._since = self._clock()  # end of the previous commit (or the schedule's start)
+        self._cost = 0.0  # how long the previous commit took
+
+    def due(self, uncommitted: int) -> bool:
+        """Whether the update planned now, after ``uncommitted`` uncommitted ones, is committed."""
+        if self.every == AUTO:
+            return self._clock() - self._since >= self._cost / self.overhead
+        return uncommitted + 1 >= int(self.every)
+
+    @contextlib.contextmanager
+    def timed(self) -> Iterator[None]:
+        """Time a commit: the next ones are scheduled from its end and its duration."""
+        start = self._clock()
+        yield
+        self._since = self._clock()
+        self._cost = self._since - start
 
 
 @dataclass(frozen=True)
