@@ -44,7 +44,7 @@ __all__ = ["AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
 
 #: The ``commit_every`` value that schedules commits by their cost (:class:`CommitSchedule`).
 AUTO = "auto"
-#: The time spent committing per unit of time spent between commits, with :data:`AUTO`.
+#: The share of the time the commits may take with :data:`AUTO`.
 COMMIT_OVERHEAD = 0.1
 
 
@@ -52,26 +52,26 @@ class CommitSchedule:
     """Which updates are committed: every ``every`` updates, or by cost with ``"auto"``.
 
     With an integer ``every``, an update is committed when it is the ``every``-th since
-    the previous commit. With ``every="auto"``, an update is committed when the time
-    since the end of the previous commit, measured once the update is planned, is at
-    least the time that commit took over ``overhead``::
+    the previous commit. With ``every="auto"``, an update is committed when the commits
+    made since the schedule started, plus one more costing as much as the last one, take
+    at most ``overhead`` of the time since it started::
 
-        now - end_of_previous_commit >= duration_of_previous_commit / overhead
+        spent + last <= overhead * (now - start)
 
-    so that the commits take at most ``overhead / (1 + overhead)`` of the wall time
-    (9 % at the default 0.1) plus one update's worth of slack, whatever the store (a
-    local disk, an object store) and the size of what a commit writes. A process killed
-    between two commits loses the updates since the last one: about ``1 / overhead``
-    times the last commit's duration. The first update after the schedule starts is
-    committed (nothing was timed yet, or only the commit of a new, empty store).
+    (``now`` once the update is planned), so that committing takes at most about
+    ``overhead`` of the wall time (a tenth by default) whatever the store (a local disk,
+    an object store) and the size of what a commit writes. Once the commits have spent
+    their share, the time between two commits is about ``last / overhead``: a process
+    killed between two commits loses the updates of at most that long, plus one. The
+    first update after the schedule starts is committed (nothing spent yet; the commit
+    that creates a store is counted).
 
     Parameters
     ----------
     every : int or "auto"
         Updates per commit, or :data:`AUTO`.
     overhead : float
-        With :data:`AUTO`, the time spent committing per unit of time spent between
-        commits.
+        With :data:`AUTO`, the share of the time the commits may take.
     clock : callable, optional
         Returns the time in seconds (default :func:`time.monotonic`).
     """
@@ -81,22 +81,24 @@ class CommitSchedule:
         self.every = every
         self.overhead = overhead
         self._clock = time.monotonic if clock is None else clock
-        self._since = self._clock()  # end of the previous commit (or the schedule's start)
-        self._cost = 0.0  # how long the previous commit took
+        self._start = self._clock()
+        self._spent = 0.0  # seconds spent committing since the start
+        self._last = 0.0  # how long the last commit took
 
     def due(self, uncommitted: int) -> bool:
         """Whether the update planned now, after ``uncommitted`` uncommitted ones, is committed."""
         if self.every == AUTO:
-            return self._clock() - self._since >= self._cost / self.overhead
+            elapsed = self._clock() - self._start
+            return self._spent + self._last <= self.overhead * elapsed
         return uncommitted + 1 >= int(self.every)
 
     @contextlib.contextmanager
     def timed(self) -> Iterator[None]:
-        """Time a commit: the next ones are scheduled from its end and its duration."""
+        """Time a commit (one that raises is not counted)."""
         start = self._clock()
         yield
-        self._since = self._clock()
-        self._cost = self._since - start
+        self._last = self._clock() - start
+        self._spent += self._last
 
 
 @dataclass(frozen=True)

@@ -85,32 +85,31 @@ def test_schedule_commits_every_given_count_whatever_the_clock():
     assert not schedule.due(0)
 
 
-def test_auto_schedule_waits_ten_times_the_last_commit():
-    """``now - end >= duration / overhead``: after a commit of 2 s, the next update due is
-    the first one planned 20 s or more after that commit ended."""
+def test_auto_schedule_keeps_the_commits_within_a_tenth_of_the_time():
+    """``spent + last <= overhead * (now - start)``: after a first commit of 2 s, the next
+    update due is the first one planned 40 s or more after the start; then 3 s more
+    of commits need 60 s."""
     clock = _Clock()
     schedule = CommitSchedule("auto", clock=clock)
-    assert schedule.due(0)  # nothing timed yet: the first update is committed
-    clock.now = 5.0
+    assert schedule.due(0)  # nothing spent yet: the first update is committed
+    clock.now = 1.0
     with schedule.timed():
-        clock.now = 7.0
+        clock.now = 3.0
     due = []
-    for now in (8.0, 20.0, 26.9, 27.0, 40.0):
+    for now in (4.0, 20.0, 39.9, 40.1, 50.0):
         clock.now = now
-        due.append(schedule.due(4))
+        due.append(schedule.due(7))
     assert due == [False, False, False, True, True]
-    with schedule.timed():  # a quick commit (0.5 s): the next one comes 5 s after it
-        clock.now = 40.5
-    clock.now = 45.4
-    assert not schedule.due(0)
-    clock.now = 45.5
+    with schedule.timed():  # 1 s: 3 s spent, and the next one counted at 1 s
+        clock.now = 51.0
+    clock.now = 54.0  # (3 + 1) / 0.1 = 40 s after the start: due already
     assert schedule.due(0)
-    half = CommitSchedule("auto", overhead=0.5, clock=clock)
+    half = CommitSchedule("auto", overhead=0.5, clock=clock)  # starts at 54
     with half.timed():
-        clock.now = 46.5
-    clock.now = 48.4  # 1 s over 0.5: 2 s
+        clock.now = 55.0
+    clock.now = 57.9  # 2 s of commits (one spent, one to come) over 0.5: 4 s
     assert not half.due(0)
-    clock.now = 48.5
+    clock.now = 58.1
     assert half.due(0)
 
 
@@ -119,11 +118,11 @@ def test_a_failed_commit_leaves_the_schedule_as_it_was():
     schedule = CommitSchedule("auto", clock=clock)
     with schedule.timed():
         clock.now = 1.0
-    clock.now = 5.0
+    clock.now = 25.0
     with pytest.raises(OSError), schedule.timed():
         clock.now = 100.0
         raise OSError("No space left on device")
-    assert schedule.due(0)  # still due: measured from the commit that succeeded
+    assert schedule.due(0)  # still due: only the commit that succeeded is counted
 
 
 @pytest.mark.parametrize("value", [0, -1, 2.5, "every", True, None])
@@ -134,10 +133,11 @@ def test_commit_every_is_a_positive_integer_or_auto(value):
 
 
 def test_auto_commits_by_cost_and_a_kill_resumes_bit_for_bit(tmp_path, rng, monkeypatch):
-    """On a clock where a commit takes 1 s and an update 2 s, ``commit_every="auto"``
-    commits updates 1, 6, 11, ... (10 s after each commit); a copy of the store taken
-    between two commits (what a kill leaves) resumes from its last commit, and both end
-    bit for bit where a run that commits every update ends."""
+    """On a clock where a commit takes 1 s and an update 3 s, ``commit_every="auto"``
+    commits update 1, then the updates that keep the commits within a tenth of the time
+    (one in about 10 s once the share is spent); a copy of the store taken between two
+    commits (what a kill leaves) resumes from its last commit, and both end bit for bit
+    where a run that commits every update ends."""
     from streamsvd.store import BasisStore
 
     A = _data(rng, n=60, m=120)
@@ -158,15 +158,15 @@ def test_auto_commits_by_cost_and_a_kill_resumes_bit_for_bit(tmp_path, rng, monk
     sc._persistence.schedule = CommitSchedule("auto", clock=clock)
     committed.clear()
     for j in range(0, A.shape[1], 5):
-        clock.now += 2.0
+        clock.now += 3.0
         sc.absorb(A[:, j : j + 5])
-        if j == 35:  # update 8: the last commit was update 6
+        if j == 40:  # update 9: the last commit was update 7
             shutil.copytree(path, tmp_path / "killed.zarr")
-    assert committed == [5, 30, 55, 80, 105]
+    assert committed == [5, 35, 50, 65, 80, 95, 110]
     sc.close(finalize=False)
     assert committed[-1] == A.shape[1]
     with StreamCompressor.open(tmp_path / "killed.zarr") as killed:
-        assert killed.commit_every == "auto" and killed.source_offset == 30
+        assert killed.commit_every == "auto" and killed.source_offset == 35
         for j in range(killed.source_offset, A.shape[1], 5):
             killed.absorb(A[:, j : j + 5])
         killed.flush()

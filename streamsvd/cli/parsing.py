@@ -314,12 +314,13 @@ def build_parser() -> argparse.ArgumentParser:
                      "(default: 1, never much slower, and much faster on a busy machine)")
     ing.add_argument("--commit-every", metavar=f"C|{DEFAULT_COMMIT_EVERY}", type=_commit_every,
                      help="when the updates are committed to STORE, in memory and with "
-                     "--tall: every C updates, or with "
-                     f"'{DEFAULT_COMMIT_EVERY}' an update once the time since the last "
-                     "commit is 10 times what that commit took, so that commits take at "
-                     "most about a tenth of the time and a kill loses at most that long of "
-                     "work; the end and Ctrl-C commit what is pending; the tree mode "
-                     f"commits once (default: {DEFAULT_COMMIT_EVERY})")
+                     f"--tall: every C updates, or with '{DEFAULT_COMMIT_EVERY}' whenever "
+                     "the commits so far plus one more as long as the last take at most a "
+                     "tenth of the time since the start (the first update is committed); "
+                     "then a commit comes about 10 times as long as the last one took "
+                     "after it, which bounds what a kill loses; the end and Ctrl-C commit "
+                     "what is pending; the tree mode commits once (default: "
+                     f"{DEFAULT_COMMIT_EVERY})")
     ing.add_argument("--inner", metavar="FILE",
                      help="inner product in which U is orthonormal (a mass matrix, "
                      f"quadrature weights): {_INNER_HELP}; STORE keeps it, so --resume, "
