@@ -63,8 +63,8 @@ class CommitSchedule:
     an object store) and the size of what a commit writes. Once the commits have spent
     their share, the time between two commits is about ``last / overhead``: a process
     killed between two commits loses the updates of at most that long, plus one. The
-    first update after the schedule starts is committed (nothing spent yet; the commit
-    that creates a store is counted).
+    commit that creates a new store is counted in ``spent``; on a reopened store,
+    nothing is spent yet and the first update is committed.
 
     Parameters
     ----------

@@ -316,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="when the updates are committed to STORE, in memory and with "
                      f"--tall: every C updates, or with '{DEFAULT_COMMIT_EVERY}' whenever "
                      "the commits so far plus one more as long as the last take at most a "
-                     "tenth of the time since the start (the first update is committed); "
+                     "tenth of the time since the start; "
                      "then a commit comes about 10 times as long as the last one took "
                      "after it, which bounds what a kill loses; the end and Ctrl-C commit "
                      "what is pending; the tree mode commits once (default: "
