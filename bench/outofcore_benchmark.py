@@ -8,8 +8,9 @@ python bench/outofcore_benchmark.py [--sizes 200000x1000,200000x500] [--dtype fl
 A zarr v3 array ``A = U diag(s) V^T`` (rank 200, ``s`` from 1 to 1e-10 log-spaced,
 ``U``, ``V`` orthonormal; chunks 10000 x 50, zarr's default zstd codec) is written once
 into ``--data`` (kept for the next run). Every contender runs in its own process; its
-peak resident memory is that process's high-water mark (``ru_maxrss``), taken when the
-compression ends (before the result is gathered for the error). Before each contender
+peak resident memory is that process's high-water mark since its ``exec`` (``VmHWM``),
+taken when the compression ends (before the result is gathered for the error; for the
+command line, when it exits). Before each contender
 the raw read (``da.from_zarr(A).sum()``) is timed again, and the contender's time is
 reported as a multiple of that adjacent read, so that the load of the shared machine
 cancels out of the ratios. The error is ``||A - U_k V_k^T||_F`` over the optimum
@@ -20,8 +21,10 @@ float32 array, the optimum of the stored rounded values, from the float64 eigenv
 Contenders (block 100, rank 60):
 
 * ``read``: ``da.from_zarr(A).sum()``;
-* ``cli``: ``streamsvd ingest A S --max-rank 60`` (one commit per update, the default);
-  ``cli-c100``: the same with ``--commit-every 100`` (one commit at the end);
+* ``cli``: ``streamsvd ingest A S --max-rank 60`` (the default ``--commit-every auto``:
+  commits timed to take about a tenth of the time); ``cli-c1``: the same with
+  ``--commit-every 1`` (one commit per update); ``cli-c100``: with ``--commit-every 100``
+  (one commit at the end);
 * ``tall``: :func:`streamsvd.parallel.tall_compress` (``U`` in zarr panels), finalised;
 * ``tree``: :func:`streamsvd.parallel.tree_compress` with two leaves on the two cores;
 * ``svdc-q{0,1,2}-{power,QR}``: ``dask.array.linalg.svd_compressed(A, 60,
@@ -38,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -50,9 +52,9 @@ import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
 
 RANK, SIGNAL, BLOCK, CHUNK = 60, 200, 100, (10000, 50)
-METHODS = ("read", "cli", "cli-c100", "tall", "tree", "svdc-q0-power", "svdc-q1-power",
+METHODS = ("read", "cli", "cli-c1", "cli-c100", "tall", "tree", "svdc-q0-power", "svdc-q1-power",
            "svdc-q1-QR", "svdc-q2-power", "svdc-q2-QR", "tsqr")
-STREAMSVD = ("cli", "cli-c100", "tall", "tree")
+STREAMSVD = ("cli", "cli-c1", "cli-c100", "tall", "tree")
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -87,7 +89,27 @@ def write_data(path: Path, n: int, m: int, dtype: str, seed: int = 0) -> float:
 
 
 def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """This process's peak resident memory since its ``exec`` (``VmHWM``), in MB.
+
+    Not ``ru_maxrss``: Linux counts in it the memory of the process before ``exec``,
+    which for a child is its parent's (the residuals computed between two contenders
+    grow the parent to about 1 GB).
+    """
+    with open("/proc/self/status") as f:
+        kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    return kb / 1024.0
+
+
+# the command line, run so that its peak memory is written to the file $PEAK_FILE on exit
+_CLI = ("import atexit, os, runpy, sys\n"
+        "def peak():\n"
+        "    with open('/proc/self/status') as f:\n"
+        "        kb = next(int(x.split()[1]) for x in f if x.startswith('VmHWM:'))\n"
+        "    with open(os.environ['PEAK_FILE'], 'w') as f:\n"
+        "        f.write(str(kb / 1024.0))\n"
+        "atexit.register(peak)\n"
+        "sys.argv[0] = 'streamsvd'\n"
+        "runpy.run_module('streamsvd', run_name='__main__', alter_sys=True)\n")
 
 
 def run_child(method: str, path: str, work: str) -> dict[str, Any]:
@@ -145,27 +167,32 @@ def _cli_factors(store: Path, work: Path) -> None:
 
 def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[str, Any]:
     """Run ``method`` in its own process; return its time, peak RSS and (``errors``) error."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=str(REPO), PEAK_FILE=str(work / "peak.txt"))
     if method.startswith("cli"):
         store = work / "S"
-        cmd = [sys.executable, "-m", "streamsvd", "ingest", str(path), str(store),
+        cmd = [sys.executable, "-c", _CLI, "ingest", str(path), str(store),
                "--max-rank", str(RANK), "--block", str(BLOCK), "--quiet"]
-        if method == "cli-c100":
-            cmd += ["--commit-every", "100"]
+        if method.startswith("cli-c"):
+            cmd += ["--commit-every", method[len("cli-c"):]]
     else:
         cmd = [sys.executable, __file__, "--child", method, "--path", str(path),
                "--work", str(work)]
     t0 = time.perf_counter()
     with open(work / "stdout.txt", "wb") as out:
         proc = subprocess.Popen(cmd, env=env, stdout=out)
-        _, status, usage = os.wait4(proc.pid, 0)  # this child's own peak memory
+        _, status, _ = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
     stdout = (work / "stdout.txt").read_bytes()
     if status != 0:
         raise RuntimeError(f"{method} failed with status {status}")
     if method.startswith("cli"):
-        result = {"seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024.0}
+        from streamsvd.store import open_store
+
+        with open_store(work / "S", "r") as st:  # generations: the commits, creation's too
+            commits = st.generation
+        result = {"seconds": wall, "peak_rss_mb": float((work / "peak.txt").read_text()),
+                  "commits": commits}
         if errors:
             _cli_factors(work / "S", work)
     else:
@@ -247,7 +274,7 @@ def run_size(n: int, m: int, dtype: str, methods: list[str], data: Path) -> dict
 def plot(report: dict[str, Any], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5))
-    markers = dict(zip(METHODS, "o^v<>sDpPX*", strict=True))
+    markers = dict(zip(METHODS, "o1^v<>sDpPX*", strict=True))
     for case in report["cases"]:
         for r in case["runs"]:
             if "error_over_optimum" not in r:

@@ -21,10 +21,17 @@ The small state (``Gu``, ``H``, ``R``, ``Vp``, the scalars) is written whole by 
 compressor. :class:`CommitTracker` remembers those extents for the generation a commit
 wrote, once the compressor switched to the committed state; a commit to any other
 generation (after a failed commit, say) writes every array anew.
+
+:class:`CommitSchedule` decides which updates are committed: every ``commit_every``
+updates, or with ``commit_every="auto"`` once the time since the previous commit is a
+multiple of what that commit cost, so that commits take a bounded share of the time.
 """
 
 from __future__ import annotations
 
+import contextlib
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +40,65 @@ from ._core import HISTORY_FIELDS, UpdateRecord, history_array
 from .segments import Appended
 from .update import Extents
 
-__all__ = ["CommitTracker"]
+__all__ = ["AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
+
+#: The ``commit_every`` value that schedules commits by their cost (:class:`CommitSchedule`).
+AUTO = "auto"
+#: The share of the time the commits may take with :data:`AUTO`.
+COMMIT_OVERHEAD = 0.1
+
+
+class CommitSchedule:
+    """Which updates are committed: every ``every`` updates, or by cost with ``"auto"``.
+
+    With an integer ``every``, an update is committed when it is the ``every``-th since
+    the previous commit. With ``every="auto"``, an update is committed when the commits
+    made since the schedule started, plus one more costing as much as the last one, take
+    at most ``overhead`` of the time since it started::
+
+        spent + last <= overhead * (now - start)
+
+    (``now`` once the update is planned), so that committing takes at most about
+    ``overhead`` of the wall time (a tenth by default) whatever the store (a local disk,
+    an object store) and the size of what a commit writes. Once the commits have spent
+    their share, the time between two commits is about ``last / overhead``: a process
+    killed between two commits loses the updates of at most that long, plus one. The
+    commit that creates a new store is counted in ``spent``; on a reopened store,
+    nothing is spent yet and the first update is committed.
+
+    Parameters
+    ----------
+    every : int or "auto"
+        Updates per commit, or :data:`AUTO`.
+    overhead : float
+        With :data:`AUTO`, the share of the time the commits may take.
+    clock : callable, optional
+        Returns the time in seconds (default :func:`time.monotonic`).
+    """
+
+    def __init__(self, every: int | str, *, overhead: float = COMMIT_OVERHEAD,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.every = every
+        self.overhead = overhead
+        self._clock = time.monotonic if clock is None else clock
+        self._start = self._clock()
+        self._spent = 0.0  # seconds spent committing since the start
+        self._last = 0.0  # how long the last commit took
+
+    def due(self, uncommitted: int) -> bool:
+        """Whether the update planned now, after ``uncommitted`` uncommitted ones, is committed."""
+        if self.every == AUTO:
+            elapsed = self._clock() - self._start
+            return self._spent + self._last <= self.overhead * elapsed
+        return uncommitted + 1 >= int(self.every)
+
+    @contextlib.contextmanager
+    def timed(self) -> Iterator[None]:
+        """Time a commit (one that raises is not counted)."""
+        start = self._clock()
+        yield
+        self._last = self._clock() - start
+        self._spent += self._last
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the numerical modules load when options are validated, not imported
@@ -54,7 +55,7 @@ class CompressorOptions:
     reject_tol: float | None = None
     reorth_tol: float | None = None
     right_vectors: bool = True
-    commit_every: int = 1
+    commit_every: int | str = 1
     target_error: float | None = None
     error_measure: str = "relative"
     streaming_share: float = STREAMING_SHARE
@@ -126,7 +127,7 @@ class CompressorOptions:
             reorth_tol=(10 * n * _EPS if v["reorth_tol"] is None
                         else check_nonnegative(v["reorth_tol"], "reorth_tol")),
             right_vectors=bool(v["right_vectors"]),
-            commit_every=int(check_positive_int(v["commit_every"], "commit_every")),  # type: ignore[arg-type]
+            commit_every=_commit_every(v["commit_every"]),
             target_error=target, error_measure=measure, streaming_share=share,
             window=window, forget=check_forget(v["forget"]),
         )
@@ -175,6 +176,22 @@ class CompressorOptions:
             inner=inner, rule=self.rule, sweeps=self.sweeps, truncation=self.truncation(),
             reject_tol=self.reject_tol, reorth_tol=self.reorth_tol,
         )
+
+
+def _commit_every(value: Any) -> int | str:
+    """Return ``commit_every`` validated: an int >= 1, or ``"auto"``."""
+    from .commits import AUTO
+
+    if isinstance(value, str) and value == AUTO:
+        return AUTO
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        from .errors import InputError
+
+        raise InputError(
+            f"`commit_every` must be an integer >= 1 (updates per commit) or {AUTO!r} "
+            f"(commits timed to take about a tenth of the time); got {value!r}."
+        )
+    return int(value)
 
 
 TREE_OPTIONS = ("inner",) + tuple(

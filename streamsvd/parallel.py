@@ -179,9 +179,9 @@ def tall_compress(
         Dataset of an HDF5 file or array of a zarr group.
     store : str or path-like, optional
         Store of the basis: created, or continued from its recorded source offset with
-        ``resume=True``. Every update is committed (``commit_every``); a failure leaves
-        the store at its last commit. The source is recorded in the store
-        (:attr:`~streamsvd.StreamCompressor.source_record`).
+        ``resume=True``. Updates are committed as ``commit_every`` says (every update
+        by default); a failure leaves the store at its last commit. The source is
+        recorded in the store (:attr:`~streamsvd.StreamCompressor.source_record`).
     resume : bool
         Continue the existing store (its options and weights are used; ``inner``, if
         passed, is checked against them).

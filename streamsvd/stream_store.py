@@ -28,7 +28,7 @@ import numpy as np
 
 from ._core import UpdateRecord, record_from_row
 from .bound import Bound
-from .commits import CommitTracker
+from .commits import CommitSchedule, CommitTracker
 from .downdate import intervals_add
 from .errors import StoreError, StoreFormatError, StoreMismatchError
 from .inner import InnerProduct, as_inner, inner_from_arrays
@@ -97,16 +97,18 @@ class _Small:
 class StreamStore:
     """A compressor's store: its handle, what the last commit wrote, what waits for one."""
 
-    def __init__(self, handle: BasisStore, *, commit_every: int) -> None:
+    def __init__(self, handle: BasisStore, *, commit_every: int | str) -> None:
         self.handle = handle
         self.commit_every = commit_every
+        self.schedule = CommitSchedule(commit_every)
         self.tracker = CommitTracker()
         self.uncommitted = 0
         self._recent: tuple[dict[str, Any], ...] = ()  # the basis of the last two commits
 
     @classmethod
     def create(cls, path: Any, *, n: int, inner_fingerprint: str, attrs: dict[str, Any],
-               storage_options: dict[str, Any] | None, commit_every: int) -> StreamStore:
+               storage_options: dict[str, Any] | None, commit_every: int | str
+               ) -> StreamStore:
         """Create a new store at ``path`` (nothing committed yet)."""
         handle = BasisStore.create(
             path, n=n, dtype="float64", inner_fingerprint=inner_fingerprint, attrs=attrs,
@@ -125,8 +127,8 @@ class StreamStore:
         return self.handle.mode == "a"
 
     def due(self) -> bool:
-        """Whether the next update is committed (every ``commit_every`` updates)."""
-        return self.uncommitted + 1 >= self.commit_every
+        """Whether the next update is committed (``commit_every``: :class:`CommitSchedule`)."""
+        return self.schedule.due(self.uncommitted)
 
     def commit(self, state: State, plan: Plan | None, *, attrs: dict[str, Any],
                history: list[UpdateRecord], inner_data: dict[str, np.ndarray],
@@ -168,7 +170,8 @@ class StreamStore:
             "rows_dead": None if state.rows is None else intervals_add(
                 np.zeros((0, 2)), _planned_dead(state.rows.dead, plan)).tolist(),
         }
-        k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
+        with self.schedule.timed():
+            k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
         self.tracker.committed(k)
         self.uncommitted = 0
         if plan is None:

@@ -108,6 +108,27 @@ def test_sweeps_takes_a_positive_count_or_converge(tmp_path, npy, capsys):
     assert status == 0 and "sweeps converge" in out
 
 
+def test_commit_every_takes_a_positive_count_or_auto(tmp_path, npy, capsys):
+    for bad in ("0", "-2", "often"):
+        status, _, err = run_cli(["ingest", npy, tmp_path / f"s{bad}.zarr", "--commit-every",
+                                  bad], capsys)
+        assert_one_line_error(status, err)
+        assert "argument --commit-every: must be a positive number of updates per commit, " \
+               f"or 'auto'; got '{bad}'" in err
+        assert not (tmp_path / f"s{bad}.zarr").exists()
+    for given, recorded in ([], "auto"), (["--commit-every", "auto"], "auto"), \
+            (["--commit-every", "4"], 4), (["--tall"], "auto"):
+        store = tmp_path / f"s{len(given)}{recorded}.zarr"
+        assert main(["ingest", str(npy), str(store), "--block", "7", "--quiet", *given]) == 0
+        with open_readonly(store) as sc:
+            assert sc.commit_every == recorded and sc.n_seen == 60  # the end commits all
+    status, out, _ = run_cli(["ingest", "--help"], capsys)
+    text = " ".join(out.split())
+    assert "--commit-every C|auto when the updates are committed to STORE" in text
+    assert "take at most a tenth of the time since the start" in text
+    assert "(default: auto)" in text
+
+
 def test_existing_store_needs_resume(tmp_path, matrix, capsys):
     src = tmp_path / "a.npy"
     np.save(src, matrix[:, :30])
@@ -490,7 +511,7 @@ def test_user_mistakes_print_one_line_in_cli_words(tmp_path, matrix, capsys):
         (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--scheduler", "threads",
           "--rtol", "0.1"], r"--rtol 0.1 \(STORE has none\): --resume continues STORE"),
         (["ingest", t / "a.npy", t / "mem.zarr", "--resume", "--commit-every", "3"],
-         r"--commit-every 3 \(STORE has 1\)"),
+         r"--commit-every 3 \(STORE has auto\)"),
         (["ingest", t / "a.npy", t / "tall.zarr", "--resume", "--tall", "--chunk-rows", "7",
           "--max-rank", "3"],
          r"--max-rank 3 \(STORE has none\), --chunk-rows 7 \(STORE has 16384\): --resume "),
@@ -837,6 +858,36 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     assert ((patch[..., 0] > 200) & (patch[..., 1] < 80) & (patch[..., 2] < 80)).any()
 
 
+@pytest.mark.parametrize("mode", ["memory", "tall"])
+def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch, mode):
+    """With the default --commit-every auto, Ctrl-C during an update commits the updates
+    absorbed before it (whichever of them the schedule had committed), and --resume ends
+    bit for bit where an uninterrupted run ends."""
+    import streamsvd.stream
+
+    plan = streamsvd.stream.plan_absorb
+    calls = []
+
+    def interrupted_at_the_fifth(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return plan(*args, **kwargs)
+
+    argv = ["ingest", npy, tmp_path / "s.zarr", "--block", "7", "--max-rank", "4", "--quiet",
+            *MODES[mode]]
+    monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupted_at_the_fifth)
+    status, _, err = run_cli(argv, capsys)
+    assert status == 130, err
+    assert "holds the snapshots up to column 28 of SOURCE (its last commit)" in err
+    monkeypatch.setattr("streamsvd.stream.plan_absorb", plan)
+    assert main([str(a) for a in [*argv, "--resume"]]) == 0
+    assert main([str(a) for a in [*argv[:2], tmp_path / "ref.zarr", *argv[3:]]]) == 0
+    with open_readonly(tmp_path / "s.zarr") as a, open_readonly(tmp_path / "ref.zarr") as b:
+        ea, eb = a.expansion, b.expansion
+        assert np.array_equal(ea.U, eb.U) and np.array_equal(ea.V, eb.V)
+
+
 def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
     """SIGINT during a long ingestion: exit 130, one line naming the last committed column
     and the command to resume; the store holds exactly that commit, readable."""
@@ -851,8 +902,8 @@ def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
     store = tmp_path / "s.zarr"
     proc = subprocess.Popen(
         [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "1",
-         "--max-rank", "5", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+         "--max-rank", "5", "--commit-every", "1", "--quiet"], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # wait for a few commits (not timing the process)
         try:

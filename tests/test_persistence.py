@@ -1,6 +1,7 @@
 """StreamCompressor with a zarr store: resume bit for bit, survive SIGKILL, refuse bad state."""
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
+from streamsvd.commits import CommitSchedule
 from streamsvd.stream import StreamCompressor
 from streamsvd.testing import with_spectrum
 
@@ -63,6 +65,114 @@ def test_commit_every_and_flush(tmp_path, rng):
     sc.close()
     with StreamCompressor.open(path, mode="r") as reader:
         assert reader.n_seen == 20
+
+
+class _Clock:
+    """A clock that moves only when told."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_schedule_commits_every_given_count_whatever_the_clock():
+    clock = _Clock()
+    schedule = CommitSchedule(3, clock=clock)
+    assert [schedule.due(k) for k in range(4)] == [False, False, True, True]
+    clock.now = 1e9
+    assert not schedule.due(0)
+
+
+def test_auto_schedule_keeps_the_commits_within_a_tenth_of_the_time():
+    """``spent + last <= overhead * (now - start)``: after a first commit of 2 s, the next
+    update due is the first one planned 40 s or more after the start; then 3 s more
+    of commits need 60 s."""
+    clock = _Clock()
+    schedule = CommitSchedule("auto", clock=clock)
+    assert schedule.due(0)  # nothing spent yet: the first update is committed
+    clock.now = 1.0
+    with schedule.timed():
+        clock.now = 3.0
+    due = []
+    for now in (4.0, 20.0, 39.9, 40.1, 50.0):
+        clock.now = now
+        due.append(schedule.due(7))
+    assert due == [False, False, False, True, True]
+    with schedule.timed():  # 1 s: 3 s spent, and the next one counted at 1 s
+        clock.now = 51.0
+    clock.now = 54.0  # (3 + 1) / 0.1 = 40 s after the start: due already
+    assert schedule.due(0)
+    half = CommitSchedule("auto", overhead=0.5, clock=clock)  # starts at 54
+    with half.timed():
+        clock.now = 55.0
+    clock.now = 57.9  # 2 s of commits (one spent, one to come) over 0.5: 4 s
+    assert not half.due(0)
+    clock.now = 58.1
+    assert half.due(0)
+
+
+def test_a_failed_commit_leaves_the_schedule_as_it_was():
+    clock = _Clock()
+    schedule = CommitSchedule("auto", clock=clock)
+    with schedule.timed():
+        clock.now = 1.0
+    clock.now = 25.0
+    with pytest.raises(OSError), schedule.timed():
+        clock.now = 100.0
+        raise OSError("No space left on device")
+    assert schedule.due(0)  # still due: only the commit that succeeded is counted
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, "every", True, None])
+def test_commit_every_is_a_positive_integer_or_auto(value):
+    with pytest.raises(ss.InputError, match=r"`commit_every` must be an integer >= 1 "
+                       r"\(updates per commit\) or 'auto' .*; got "):
+        StreamCompressor(10, commit_every=value)
+
+
+def test_auto_commits_by_cost_and_a_kill_resumes_bit_for_bit(tmp_path, rng, monkeypatch):
+    """On a clock where a commit takes 1 s and an update 3 s, ``commit_every="auto"``
+    commits update 1, then the updates that keep the commits within a tenth of the time
+    (one in about 10 s once the share is spent); a copy of the store taken between two
+    commits (what a kill leaves) resumes from its last commit, and both end bit for bit
+    where a run that commits every update ends."""
+    from streamsvd.store import BasisStore
+
+    A = _data(rng, n=60, m=120)
+    opts = dict(max_rank=6, oversampling=2)
+    ref = _stream(A, 5, **opts)
+    clock = _Clock()
+    commit = BasisStore.commit
+    committed = []
+
+    def timed_commit(self, *args, **kwargs):
+        clock.now += 1.0
+        committed.append(kwargs["attrs"]["source_offset"])
+        return commit(self, *args, **kwargs)
+
+    monkeypatch.setattr(BasisStore, "commit", timed_commit)
+    path = tmp_path / "auto.zarr"
+    sc = StreamCompressor(A.shape[0], store=path, commit_every="auto", **opts)
+    sc._persistence.schedule = CommitSchedule("auto", clock=clock)
+    committed.clear()
+    for j in range(0, A.shape[1], 5):
+        clock.now += 3.0
+        sc.absorb(A[:, j : j + 5])
+        if j == 40:  # update 9: the last commit was update 7
+            shutil.copytree(path, tmp_path / "killed.zarr")
+    assert committed == [5, 35, 50, 65, 80, 95, 110]
+    sc.close(finalize=False)
+    assert committed[-1] == A.shape[1]
+    with StreamCompressor.open(tmp_path / "killed.zarr") as killed:
+        assert killed.commit_every == "auto" and killed.source_offset == 35
+        for j in range(killed.source_offset, A.shape[1], 5):
+            killed.absorb(A[:, j : j + 5])
+        killed.flush()
+        _assert_same(killed, ref)
+    with StreamCompressor.open(path, mode="r") as done:
+        _assert_same(done, ref)
 
 
 def test_bad_block_leaves_store_bitwise_unchanged(tmp_path, rng):

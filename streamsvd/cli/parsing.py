@@ -39,22 +39,23 @@ CONVERGE = "converge"
 DEFAULT_BLOCK = 100
 DEFAULT_RULE = "paper"
 DEFAULT_SWEEPS = 1
-DEFAULT_COMMIT_EVERY = 1
+#: Commits timed to take about a tenth of the time (``streamsvd.commits.AUTO``).
+DEFAULT_COMMIT_EVERY = "auto"
 DEFAULT_OVERSAMPLING = 10
 #: The ``--final-sweeps`` values: converge the core at the end, or leave it as streamed.
 _FINAL_SWEEPS = (CONVERGE, "none")
 
 _INGEST_EPILOG = """\
 modes:
-  in memory   (default)             the basis in memory, committed to STORE every
-                                    --commit-every updates
+  in memory   (default)             the basis in memory, committed to STORE as
+                                    --commit-every says
   tree        --scheduler S         leaves of --leaf-columns columns compressed
                                     independently on dask, merged pairwise; STORE is
                                     written once, at the end
   tall        --tall [--scheduler S]
                                     U kept out of core in zarr panels of --chunk-rows
                                     rows, every product run by dask over row chunks;
-                                    committed every --commit-every updates
+                                    committed as --commit-every says
   --leaf-columns is for the tree mode only, --chunk-rows for the tall mode only and
   --workers for --scheduler local only; an option of another mode is refused.
 
@@ -113,6 +114,13 @@ def _forget(text: str) -> float:
     if not 0.0 < value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be a number in (0, 1]; got {text!r}")
     return value
+
+
+def _commit_every(text: str) -> int | str:
+    if text == DEFAULT_COMMIT_EVERY:
+        return text
+    return int(_number(text, int, 1, "a positive number of updates per commit, or "
+                       f"'{DEFAULT_COMMIT_EVERY}'"))
 
 
 def _threads(text: str) -> int | str:
@@ -304,9 +312,15 @@ def build_parser() -> argparse.ArgumentParser:
     ing.add_argument("--threads", metavar="N", type=_threads,
                      help="BLAS threads of an update, or 'all' for the BLAS's own setting "
                      "(default: 1, never much slower, and much faster on a busy machine)")
-    ing.add_argument("--commit-every", metavar="C", type=_positive_int,
-                     help="updates per commit to STORE, in memory and with --tall; the "
-                     f"tree mode commits once (default: {DEFAULT_COMMIT_EVERY})")
+    ing.add_argument("--commit-every", metavar=f"C|{DEFAULT_COMMIT_EVERY}", type=_commit_every,
+                     help="when the updates are committed to STORE, in memory and with "
+                     f"--tall: every C updates, or with '{DEFAULT_COMMIT_EVERY}' whenever "
+                     "the commits so far plus one more as long as the last take at most a "
+                     "tenth of the time since the start; "
+                     "then a commit comes about 10 times as long as the last one took "
+                     "after it, which bounds what a kill loses; the end and Ctrl-C commit "
+                     "what is pending; the tree mode commits once (default: "
+                     f"{DEFAULT_COMMIT_EVERY})")
     ing.add_argument("--inner", metavar="FILE",
                      help="inner product in which U is orthonormal (a mass matrix, "
                      f"quadrature weights): {_INNER_HELP}; STORE keeps it, so --resume, "
