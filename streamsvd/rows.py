@@ -119,8 +119,7 @@ class RowFactor:
         # Vp = B Z^T with B's columns orthogonal, of norms g = s^2 (+ s_max^2 when added),
         # and Vp^+ = Z diag(1 / g) B^T: the new rows are rounded by cond(Vp) eps, not by
         # its square as through the Gram matrix
-        # (Zt is square either way; W's columns beyond p are never used)
-        W, sv, Zt = np.linalg.svd(Vp_old_part, full_matrices=wv < p)
+        W, sv, Zt = np.linalg.svd(Vp_old_part, full_matrices=True)
         s = np.zeros(p)
         s[: sv.size] = sv
         s_max = float(s.max()) if p else 0.0
