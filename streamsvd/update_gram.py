@@ -84,6 +84,23 @@ def _drift(H: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvalsh(E))))
 
 
+def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bool:
+    """Whether a ``mean_l2`` target refuses the update whatever the block holds.
+
+    The rounding allowance grows with ``||F||^2 >= ||R||^2`` while the growth of the
+    budget (``b (share target)^2``) does not depend on the block: when the energy already
+    absorbed alone exceeds the share, the block's ``M`` product and Gram are not made.
+    """
+    if trunc.target is None or trunc.measure != "mean_l2" or state.R.size == 0:
+        return False
+    e = pow2_exponent(state.R)
+    if abs(e) > _MAX_SPREAD // 2:  # 4^e outside the range: left to the checks that follow
+        return False
+    old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
+    room = (trunc.share * trunc.target) ** 2 * math.ldexp(float(b), -2 * e)
+    return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
+
+
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
     """Whether writing ``keep`` columns from ``w + b`` costs at most 4x the exact path.
 
@@ -129,6 +146,8 @@ def plan_absorb_by_gram(
     w = basis.width
     k = state.R.shape[0]
     if not _compaction_pays(w, b, state.rank):
+        return None
+    if _refused_before_block(state, trunc, b, n):
         return None
     Y, MY = basis.workspace(b)
     Y[...] = X
