@@ -41,12 +41,11 @@ def gram(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np
 
     ``MX`` is ``M X`` when the caller has it already.
     """
-    if inner.is_euclidean and X.shape[1] <= 8:  # too narrow for syrk to pay
-        G = X.T @ X
-        return 0.5 * (G + G.T)
     if inner.is_euclidean:
-        H = blas.dsyrk(1.0, np.asfortranarray(X), trans=1)
-        return np.triu(H) + np.triu(H, 1).T
+        # numpy makes X^T X a rank-k update (syrk) and fills in the lower triangle
+        Xf = np.asfortranarray(X)
+        G = Xf.T @ Xf
+        return 0.5 * (G + G.T)
     G = X.T @ (inner.apply(X) if MX is None else MX)
     return 0.5 * (G + G.T)
 

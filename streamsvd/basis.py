@@ -296,8 +296,8 @@ class MemoryBasis:
         if p == 0:
             return np.zeros((0, 0))
         if self.inner.is_euclidean:
-            H = blas.dsyrk(1.0, S[:, :p], trans=1)
-            return np.triu(H) + np.triu(H, 1).T
+            out = S[:, :p]
+            return out.T @ out  # a rank-k update (numpy calls syrk), symmetric
         H = MS[:, :p].T @ S[:, :p]
         return 0.5 * (H + H.T)
 

@@ -48,7 +48,7 @@ import math
 import time
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg.lapack import dtrtri
 
 from ._blocks import apply_into, gram, scale_into
 from ._core import Truncation, UpdateRecord
@@ -73,6 +73,32 @@ _SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
 def _allowance(energy: float, size: int, n: int) -> float:
     """Return the bound on the rounding of ``trace(Phi) = energy`` (``Phi`` of order ``size``)."""
     return _ROUNDING_LAMBDA * (math.sqrt(size * n) + size) * _EPS * energy
+
+
+def _drift(H: np.ndarray) -> float:
+    """Return ``||H - I||_2``, or its upper bound ``||H - I||_F`` when that is small."""
+    E = H - np.eye(H.shape[0])
+    frobenius = float(np.linalg.norm(E))
+    if frobenius <= _MAX_DRIFT:
+        return frobenius
+    return float(np.max(np.abs(np.linalg.eigvalsh(E))))
+
+
+def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bool:
+    """Whether a ``mean_l2`` target refuses the update whatever the block holds.
+
+    The rounding allowance grows with ``||F||^2 >= ||R||^2`` while the growth of the
+    budget (``b (share target)^2``) does not depend on the block: when the energy already
+    absorbed alone exceeds the share, the block's ``M`` product and Gram are not made.
+    """
+    if trunc.target is None or trunc.measure != "mean_l2" or state.R.size == 0:
+        return False
+    e = pow2_exponent(state.R)
+    if abs(e) > _MAX_SPREAD // 2:  # 4^e outside the range: left to the checks that follow
+        return False
+    old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
+    room = (trunc.share * trunc.target) ** 2 * math.ldexp(float(b), -2 * e)
+    return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
 
 
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
@@ -121,6 +147,8 @@ def plan_absorb_by_gram(
     k = state.R.shape[0]
     if not _compaction_pays(w, b, state.rank):
         return None
+    if _refused_before_block(state, trunc, b, n):
+        return None
     Y, MY = basis.workspace(b)
     Y[...] = X
     exps = np.zeros(b, dtype=np.int64)
@@ -148,12 +176,16 @@ def plan_absorb_by_gram(
                 trunc, np.zeros(0), S, exps, top, b):
             return None
     C = basis.project(Y, None) if w else np.zeros((0, b))
-    B = np.block([[state.H, C], [C.T, S]])
-    # F = [Q, Y] Z 2^top, every entry of Z at most about 1
-    Z = np.zeros((w + b, k + b))
-    Z[:w, :k] = np.ldexp(state.Gu @ state.R.T, -top)
-    Z[w:, k:] = np.diag(np.ldexp(1.0, exps - top))
-    Phi = Z.T @ B @ Z
+    # F = [Q, Y] Z 2^top with Z = blockdiag(Zq, diag(d)), every entry at most about 1;
+    # Phi = Z^T B Z, B = [[H, C], [C^T, S]] the Gram of [Q, Y], formed by blocks
+    Zq = np.ldexp(state.Gu @ state.R.T, -top)
+    d = np.ldexp(1.0, exps - top)
+    ZC = (Zq.T @ C) * d
+    Phi = np.empty((size, size))
+    Phi[:k, :k] = Zq.T @ state.H @ Zq
+    Phi[:k, k:] = ZC
+    Phi[k:, :k] = ZC.T
+    Phi[k:, k:] = (d[:, np.newaxis] * S) * d
     lam, W = np.linalg.eigh(0.5 * (Phi + Phi.T))
     lam, W = np.maximum(lam[::-1], 0.0), W[:, ::-1]
     total = float(np.sum(lam))
@@ -172,13 +204,16 @@ def plan_absorb_by_gram(
         return None
     if not _compaction_pays(w, b, keep):
         return None
-    G = Z @ (W[:, :keep] / np.sqrt(lam[:keep]))
+    Wk = W[:, :keep] / np.sqrt(lam[:keep])
+    G = np.empty((w + b, keep))
+    G[:w] = Zq @ Wk[:k]
+    G[w:] = d[:, np.newaxis] * Wk[k:]
     H = basis.compact_planned(G, b)
-    if np.max(np.abs(np.linalg.eigvalsh(H - np.eye(keep)))) > _MAX_DRIFT:
+    if _drift(H) > _MAX_DRIFT:
         basis.discard_planned()
         return None
     L = np.linalg.cholesky(H)
-    Gu = scipy.linalg.solve_triangular(L, np.eye(keep), lower=True).T  # L^{-T}
+    Gu = dtrtri(L, lower=1)[0].T  # L^{-T}
     R = amps[:keep, np.newaxis] * L
     rows = None if state.rows is None else plan_rows(state, W[:, :keep], None)
     discarded = math.ldexp(math.sqrt(float(np.sum(lam[keep:])) + allowance), top)
