@@ -17,7 +17,7 @@ commit that are unchanged:
   ``inner_indptr``, ``inner_indices``, ``inner_data``; :func:`streamsvd.inner.inner_arrays`),
   written by the first commit and kept unchanged by every later one.
 
-The small state (``Gu``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the
+The small state (``coords``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the
 compressor. :class:`CommitTracker` remembers those extents for the generation a commit
 wrote, once the compressor switched to the committed state; a commit to any other
 generation (after a failed commit, say) writes every array anew.

@@ -420,7 +420,7 @@ class StreamingSVD(FittedPCA):
         state = sc._state
         assert state.rows is not None
         found = _pca_math.weighted_components(
-            state.basis.lincomb(state.Gu), state.R, state.rows.value(), g,
+            state.basis.lincomb(state.coords), state.R, state.rows.value(), g,
             center=opts.center, n_components=opts.n_components, inner=inner,
         )
         self.mean_, self._mu = found.mean, found.mean

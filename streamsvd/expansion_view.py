@@ -68,7 +68,7 @@ class ExpansionView:
         (equal up to rounding).
         """
         s = self._state
-        U = s.basis.lincomb(s.Gu)
+        U = s.basis.lincomb(s.coords)
         perm = np.argsort(-safe_column_norms(s.R if V is None else V), kind="stable")
         U = U[:, perm]
         signs = fix_signs(U, np.zeros((0, U.shape[1])))

@@ -101,7 +101,7 @@ class BasisExtension:
         The columns' power-of-two scalings ``e``.
     block_norm : float
         ``||X||_M`` (Frobenius in ``M``) of the block, overflow-safe.
-    cross : ndarray, shape (w, r)
+    cross_gram : ndarray, shape (w, r)
         ``(M Q)^T Q_new`` over every stored column: the new block of the basis Gram.
     gram_new : ndarray, shape (r, r)
         ``Q_new^T M Q_new``.
@@ -117,7 +117,7 @@ class BasisExtension:
     rejected_map: np.ndarray
     exponents: np.ndarray
     block_norm: float
-    cross: np.ndarray
+    cross_gram: np.ndarray
     gram_new: np.ndarray
     passes: int = 0
 
@@ -127,7 +127,7 @@ class BasisExtension:
         return cls(
             coeffs=np.zeros((q, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
             rejected_gram=np.zeros((0, 0)), rejected_map=np.zeros((0, 0)),
-            exponents=np.zeros(0, dtype=np.int64), block_norm=0.0, cross=np.zeros((w, 0)),
+            exponents=np.zeros(0, dtype=np.int64), block_norm=0.0, cross_gram=np.zeros((w, 0)),
             gram_new=np.zeros((0, 0)),
         )
 
@@ -172,7 +172,7 @@ def extend_basis(
     inner: InnerProduct,
     reject_tol: float,
     reference: np.ndarray | None = None,
-    H: np.ndarray | None = None,
+    basis_gram: np.ndarray | None = None,
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
 
@@ -183,8 +183,9 @@ def extend_basis(
        ``(M Q)^T Z`` over every stored column, which measures what the projection left
        along the basis. It is subtracted (a second pass; Giraud et al. 2005: twice is
        enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
-       is returned in ``cross``, the new block of the basis Gram, where the compressor's
-       orthogonality check (``Gu^T H Gu = I``, :mod:`streamsvd.update`) accounts for it.
+       is returned in ``cross_gram``, the new block of the basis Gram, where the compressor's
+       orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.update`) accounts for
+       it.
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
        in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to
@@ -219,9 +220,9 @@ def extend_basis(
     reference : ndarray, shape (b,), optional
         The norm each column's residual is compared with; default the column's own
         ``M``-norm. Columns with a zero reference carry nothing and are rejected.
-    H : ndarray, shape (w, w), optional
-        ``Q^T M Q``, when the caller keeps it (saves measuring ``cross`` again after a
-        second projection).
+    basis_gram : ndarray, shape (w, w), optional
+        ``Q^T M Q``, when the caller keeps it (saves measuring ``cross_gram`` again after
+        a second projection).
     """
     n, b = X.shape
     w = basis.width
@@ -246,11 +247,11 @@ def extend_basis(
             basis.subtract(Z, G, along)
             C += along
             passes += 1
-            if H is None:
+            if basis_gram is None:
                 cross0 = basis.project(Z, None)
                 passes += 1
             else:
-                cross0 = cross0 - H @ (along if G is None else G @ along)
+                cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
             MZ = apply_into(Z, MY, inner)
             S = gram(Z, inner, MZ)
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
@@ -321,7 +322,7 @@ def extend_basis(
         rejected_map=np.vstack(maps) if maps else np.zeros((0, b)),
         exponents=exps,
         block_norm=scaled_norm(nu, exps),
-        cross=cross,
+        cross_gram=cross,
         gram_new=gram_new,
         passes=passes,
     )
@@ -400,19 +401,19 @@ def orthonormalize(
     basis = MemoryBasis(n, ip, capacity=min(p, n) + min(block, p))
     R = np.zeros((min(p, n), p))
     # the basis Gram Q^T M Q, from what each extension measured: a direction keeps the
-    # component along the basis a first projection left when it is tiny (`cross`)
+    # component along the basis a first projection left when it is tiny (`cross_gram`)
     H = np.zeros((min(p, n), min(p, n)))
     rejected: list[int] = []
     for start in range(0, p, block):
         stop = min(start + block, p)
         q = basis.width
         ext = extend_basis(basis, None, U[:, start:stop], inner=ip, reject_tol=tol,
-                           H=H[:q, :q])
+                           basis_gram=H[:q, :q])
         r = ext.rank
         R[:q, start:stop] = ext.coeffs
         R[q : q + r, start:stop] = ext.R_new
-        H[:q, q : q + r] = ext.cross
-        H[q : q + r, :q] = ext.cross.T
+        H[:q, q : q + r] = ext.cross_gram
+        H[q : q + r, :q] = ext.cross_gram.T
         H[q : q + r, q : q + r] = ext.gram_new
         basis.accept(r)
         rejected.extend(int(start + k) for k in np.flatnonzero(~ext.accepted))

@@ -317,7 +317,7 @@ class TallCompressor(StreamCompressor):
         assert isinstance(basis, PanelBasis)
         V = self.right_factor()
         perm = np.argsort(-safe_column_norms(V), kind="stable")
-        U = basis.lazy(s.Gu[:, perm])
+        U = basis.lazy(s.coords[:, perm])
         top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client)
         signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`

@@ -409,7 +409,7 @@ def _merge_operand(
                 "compressor does; merge compressors created alike."
             )
         Y_o = o.rows.value() if keep_rows and o.rows is not None else None
-        return o.basis.lincomb(o.Gu), o.R, Y_o, o.m, o.bound
+        return o.basis.lincomb(o.coords), o.R, Y_o, o.m, o.bound
     V_o = np.array(other.V)
     if not keep_rows:
         return np.array(other.U), r_factor(V_o), None, V_o.shape[0], Bound()

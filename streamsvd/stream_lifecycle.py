@@ -197,7 +197,7 @@ class StoreLifecycle:
     def _attrs(self, plan: Plan | None) -> dict[str, Any]:
         s = self._state
         bound = s.bound if plan is None else plan.bound
-        rank = s.rank if plan is None else plan.Gu.shape[1]
+        rank = s.rank if plan is None else plan.coords.shape[1]
         return {
             "kind": self._backend.kind, "options": self.options.as_dict(),
             "n_seen": s.m if plan is None else plan.m, "rank": rank,

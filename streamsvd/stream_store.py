@@ -7,7 +7,7 @@ commit writes
 
 * the basis and the right factor *this update leads to* (the backend's planned arrays:
   the state in memory switches only after the commit succeeded),
-* the small state packed into one array ``small`` (``Gu``, ``H``, ``R``, ``Vp`` when the
+* the small state packed into one array ``small`` (``coords``, ``H``, ``R``, ``Vp`` when the
   right vectors are kept, and the scalars: the bound's three norms, the source offset,
   the number of snapshots, the basis's wasted width), whose shapes are recorded in the
   attribute ``small_layout``,
@@ -54,8 +54,8 @@ READABLE_LAYOUTS = (LAYOUT, LAYOUT_WITH_REMOVALS)
 class _Small:
     """The small state, as one commit writes it."""
 
-    Gu: np.ndarray
-    H: np.ndarray
+    coords: np.ndarray
+    gram: np.ndarray
     R: np.ndarray
     Vp: np.ndarray | None
     bound: Bound
@@ -70,7 +70,7 @@ class _Small:
         norms = np.where(np.isinf(self.bound.to_array()), -1.0, self.bound.to_array())
         scalars = np.concatenate([norms, [float(self.source_offset), float(self.m),
                                           self.wasted_flops]])
-        pieces = [self.Gu, self.H, self.R, scalars]
+        pieces = [self.coords, self.gram, self.R, scalars]
         if self.Vp is not None:
             pieces.insert(3, self.Vp)
         return (np.concatenate([a.ravel() for a in pieces]),
@@ -86,7 +86,7 @@ class _Small:
             start += size
         scalars = pieces[-1]
         return cls(
-            Gu=pieces[0], H=pieces[1], R=pieces[2],
+            coords=pieces[0], gram=pieces[1], R=pieces[2],
             Vp=pieces[3] if len(pieces) == 5 else None,
             bound=Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3])),
             source_offset=int(scalars[3]), m=int(scalars[4]),
@@ -146,7 +146,7 @@ class StreamStore:
             basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
             rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
             compact = replaced = False
-            small = _Small(state.Gu, state.H, state.R, None if rows is None else rows[1],
+            small = _Small(state.coords, state.gram, state.R, None if rows is None else rows[1],
                            state.bound, source_offset, state.m, state.wasted_flops)
         else:
             stage_plan(state, plan)
@@ -154,7 +154,7 @@ class StreamStore:
             basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
             rows = _planned_rows(state, plan)
             compact, replaced = w.compacted, w.rows_replaced is not None
-            small = _Small(plan.Gu, plan.H, plan.R, None if rows is None else rows[1],
+            small = _Small(plan.coords, plan.gram, plan.R, None if rows is None else rows[1],
                            plan.bound, source_offset, plan.m, plan.wasted_flops)
         # only what changed since the previous commit is written (streamsvd.commits)
         appended = self.tracker.appended(
@@ -299,6 +299,6 @@ def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
         dead = [np.arange(a0, b0) for a0, b0 in attrs.get("rows_dead") or []]
         state.rows.restore(a["V0"], small.Vp, capacity=tuple(attrs["rows_capacity"]),
                            dead=np.concatenate(dead + [np.zeros(0, dtype=np.int64)]))
-    state.Gu, state.H, state.R = small.Gu, small.H, small.R
+    state.coords, state.gram, state.R = small.coords, small.gram, small.R
     state.bound, state.m, state.wasted_flops = small.bound, small.m, small.wasted_flops
     return small.source_offset, [record_from_row(row) for row in a["history"]]

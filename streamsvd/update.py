@@ -1,7 +1,8 @@
 """The one update step of a compressor (absorb, add, merge), over a basis backend.
 
-State. ``U = Q Gu`` with ``Q`` the stored basis (a :class:`~streamsvd.basis.BasisBackend`,
-``n x w``) and ``Gu`` small (``w x p``); ``H = Q^T M Q`` (small) measures orthogonality;
+State. ``U = Q coords`` with ``Q`` the stored basis (a :class:`~streamsvd.basis.BasisBackend`,
+``n x w``) and ``coords`` small (``w x p``, the coordinates of ``U`` on ``Q``);
+``gram = Q^T M Q`` (small) measures orthogonality;
 ``R`` (``k x p``, ``k <= p``) is the core of the right factor: ``V = Y R`` with ``Y``
 (``m x k``) orthonormal, so ``V^T V = R^T R``. When the right vectors are kept, ``Y`` is
 stored, as ``Y = V0 Vp`` (:class:`~streamsvd.rows.RowFactor`), never ``V`` itself: ``V``
@@ -15,7 +16,7 @@ with ``Y`` is rounded relative to 1. Each update replaces ``Y`` by
 Every update is planned first (:func:`plan_absorb`, :func:`plan_add`,
 :func:`plan_merge`, :func:`plan_finalize`): the new directions are orthonormalised in the
 backend's workspace, the small core ``K`` is rotated, sorted and truncated
-(:func:`streamsvd._core.core_step`), and when a compaction ``Q <- [Q, Q_new] Gu`` pays it
+(:func:`streamsvd._core.core_step`), and when a compaction ``Q <- [Q, Q_new] coords`` pays it
 is computed into the workspace too, so that its Gram is measured from the columns
 themselves. A plan is small matrices and a list of deferred :class:`Writes` (the columns
 that become stored, the new rows of ``Y``); it writes nothing that the state or a store
@@ -78,12 +79,32 @@ class StepOptions:
 
 @dataclass
 class State:
-    """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`."""
+    """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`.
+
+    Attributes
+    ----------
+    basis, rows
+        The n-sized factor ``Q`` and the m-sized factor ``Y`` (None without right vectors).
+    coords : ndarray, shape (w, p)
+        The coordinates of ``U`` on the stored basis: ``U = Q coords``.
+    gram : ndarray, shape (w, w)
+        ``Q^T M Q``, measured from the stored columns (orthogonality is
+        ``||coords^T gram coords - I||``).
+    R : ndarray, shape (k, p)
+        The core of the right factor: ``V = Y R``.
+    m : int
+        Snapshots represented.
+    wasted_flops : float
+        Flops spent on the stored columns beyond ``p`` since the last compaction (a
+        compaction pays once they reach its own cost).
+    bound : Bound
+        The error bound's account (:mod:`streamsvd.bound`).
+    """
 
     basis: BasisBackend
     rows: RightFactor | None
-    Gu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    H: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    coords: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    gram: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     m: int = 0
     wasted_flops: float = 0.0
@@ -92,11 +113,11 @@ class State:
     @property
     def rank(self) -> int:
         """Number of terms ``p``."""
-        return int(self.Gu.shape[1])
+        return int(self.coords.shape[1])
 
     def orthogonality(self) -> float:
         """``||U^T M U - I||_2`` from the small Gram matrices."""
-        return gram_orthogonality(self.Gu, self.H)
+        return gram_orthogonality(self.coords, self.gram)
 
     def extents(self) -> Extents:
         """Return what the stored arrays hold, and the epochs in which they only grow."""
@@ -144,8 +165,8 @@ class Writes:
 class Plan:
     """Everything an update computed: the small matrices, and the writes deferred to apply."""
 
-    Gu: np.ndarray
-    H: np.ndarray
+    coords: np.ndarray
+    gram: np.ndarray
     R: np.ndarray
     m: int
     wasted_flops: float
@@ -171,7 +192,7 @@ def apply_plan(state: State, plan: Plan) -> None:
     """Switch the state to the planned one, writing what the plan deferred."""
     w = plan.writes
     if w.compacted:
-        state.basis.swap(plan.Gu.shape[1])
+        state.basis.swap(plan.coords.shape[1])
     else:
         state.basis.accept(w.columns)
     if state.rows is not None:
@@ -182,7 +203,7 @@ def apply_plan(state: State, plan: Plan) -> None:
             state.rows.commit(w.rows)
             if w.dead_rows is not None:
                 state.rows.dead = w.dead_rows
-    state.Gu, state.H, state.R = plan.Gu, plan.H, plan.R
+    state.coords, state.gram, state.R = plan.coords, plan.gram, plan.R
     state.m, state.wasted_flops, state.bound = plan.m, plan.wasted_flops, plan.bound
 
 
@@ -197,7 +218,8 @@ def plan_absorb(
     ``R_new`` its residual's triangular factor).
     """
     ext = extend_basis(
-        state.basis, state.Gu, X, inner=opts.inner, reject_tol=opts.reject_tol, H=state.H
+        state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
+        basis_gram=state.gram,
     )
     b = X.shape[1]
     k, p = state.R.shape
@@ -230,8 +252,8 @@ def plan_add(
     assert state.rows is not None
     ref = _energy_reference(_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
-        state.basis, state.Gu, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
-        reference=ref, H=state.H,
+        state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref, basis_gram=state.gram,
     )
     V_old = (state.rows.value() @ state.R if state.rank
              else np.zeros((V_k.shape[0], 0)))
@@ -266,8 +288,8 @@ def plan_merge(
     """
     ref = _energy_reference(_m_norms(U_o, opts.inner), safe_column_norms(R_o))
     ext = extend_basis(
-        state.basis, state.Gu, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
-        reference=ref, H=state.H,
+        state.basis, state.coords, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref, basis_gram=state.gram,
     )
     k, p = state.R.shape
     ko = R_o.shape[0]
@@ -346,7 +368,7 @@ def _plan(
     w = state.basis.width
     T = step.T
     p_new = T.shape[1]
-    # the basis [Q, Q_new] with Gu_ext = blockdiag(Gu, I_r); compact when it pays, or
+    # the basis [Q, Q_new] with Gu_ext = blockdiag(coords, I_r); compact when it pays, or
     # when the next block of this width would not fit in a buffer that holds two bases
     # and a block (a compaction is then cheaper than growing it); a smaller buffer grows
     # (geometrically, when the next block's workspace is taken), else a tight buffer
@@ -359,21 +381,21 @@ def _plan(
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )
-    Gu = np.vstack([state.Gu @ T[:p], T[p:]])
+    coords = np.vstack([state.coords @ T[:p], T[p:]])
     if compact:
-        H = state.basis.compact_planned(Gu, r)
-        Gu, wasted_flops = np.eye(p_new), 0.0
+        H = state.basis.compact_planned(coords, r)
+        coords, wasted_flops = np.eye(p_new), 0.0
     else:
         H = _extended_gram(state, ext)
-    orth = gram_orthogonality(Gu, H)
+    orth = gram_orthogonality(coords, H)
     if orth > opts.reorth_tol:
         # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged (V = Y R, so
         # only R changes)
-        G = Gu.T @ H @ Gu
+        G = coords.T @ H @ coords
         L = np.linalg.cholesky(0.5 * (G + G.T))
-        Gu = scipy.linalg.solve_triangular(L, Gu.T, lower=True).T
+        coords = scipy.linalg.solve_triangular(L, coords.T, lower=True).T
         R = R @ L
-        orth = gram_orthogonality(Gu, H)
+        orth = gram_orthogonality(coords, H)
     rows = Y_full = None
     if state.rows is not None:
         # Y <- blockdiag(Y, Y_appended) P, P = Q_K Q_R orthonormal
@@ -404,8 +426,8 @@ def _plan(
         columns=0 if compact else r, compacted=compact, rows=rows, rows_replaced=Y_full,
         dead_rows=dead,
     )
-    return Plan(Gu=Gu, H=H, R=R, m=m, wasted_flops=wasted_flops, bound=bound, record=record,
-                writes=writes)
+    return Plan(coords=coords, gram=H, R=R, m=m, wasted_flops=wasted_flops, bound=bound,
+                record=record, writes=writes)
 
 
 def plan_rows(
@@ -436,9 +458,9 @@ def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     """``H`` of ``[Q, Q_new]`` from the blocks Gram-Schmidt measured (:class:`BasisExtension`)."""
     w, r = state.basis.width, ext.rank
     H = np.zeros((w + r, w + r))
-    H[:w, :w] = state.H
-    H[:w, w:] = ext.cross
-    H[w:, :w] = ext.cross.T
+    H[:w, :w] = state.gram
+    H[:w, w:] = ext.cross_gram
+    H[w:, :w] = ext.cross_gram.T
     H[w:, w:] = ext.gram_new
     return H
 
@@ -457,12 +479,12 @@ def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndar
     return Q, R
 
 
-def gram_orthogonality(Gu: np.ndarray, H: np.ndarray) -> float:
-    """``||Gu^T H Gu - I||_2``: the largest eigenvalue modulus of a symmetric matrix."""
-    p = Gu.shape[1]
+def gram_orthogonality(coords: np.ndarray, gram: np.ndarray) -> float:
+    """``||coords^T gram coords - I||_2``: the largest eigenvalue modulus of a symmetric matrix."""
+    p = coords.shape[1]
     if p == 0:
         return 0.0
-    E = Gu.T @ H @ Gu - np.eye(p)
+    E = coords.T @ gram @ coords - np.eye(p)
     return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
 
 

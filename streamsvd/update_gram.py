@@ -6,7 +6,7 @@ to working accuracy, which takes several passes when the snapshots are nearly co
 target error, or a rank cap), the directions far below the cut carry nothing the user
 needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
 
-* the expansion and the block are ``F = [Q, X] Z`` (``Z`` holds ``Gu R^T`` and the
+* the expansion and the block are ``F = [Q, X] Z`` (``Z`` holds ``coords R^T`` and the
   block's scaling); one product ``[M Q, M X]^T X`` gives the Gram ``B`` of ``[Q, X]`` (the
   stored ``H = Q^T M Q`` completes it), and ``Phi = Z^T B Z = F^T M F`` is decomposed,
   ``Phi = W Lambda W^T`` (``O((k + b)^3)``);
@@ -14,7 +14,7 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   the kept left vectors ``[Q, X] Z W_k Lambda_k^(-1/2)`` are written as the new basis in
   one product (the backend's compaction, which measures their Gram ``H'``), and their
   loss of orthogonality, about ``eps lambda_1 / lambda_k``, is absorbed in the small
-  factor ``Gu = L^(-T)`` (``H' = L L^T``), so ``U = Q' Gu`` is orthonormal to working
+  factor ``coords = L^(-T)`` (``H' = L L^T``), so ``U = Q' coords`` is orthonormal to working
   accuracy without another pass; the right factor becomes ``blockdiag(Y, I) W_k``
   (orthonormal) with the core ``R = Lambda_k^(1/2) L``.
 
@@ -178,11 +178,11 @@ def plan_absorb_by_gram(
     C = basis.project(Y, None) if w else np.zeros((0, b))
     # F = [Q, Y] Z 2^top with Z = blockdiag(Zq, diag(d)), every entry at most about 1;
     # Phi = Z^T B Z, B = [[H, C], [C^T, S]] the Gram of [Q, Y], formed by blocks
-    Zq = np.ldexp(state.Gu @ state.R.T, -top)
+    Zq = np.ldexp(state.coords @ state.R.T, -top)
     d = np.ldexp(1.0, exps - top)
     ZC = (Zq.T @ C) * d
     Phi = np.empty((size, size))
-    Phi[:k, :k] = Zq.T @ state.H @ Zq
+    Phi[:k, :k] = Zq.T @ state.gram @ Zq
     Phi[:k, k:] = ZC
     Phi[k:, :k] = ZC.T
     Phi[k:, k:] = (d[:, np.newaxis] * S) * d
@@ -213,17 +213,17 @@ def plan_absorb_by_gram(
         basis.discard_planned()
         return None
     L = np.linalg.cholesky(H)
-    Gu = dtrtri(L, lower=1)[0].T  # L^{-T}
+    coords = dtrtri(L, lower=1)[0].T  # L^{-T}
     R = amps[:keep, np.newaxis] * L
     rows = None if state.rows is None else plan_rows(state, W[:, :keep], None)
     discarded = math.ldexp(math.sqrt(float(np.sum(lam[keep:])) + allowance), top)
     bound = state.bound.step(discarded, 0.0, overlapping=False)
-    orth = gram_orthogonality(Gu, H)
+    orth = gram_orthogonality(coords, H)
     record = UpdateRecord(
         kind="absorb", columns=b, rank=keep, new_directions=b, rejected=0,
         cut=size - keep, discarded=discarded, sweeps=0, max_cosine=0.0,
         orthogonality=orth, error_bound=bound.bound, seconds=time.perf_counter() - t0,
         passes=2,
     )
-    return Plan(Gu=Gu, H=H, R=R, m=m, wasted_flops=0.0, bound=bound, record=record,
+    return Plan(coords=coords, gram=H, R=R, m=m, wasted_flops=0.0, bound=bound, record=record,
                 writes=Writes(compacted=True, rows=rows))

@@ -196,7 +196,7 @@ def test_zero_block_adds_rows_and_nothing_else(rng):
 
 def _snapshot(sc):
     s = sc._state
-    arrays = (s.basis.Q, s.Gu, s.H, s.rows.V0, s.rows.Vp, s.R)
+    arrays = (s.basis.Q, s.coords, s.gram, s.rows.V0, s.rows.Vp, s.R)
     return [a.copy() for a in arrays], sc.error_bound, len(sc.history)
 
 

@@ -221,7 +221,7 @@ def test_forget_without_right_vectors(rng):
 # ------------------------------------------------------------------------- the store
 def _state(sc: ss.StreamCompressor) -> list[np.ndarray]:
     s = sc._state
-    return [s.basis.lincomb(s.Gu), s.R, sc.right_factor(), np.array([sc.error_bound]),
+    return [s.basis.lincomb(s.coords), s.R, sc.right_factor(), np.array([sc.error_bound]),
             sc.removed, np.array(sc._ledger.entries)]
 
 
