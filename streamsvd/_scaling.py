@@ -7,9 +7,12 @@ brought near 1 before squares or inner products are formed, and the result scale
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
-__all__ = ["pow2_exponent", "safe_column_norms"]
+__all__ = ["pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm"]
 
 
 def pow2_exponent(x: np.ndarray) -> int:
@@ -36,3 +39,19 @@ def safe_column_norms(X: np.ndarray) -> np.ndarray:
     # caller's memory layout: equal columns always get bit-identical norms
     scaled = np.asfortranarray(np.ldexp(X, -exps[np.newaxis, :]))
     return np.ldexp(np.sqrt(np.einsum("ij,ij->j", scaled, scaled)), exps)
+
+
+def safe_norm(X: np.ndarray) -> float:
+    """Frobenius norm without overflow (the array scaled by a power of two first)."""
+    e = pow2_exponent(X)
+    return math.ldexp(float(np.linalg.norm(np.ldexp(X, -e))), e)
+
+
+def safe_m_norms(X: np.ndarray, inner: Any) -> np.ndarray:
+    """``M``-norms of the columns, each scaled by a power of two first (no overflow)."""
+    if inner.is_euclidean:
+        return safe_column_norms(X)
+    peak = np.max(np.abs(X), axis=0) if X.shape[0] else np.zeros(X.shape[1])
+    e = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
+    Y = np.ldexp(X, -e[np.newaxis, :])
+    return np.ldexp(np.sqrt(np.maximum(np.einsum("ij,ij->j", Y, inner.apply(Y)), 0.0)), e)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ._core import UpdateRecord
-from ._scaling import safe_column_norms
+from ._scaling import safe_column_norms, safe_norm
 from .compress import fix_signs
 from .errors import InputError
 from .expansion import Expansion
@@ -27,14 +27,6 @@ if TYPE_CHECKING:
 __all__ = ["ExpansionView"]
 
 logger = logging.getLogger("streamsvd.stream")
-
-
-def _norm(x: np.ndarray) -> float:
-    """``||x||_2`` without overflow."""
-    top = float(np.max(np.abs(x))) if x.size else 0.0
-    if top == 0.0:
-        return 0.0
-    return top * float(np.linalg.norm(x / top))
 
 
 class ExpansionView:
@@ -148,7 +140,7 @@ class ExpansionView:
             return b
         if self.error_measure == "mean_l2":
             return b / math.sqrt(self.n_seen) if self.n_seen else 0.0
-        norm = _norm(self.amplitudes)
+        norm = safe_norm(self.amplitudes)
         return b / (norm - b) if norm > b else (0.0 if b == 0.0 else math.inf)
 
     @property

@@ -44,7 +44,7 @@ import numpy as np
 import scipy.linalg
 
 from ._core import Truncation, UpdateRecord, core_step, r_factor
-from ._scaling import pow2_exponent, safe_column_norms
+from ._scaling import safe_column_norms, safe_m_norms, safe_norm
 from .basis import BasisBackend
 from .bound import Bound
 from .gram_schmidt import BasisExtension, extend_basis
@@ -178,8 +178,8 @@ class Plan:
 def stage_plan(state: State, plan: Plan) -> None:
     """Make the plan's new columns and rows durable before a commit refers to them.
 
-    Nothing stored changes: the staged columns and rows are scratch until
-    :func:`apply_plan` (a rebase of the rows changes their representation, never ``V``).
+    Nothing stored changes until :func:`apply_plan` (a rebase of the rows changes their
+    representation, never ``V``).
     """
     w = plan.writes
     if not w.compacted:
@@ -208,9 +208,7 @@ def apply_plan(state: State, plan: Plan) -> None:
 
 
 # ---------------------------------------------------------------------------- planning
-def plan_absorb(
-    state: State, X: np.ndarray, opts: StepOptions, *, t0: float
-) -> Plan:
+def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``).
 
     The right factor grows to ``blockdiag(Y, I_b) K`` with the core
@@ -250,7 +248,7 @@ def plan_add(
     and replaced by its Householder QR.
     """
     assert state.rows is not None
-    ref = _energy_reference(_m_norms(U_k, opts.inner), safe_column_norms(V_k))
+    ref = _energy_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, basis_gram=state.gram,
@@ -286,7 +284,7 @@ def plan_merge(
     ``||r_j||_M ||v_j|| <= reject_tol * max_i ||u_i||_M ||v_i||``: relative to the energy
     of the expansion merged, as a snapshot's residual is relative to the snapshot.
     """
-    ref = _energy_reference(_m_norms(U_o, opts.inner), safe_column_norms(R_o))
+    ref = _energy_reference(safe_m_norms(U_o, opts.inner), safe_column_norms(R_o))
     ext = extend_basis(
         state.basis, state.coords, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, basis_gram=state.gram,
@@ -304,7 +302,7 @@ def plan_merge(
     return _plan(
         state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
         Y_appended=Y_o, d_rej=d_rej,
-        rejection_root=math.sqrt(d_rej) * math.sqrt(_norm(R_o)), prior=prior,
+        rejection_root=math.sqrt(d_rej) * math.sqrt(safe_norm(R_o)), prior=prior,
     )
 
 
@@ -486,22 +484,6 @@ def gram_orthogonality(coords: np.ndarray, gram: np.ndarray) -> float:
         return 0.0
     E = coords.T @ gram @ coords - np.eye(p)
     return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
-
-
-def _m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
-    """``M``-norms of the columns, each scaled by a power of two first (no overflow)."""
-    if inner.is_euclidean:
-        return safe_column_norms(X)
-    peak = np.max(np.abs(X), axis=0) if X.shape[0] else np.zeros(X.shape[1])
-    e = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
-    Y = np.ldexp(X, -e[np.newaxis, :])
-    return np.ldexp(np.sqrt(np.maximum(np.einsum("ij,ij->j", Y, inner.apply(Y)), 0.0)), e)
-
-
-def _norm(X: np.ndarray) -> float:
-    """Frobenius norm without overflow."""
-    e = pow2_exponent(X)
-    return math.ldexp(float(np.linalg.norm(np.ldexp(X, -e))), e)
 
 
 def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
