@@ -900,10 +900,17 @@ def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
     src = tmp_path / "a.npy"
     np.save(src, A)
     store = tmp_path / "s.zarr"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "1",
-         "--max-rank", "5", "--commit-every", "1", "--quiet"], stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+    # a process started with SIGINT ignored (a background job of a script, nohup) passes
+    # that on and Python keeps it: the child gets the default disposition, as from a shell
+    inherited = signal.signal(signal.SIGINT, signal.SIG_DFL)
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block",
+             "1", "--max-rank", "5", "--commit-every", "1", "--quiet"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # wait for a few commits (not timing the process)
         try:
