@@ -131,9 +131,11 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         previous one (new basis columns, new rows of ``V0`` and of the history, the small
         state; :mod:`streamsvd.commits`). An existing store is continued with
         :meth:`StreamCompressor.open`, not overwritten.
-    commit_every : int
+    commit_every : int or "auto"
         Updates between two commits (the last ones are committed by :meth:`flush` or
-        :meth:`close`).
+        :meth:`close`); ``"auto"`` commits when the commits so far, and one more as long
+        as the last, stay within a tenth of the time since the start
+        (:class:`streamsvd.commits.CommitSchedule`).
     source_record : SourceRecord, optional
         Where the snapshots come from (path, dataset, shape), kept in the attributes of
         every commit as :attr:`source_record` (the command line refuses to resume a
