@@ -10,12 +10,15 @@ Every function works on arrays; the basis is reached only through
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg.blas as blas
 
-from .basis import BasisBackend
 from .inner import InnerProduct
+
+if TYPE_CHECKING:
+    from .basis import BasisBackend
 
 _EPS = np.finfo(np.float64).eps
 # A residual whose Gram has its eigenvalues within COND_SPLIT of the largest is

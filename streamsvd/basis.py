@@ -12,6 +12,11 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
   written aside first so that nothing stored changes before ``swap``; its Gram is
   measured from the written columns;
+* ``block_products(X)`` then ``compact_with_block(G)``: the Gram path's two passes
+  (:mod:`streamsvd.update_gram`): the block's Gram ``X^T M X`` and its projection
+  ``MQ^T X`` with the block staged as it is (in memory: referenced, not copied; a block
+  read by row chunks: written once to a scratch panel as it is read), then
+  ``Q <- [Q, X] G`` written aside like ``compact_planned``;
 * ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``: what a commit
   to a store needs, and what it may delete afterwards; ``compactions`` counts the swaps,
   so a commit tells the columns appended since the previous one (the others are
@@ -40,6 +45,8 @@ from typing import Any, Protocol
 import numpy as np
 import scipy.linalg.blas as blas
 
+from ._blocks import gram
+from ._validation import as_float_array
 from .inner import InnerProduct
 
 __all__ = [
@@ -77,6 +84,15 @@ class BasisAlgebra(Protocol):
 
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
+
+    def block_products(self, X: Any, *, project: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """Stage the block ``X``; return ``X^T M X`` and ``MQ^T X`` (None unless ``project``).
+
+        A backend that reads ``X`` in one pass computes ``MQ^T X`` whatever ``project``.
+        """
+
+    def compact_with_block(self, G: np.ndarray) -> np.ndarray:
+        """Write ``[Q, X] G`` aside (``X`` the staged block); return its Gram ``Q'^T M Q'``."""
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
@@ -129,7 +145,14 @@ class Backend(Protocol):
         """Return ``basis`` copied for a compressor whose own empty basis is ``blank``."""
 
     def load(self, columns: Any, *, rows: int, first: int) -> Any:
-        """Return a block of ``rows`` rows in memory (``first``: its offset, for errors)."""
+        """Return ``columns`` checked as a block of ``rows`` rows the basis takes.
+
+        An array, or a block its basis reads when the update needs it (``first``: its
+        offset in the source, named when that read fails).
+        """
+
+    def in_memory(self, block: Any) -> np.ndarray:
+        """Return a block from :meth:`load` as a float64 array."""
 
     def describe(self, basis: BasisBackend) -> str:
         """Return what ``repr`` of a compressor shows of its basis (may be empty)."""
@@ -156,9 +179,13 @@ class MemoryBackend:
         """Return a deep copy of the buffers."""
         return copy.deepcopy(basis)
 
-    def load(self, columns: Any, *, rows: int, first: int) -> Any:
-        """Return the block as given (the facade checks and converts it)."""
-        return columns
+    def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
+        """Return the block checked and converted to a float64 array."""
+        return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False)
+
+    def in_memory(self, block: Any) -> np.ndarray:
+        """Return the block (it is in memory already)."""
+        return block
 
     def describe(self, basis: BasisBackend) -> str:
         """Nothing beyond the compressor's own fields."""
@@ -190,6 +217,7 @@ class MemoryBasis:
         self._bufs = self._allocate(int(capacity))
         self._spare: tuple[np.ndarray, np.ndarray] | None = None
         self._planned_width = 0
+        self._block: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ buffers
     def _allocate(self, cap: int) -> tuple[np.ndarray, np.ndarray]:
@@ -284,31 +312,72 @@ class MemoryBasis:
         measured from the factor itself). The stored columns are untouched until
         :meth:`swap`.
         """
-        p = G.shape[1]
-        if self._spare is None or self._spare[0].shape[1] < self.capacity:
-            self._spare = self._allocate(self.capacity)
-        S, MS = self._spare
         w = self._w + r
-        np.matmul(self._bufs[0][:, :w], G, out=S[:, :p])
-        if not self.inner.is_euclidean:
-            np.matmul(self._bufs[1][:, :w], G, out=MS[:, :p])
+        return self._compact(G, [(self._bufs[0][:, :w], self._bufs[1][:, :w])])
+
+    def block_products(
+        self, X: np.ndarray, *, project: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Stage ``X`` for :meth:`compact_with_block`; return ``X^T M X`` and ``MQ^T X``.
+
+        The block is referenced, not copied (beside ``M X`` for a non-Euclidean inner
+        product); ``MQ^T X`` is None unless ``project``.
+        """
+        MX = X if self.inner.is_euclidean else self.inner.apply(X)
+        self._block = (X, MX)
+        return gram(X, self.inner, MX), self.project(X, None) if project else None
+
+    def compact_with_block(self, G: np.ndarray) -> np.ndarray:
+        """Write ``[Q, X] G`` into the spare buffer (``X`` staged by :meth:`block_products`).
+
+        As :meth:`compact_planned`, without the block ever copied next to the basis.
+        """
+        assert self._block is not None
+        return self._compact(G, [(self.Q, self.MQ), self._block])
+
+    def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Write ``[A_1, A_2, ...] G`` (and its ``M`` image) into the spare buffer.
+
+        ``parts`` are the ``(A_i, M A_i)`` whose columns the rows of ``G`` combine, in
+        order. Returns the Gram of the columns written.
+        """
+        p = G.shape[1]
+        if self._spare is None or self._spare[0].shape[1] < max(self.capacity, p):
+            self._spare = self._allocate(max(self.capacity, p))
         self._planned_width = p
         if p == 0:
             return np.zeros((0, 0))
+        out = [self._spare[0][:, :p]] + ([] if self.inner.is_euclidean
+                                         else [self._spare[1][:, :p]])
+        row = 0
+        for i, (A, MA) in enumerate(parts):
+            Gi = G[row:row + A.shape[1]]
+            row += A.shape[1]
+            for target, source in zip(out, (A, MA), strict=False):
+                if i == 0:
+                    np.matmul(source, Gi, out=target)
+                    continue
+                if not source.flags.f_contiguous:
+                    target += source @ Gi
+                    continue
+                res = blas.dgemm(1.0, source, Gi, beta=1.0, c=target, overwrite_c=1)
+                if not np.shares_memory(res, target):
+                    target[...] = res
         if self.inner.is_euclidean:
-            out = S[:, :p]
-            return out.T @ out  # a rank-k update (numpy calls syrk), symmetric
-        H = MS[:, :p].T @ S[:, :p]
+            return out[0].T @ out[0]  # a rank-k update (numpy calls syrk), symmetric
+        H = out[1].T @ out[0]
         return 0.5 * (H + H.T)
 
     def discard_planned(self) -> None:
-        """Nothing to undo: a plan only wrote scratch columns and the spare buffer."""
+        """Forget the staged block: a plan only wrote scratch columns and the spare buffer."""
+        self._block = None
 
     def swap(self, p: int) -> None:
         """Make the spare buffer written by :meth:`compact_planned` the stored basis."""
         assert self._spare is not None and p == self._planned_width
         self._spare, self._bufs = self._bufs, self._spare
         self._w = p
+        self._block = None
         self.compactions += 1
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:

@@ -57,6 +57,7 @@ def ingest(
     block: int = 100,
     depth: int = 1,
     min_last: int = 0,
+    rows: int | None = None,
     progress: bool = False,
     desc: str = "ingest",
 ) -> IngestResult:
@@ -80,6 +81,10 @@ def ingest(
     min_last : int
         A last block shorter than this joins the one before it (:meth:`Source.blocks
         <streamsvd.sources.Source.blocks>`).
+    rows : int, optional
+        Hand each block to the compressor unread, as a
+        :class:`~streamsvd.sources.LazyBlock` of chunks of this many rows (the tall mode,
+        whose update reads it chunk by chunk); ``depth`` then does not apply.
     progress : bool
         Show a progress bar over the columns (tqdm, on stderr) with the rank and the
         error bound.
@@ -107,7 +112,8 @@ def ingest(
 
         bar = tqdm(total=last, initial=first, unit="col", dynamic_ncols=True, desc=desc,
                    file=sys.stderr)
-    blocks = source.blocks(block, start=first, stop=last, depth=depth, min_last=min_last)
+    blocks = source.blocks(block, start=first, stop=last, depth=depth, min_last=min_last,
+                           rows=rows)
     try:
         while True:
             t = time.perf_counter()

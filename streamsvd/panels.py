@@ -71,6 +71,7 @@ class PanelBasis:
         self._mws: np.ndarray | None = None
         self._staged_new: tuple[str, int] | None = None
         self._staged_compact: tuple[str, int] | None = None
+        self._staged_block: tuple[str, Any] | None = None  # (scratch panel or "", dask)
         self._zarrs: dict[str, Any] = {}
         self.compactions = 0
 
@@ -109,6 +110,19 @@ class PanelBasis:
             self._zarrs[name] = z
         return z
 
+    def _new_panel(self, cols: int, dtype: Any = np.float64) -> tuple[str, Any]:
+        """Create an empty ``n x cols`` panel; return its name and zarr array."""
+        import zarr
+        from zarr.codecs import Crc32cCodec
+
+        name = f"p{uuid.uuid4().hex}"
+        z = zarr.create_array(
+            store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
+            chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
+            fill_value=0.0, compressors=[Crc32cCodec()],
+        )
+        return name, z
+
     def _write(self, data: Any, *also: Any) -> tuple[str, int, list[Any]]:
         """Write an ``n x c`` numpy or dask array as a new panel; return its name and width.
 
@@ -117,16 +131,9 @@ class PanelBasis:
         the list.
         """
         import dask.array as da
-        import zarr
-        from zarr.codecs import Crc32cCodec
 
         cols = int(data.shape[1])
-        name = f"p{uuid.uuid4().hex}"
-        z = zarr.create_array(
-            store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
-            chunks=(self.chunk_rows, max(cols, 1)), dtype="float64", fill_value=0.0,
-            compressors=[Crc32cCodec()],
-        )
+        name, z = self._new_panel(cols)
         if isinstance(data, np.ndarray):
             z[:] = data
             return name, cols, []
@@ -213,12 +220,61 @@ class PanelBasis:
 
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` as one new panel; return its Gram ``Q'^T M Q'``."""
+        return self._compact(G, [self._block(self.planned_new(r)[0])] if r else [])
+
+    def block_products(self, X: Any, *, project: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Stage ``X`` for :meth:`compact_with_block`; return ``X^T M X`` and ``MQ^T X``.
+
+        One pass over the row chunks computes both (``project`` is not needed). A
+        :class:`~streamsvd.sources.LazyBlock` is read once, chunk by chunk, each chunk
+        written to a scratch panel (in the source's dtype: float32 stays float32) as it
+        enters the products in float64, so the ``n x b`` block is never in memory; an
+        in-memory block is used where it is. A failed read raises the block's
+        :class:`~streamsvd.errors.SourceError`; the scratch panel goes with
+        :meth:`discard_planned`.
+        """
+        import dask.array as da
+
+        from .errors import StreamSVDError
+        from .sources import LazyBlock
+
+        b = int(X.shape[1])
+        lazy = isinstance(X, LazyBlock)
+        Xd = (X.data.rechunk({0: self._row_chunks(), 1: -1}) if lazy else self._block(X))
+        X64 = Xd.astype(np.float64)
+        wanted = [self._weighted(X64).T @ X64]
+        Q = self._q()
+        if Q is not None:
+            wanted.append(self._weighted(Q).T @ X64)
+        if lazy:
+            name, z = self._new_panel(b, Xd.dtype)
+            self._staged_block = (name, None)
+            try:
+                done = execute([da.store(Xd, z, lock=False, compute=False), *wanted],
+                               client=self.client)[1:]
+            except StreamSVDError:
+                raise
+            except Exception as exc:
+                raise X.failed(exc) from exc
+            self._staged_block = (name, da.from_zarr(self._panel(name)).astype(np.float64))
+        else:
+            done = execute(wanted, client=self.client)
+            self._staged_block = ("", Xd)
+        S = np.asarray(done[0])
+        C = np.asarray(done[1]) if Q is not None else np.zeros((0, b))
+        return 0.5 * (S + S.T), C
+
+    def compact_with_block(self, G: np.ndarray) -> np.ndarray:
+        """Write ``[Q, X] G`` as one new panel (``X`` staged by :meth:`block_products`)."""
+        assert self._staged_block is not None and self._staged_block[1] is not None
+        return self._compact(G, [self._staged_block[1]])
+
+    def _compact(self, G: np.ndarray, extra: list[Any]) -> np.ndarray:
+        """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram."""
         import dask.array as da
 
         Q0 = self._q()
-        parts = [] if Q0 is None else [Q0]
-        if r:
-            parts.append(self._block(self.planned_new(r)[0]))
+        parts = ([] if Q0 is None else [Q0]) + extra
         p = G.shape[1]
         if not parts or p == 0:
             self._staged_compact = ("", 0)
@@ -237,6 +293,7 @@ class PanelBasis:
         name, _ = self._staged_compact
         self.panels, self.widths = ([name], [p]) if p else ([], [])
         self._staged_compact, self._ws, self._mws = None, None, None
+        self._drop_block()
         self.compactions += 1
         logger.info("compacted the basis to one panel of width %d", p)
 
@@ -244,9 +301,19 @@ class PanelBasis:
         """Remove the panels an abandoned plan wrote."""
         for staged in (self._staged_new, self._staged_compact):
             if staged is not None and staged[0]:
-                self._zarrs.pop(staged[0], None)
-                self.root.delete(f"panels/{staged[0]}")
+                self._delete(staged[0])
         self._staged_new = self._staged_compact = None
+        self._drop_block()
+
+    def _drop_block(self) -> None:
+        """Forget the staged block; remove its scratch panel (no commit refers to it)."""
+        if self._staged_block is not None and self._staged_block[0]:
+            self._delete(self._staged_block[0])
+        self._staged_block = None
+
+    def _delete(self, name: str) -> None:
+        self._zarrs.pop(name, None)
+        self.root.delete(f"panels/{name}")
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` in memory (``n x p``)."""
@@ -307,8 +374,7 @@ class PanelBasis:
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
-                self._zarrs.pop(entry, None)
-                self.root.delete(f"panels/{entry}")
+                self._delete(entry)
 
 
 class _Rows:

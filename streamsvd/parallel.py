@@ -233,7 +233,8 @@ def tall_compress(
                                 chunk_rows=rows, client=client, source_record=record,
                                 **options)
         try:
-            ingest_blocks(src, tc, block=block, progress=progress, desc="tall")
+            ingest_blocks(src, tc, block=block, rows=tc.chunk_rows, progress=progress,
+                          desc="tall")
             tc.flush()
         except BaseException:
             tc.close(finalize=False)

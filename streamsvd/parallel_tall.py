@@ -34,12 +34,13 @@ from typing import Any, cast
 import numpy as np
 
 from ._scaling import safe_column_norms
-from ._validation import check_positive_int
+from ._validation import as_float_array, check_positive_int
 from .basis import BasisBackend
-from .errors import InputError, ShapeMismatchError, SourceError
+from .errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
 from .inner import DiagonalInner, InnerProduct
 from .panels import PanelBasis
 from .scheduling import check_client, execute
+from .sources import LazyBlock
 from .storage import LocalStorage, ObjectStorage, open_storage
 from .stream import StreamCompressor
 
@@ -144,36 +145,46 @@ class PanelBackend:
         return blank
 
     def load(self, columns: Any, *, rows: int, first: int) -> Any:
-        """Return a block in memory: a dask array is read by row chunks (on the cluster).
+        """Return a checked block: a dask array becomes a :class:`~streamsvd.sources.LazyBlock`.
 
-        Raises :class:`~streamsvd.errors.SourceError` when the read fails, naming the
-        columns; a numpy block is returned as it is.
+        A dask array (or a source's :class:`~streamsvd.sources.LazyBlock`) is not read
+        here: the update reads it by row chunks (on the cluster when there is one), each
+        chunk checked for NaN and infinite entries; anything else is checked and
+        converted in memory. ``first`` is the block's source offset (named when a read
+        fails).
         """
         import dask.array as da
 
-        if not isinstance(columns, da.Array):
-            return columns
-        if columns.ndim != 2 or columns.shape[0] != rows:
+        if isinstance(columns, LazyBlock):
+            block = columns
+        elif isinstance(columns, da.Array):
+            block = LazyBlock(_checked_dask(columns), first, "dask array `columns`")
+        else:
+            return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False)
+        shape = block.shape
+        if len(shape) != 2 or shape[0] != rows:
             raise ShapeMismatchError(
-                f"`columns` must have {rows} rows; got shape {columns.shape}. Pass "
-                "snapshots as columns."
+                f"`columns` must have {rows} rows; got shape {shape}. Pass snapshots as "
+                "columns."
             )
-        if columns.dtype.kind not in "biuf":
-            raise InputError(
-                f"`columns` must hold real numbers; got dtype {columns.dtype}. "
-                "Convert it with `.astype(float)`."
-            )
-        if columns.shape[1] == 0:
-            raise InputError(f"`columns` must not be empty; got shape {columns.shape}.")
+        if shape[1] == 0:
+            raise InputError(f"`columns` must not be empty; got shape {shape}.")
+        return block
+
+    def in_memory(self, block: Any) -> np.ndarray:
+        """Return a block as a float64 array: a lazy block is read by row chunks.
+
+        Raises the block's :class:`~streamsvd.errors.SourceError` when the read fails.
+        """
+        if not isinstance(block, LazyBlock):
+            return cast(np.ndarray, block)
         try:
-            (block,) = execute([columns.astype(np.float64)], client=self.client)
+            (out,) = execute([block.data.astype(np.float64)], client=self.client)
+        except StreamSVDError:
+            raise
         except Exception as exc:
-            raise SourceError(
-                f"absorbing columns {first}:{first + columns.shape[1]} (offset {first}) "
-                f"failed: {type(exc).__name__}: {exc}. The basis is unchanged and a store "
-                f"holds its last commit; fix the cause and resume from offset {first}."
-            ) from exc
-        return np.asarray(block)
+            raise block.failed(exc) from exc
+        return np.asfortranarray(out)
 
     def describe(self, basis: BasisBackend) -> str:
         """Return the number of panels and the rows per chunk."""
@@ -322,3 +333,40 @@ class TallCompressor(StreamCompressor):
         signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`
         return U * signs, V[:, perm] * signs
+
+
+def _checked_dask(columns: Any) -> Any:
+    """Return a dask block as float64 or float32 chunks checked for NaN and infinities.
+
+    Raises :class:`~streamsvd.errors.InputError` on a dtype that is not real; the finite
+    check runs in each chunk's task and names the entry by its row and column in the
+    block.
+    """
+    if columns.ndim != 2:
+        raise ShapeMismatchError(
+            f"`columns` must be 2-D (n x b); got shape {columns.shape}. Pass snapshots "
+            "as columns."
+        )
+    if columns.dtype.kind not in "biuf":
+        raise InputError(
+            f"`columns` must hold real numbers; got dtype {columns.dtype}. "
+            "Convert it with `.astype(float)`."
+        )
+    dtype = np.dtype(np.float32 if columns.dtype == np.float32 else np.float64)
+    return columns.astype(dtype).map_blocks(_finite_chunk, dtype=dtype)
+
+
+def _finite_chunk(part: np.ndarray, block_info: dict | None = None) -> np.ndarray:
+    """Return a chunk of a dask block; raise NonFiniteError naming its first bad entry."""
+    finite = np.isfinite(part)
+    if finite.all():
+        return part
+    col = int(np.flatnonzero(~finite.all(axis=0))[0])
+    row = int(np.flatnonzero(~finite[:, col])[0])
+    r0, c0 = ((0, 0) if block_info is None
+              else (int(block_info[0]["array-location"][0][0]),
+                    int(block_info[0]["array-location"][1][0])))
+    raise NonFiniteError(
+        f"`columns` must be finite; got {float(part[row, col])} at row {r0 + row}, column "
+        f"{c0 + col} of the block. Repair or remove that snapshot."
+    )

@@ -41,7 +41,9 @@ import logging
 import os
 import queue
 import threading
+import uuid
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
@@ -53,7 +55,7 @@ from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
 from .formats import no_dataset, open_file, open_zarr_url
 from .storage import is_url
 
-__all__ = ["Source", "open_source", "open_zarr_url"]
+__all__ = ["LazyBlock", "Source", "open_source", "open_zarr_url"]
 
 logger = logging.getLogger(__name__)
 
@@ -197,12 +199,12 @@ class Source:
             _copy_by_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
 
-    def _check_finite(self, block: np.ndarray, start: int) -> None:
+    def _check_finite(self, block: np.ndarray, start: int, *, row0: int = 0) -> None:
         """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates.
 
-        ``block`` holds columns ``start:start + b``; the first bad entry is the first in
-        column order (the earliest snapshot), reported by its row and its column in the
-        whole source, not by its index inside the block.
+        ``block`` holds columns ``start:start + b`` (of rows ``row0:``); the first bad
+        entry is the first in column order (the earliest snapshot), reported by its row
+        and its column in the whole source, not by its index inside the block.
         """
         finite = np.isfinite(block)
         if finite.all():
@@ -210,17 +212,51 @@ class Source:
         col = int(np.flatnonzero(~finite.all(axis=0))[0])
         row = int(np.flatnonzero(~finite[:, col])[0])
         count = int(block.size - np.count_nonzero(finite))
+        rows = "" if row0 == 0 and block.shape[0] == self.n else (
+            f" rows {row0}:{row0 + block.shape[0]} of")
         raise NonFiniteError(
             f"`source` must be finite; {self.description} holds {float(block[row, col])} "
-            f"at column {start + col}, row {row} (counted from 0; {count} NaN or infinite "
-            f"entries in columns {start}:{start + block.shape[1]}). Repair or remove that "
-            "snapshot."
+            f"at column {start + col}, row {row0 + row} (counted from 0; {count} NaN or "
+            f"infinite entries in{rows} columns {start}:{start + block.shape[1]}). Repair or "
+            "remove that snapshot."
         )
+
+    def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
+        """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
+
+        Nothing is read here: each row chunk is read (and checked for NaN and infinite
+        entries, named in source coordinates) by the task that needs it, so a product
+        over the row chunks holds a few chunks at a time, never the ``n x b`` block.
+        The chunks have dtype :attr:`block_dtype`.
+        """
+        import dask.array as da
+
+        start = _check_index(start, "start", self.m)
+        stop = _check_index(stop, "stop", self.m)
+        rows = cast(int, check_positive_int(rows, "rows"))
+        chunks = ((rows,) * (self.n // rows) + ((self.n % rows,) if self.n % rows else ()),
+                  (stop - start,))
+        name = f"streamsvd-source-{uuid.uuid4().hex}"
+        if self._compute:
+            part = self._data[:, start:stop].rechunk(chunks).astype(self.block_dtype)
+            data = part.map_blocks(self._checked_chunk, start, dtype=self.block_dtype,
+                                   name=name, meta=np.empty((0, 0), self.block_dtype))
+        else:
+            data = da.from_array(_ChunkReader(self, start, stop), chunks=chunks, name=name,
+                                 meta=np.empty((0, 0), self.block_dtype))
+        return LazyBlock(data, start, self.description)
+
+    def _checked_chunk(self, part: np.ndarray, start: int,
+                       block_info: dict | None = None) -> np.ndarray:
+        """Check a chunk of a dask source (``block_info`` gives its rows); return it."""
+        row0 = 0 if block_info is None else int(block_info[0]["array-location"][0][0])
+        self._check_finite(part, start, row0=row0)
+        return part
 
     def blocks(
         self, block: int = 100, *, start: int = 0, stop: int | None = None,
-        prefetch: bool = True, depth: int = 1, min_last: int = 0,
-    ) -> Iterator[tuple[int, np.ndarray]]:
+        prefetch: bool = True, depth: int = 1, min_last: int = 0, rows: int | None = None,
+    ) -> Iterator[tuple[int, np.ndarray | LazyBlock]]:
         """Yield ``(offset, X)`` for consecutive column blocks of columns ``start:stop``.
 
         ``X`` holds columns ``offset:offset + b`` as a column-major array of dtype
@@ -245,12 +281,16 @@ class Source:
         min_last : int
             A last block shorter than this joins the one before it, as often as needed
             (the batches of scikit-learn's ``gen_batches`` with ``min_batch_size``).
+        rows : int, optional
+            Yield each block as a :class:`LazyBlock` read by chunks of this many rows
+            when its products run (:meth:`lazy`; ``prefetch`` and ``depth`` then do not
+            apply: the reads of a block's row chunks overlap its own products).
 
         Yields
         ------
         offset : int
             Index of the block's first column.
-        X : numpy.ndarray, shape (n, b)
+        X : numpy.ndarray or LazyBlock, shape (n, b)
             The block.
 
         Raises
@@ -277,6 +317,8 @@ class Source:
         while len(ranges) > 1 and ranges[-1][1] - ranges[-1][0] < min_last:
             last = ranges.pop()
             ranges[-1] = (ranges[-1][0], last[1])
+        if rows is not None:
+            return ((a, self.lazy(a, b, rows=rows)) for a, b in ranges)
         if not prefetch:
             return ((a, self._read_checked(a, b)) for a, b in ranges)
         return read_ahead(self._read_checked, ranges, depth)
@@ -348,6 +390,60 @@ def read_ahead(
         stopping.set()
         permits.release()
         thread.join()
+
+
+@dataclass(frozen=True)
+class LazyBlock:
+    """Columns ``first:first + b`` of a source, read by row chunks when a product needs them.
+
+    ``data`` is a dask array (``n x b``, float32 or float64, chunked by rows) whose tasks
+    read and check the source; :class:`~streamsvd.panels.PanelBasis` absorbs it in one
+    pass over its row chunks, and :meth:`failed` names the columns when a read fails.
+    """
+
+    data: Any
+    first: int
+    description: str
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(n, b)``."""
+        return cast(tuple[int, int], tuple(self.data.shape))
+
+    def failed(self, exc: BaseException) -> SourceError:
+        """Return the error that reports a failed read of these columns."""
+        a, b = self.first, self.first + self.shape[1]
+        return SourceError(
+            f"reading columns {a}:{b} (offset {a}) of {self.description} failed: "
+            f"{type(exc).__name__}: {exc}. The basis is unchanged and a store holds its "
+            f"last commit; fix the cause and resume from offset {a}."
+        )
+
+
+class _ChunkReader:
+    """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked."""
+
+    def __init__(self, source: Source, start: int, stop: int) -> None:
+        self.source, self.start, self.stop = source, start, stop
+        self.shape = (source.n, stop - start)
+        self.dtype, self.ndim = source.block_dtype, 2
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        src, a = self.source, self.start + c0
+        out = np.empty((r1 - r0, c1 - c0), dtype=src.block_dtype, order="F")
+        try:
+            _copy_by_slabs(out, src._data[r0:r1, a:self.start + c1])
+        except Exception as exc:  # any reader failure is reported with its offset
+            raise SourceError(
+                f"reading columns {self.start}:{self.stop} (offset {self.start}) of "
+                f"{src.description} failed: {type(exc).__name__}: {exc}. Check that the "
+                f"data is readable and resume from offset {self.start}."
+            ) from exc
+        src._check_finite(out, a, row0=r0)
+        return out
 
 
 _READ_BYTES = 1 << 25  # rows read at a time from the data (32 MiB)

@@ -276,13 +276,12 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         in memory and in the store, is unchanged.
         """
         t0 = time.perf_counter()
-        columns = self._backend.load(columns, rows=self.n, first=self.source_offset)
-        B = as_float_array(columns, "columns", ndim=2, rows=self.n, allow_empty=False)
+        B = self._backend.load(columns, rows=self.n, first=self.source_offset)
         offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
         B, state, ledger, removed = self._windowed(B)
         return self._run(
             lambda: plan_absorb_by_gram(state, B, self._opts, t0=t0)
-            or plan_absorb(state, B, self._opts, t0=t0),
+            or plan_absorb(state, self._backend.in_memory(B), self._opts, t0=t0),
             offset, ledger=ledger, removed=removed,
         )
 

@@ -163,7 +163,7 @@ class Removals:
             self.source_offset, ledger=ledger, removed=removed,
         )
 
-    def _windowed(self, B: np.ndarray) -> tuple[np.ndarray, State, Ledger, np.ndarray]:
+    def _windowed(self, B: Any) -> tuple[Any, State, Ledger, np.ndarray]:
         """Prepare the absorption of the block ``B``: the window's removal, the weights.
 
         With ``window``, the oldest snapshots that fall out leave first (an update of their
@@ -173,6 +173,8 @@ class Removals:
         the update starts from.
         """
         window, forget = self.options.window, self.options.forget
+        if window is not None or forget < 1.0:
+            B = self._backend.in_memory(B)
         skipped = 0
         if window is not None:
             skipped = max(B.shape[1] - window, 0)

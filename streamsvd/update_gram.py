@@ -46,13 +46,15 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 from scipy.linalg.lapack import dtrtri
 
-from ._blocks import apply_into, gram, scale_into
+from ._blocks import scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
+from .basis import BasisBackend
 from .update import Plan, State, StepOptions, Writes, gram_orthogonality, plan_rows
 
 __all__ = ["plan_absorb_by_gram"]
@@ -101,6 +103,12 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bo
     return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
 
 
+def _declined(basis: BasisBackend) -> None:
+    """Drop what the basis staged for this path; None sends the update to the exact path."""
+    basis.discard_planned()
+    return None
+
+
 def _compaction_pays(w: int, b: int, keep: int) -> bool:
     """Whether writing ``keep`` columns from ``w + b`` costs at most 4x the exact path.
 
@@ -129,10 +137,12 @@ def _room(
 
 
 def plan_absorb_by_gram(
-    state: State, X: np.ndarray, opts: StepOptions, *, t0: float
+    state: State, X: Any, opts: StepOptions, *, t0: float
 ) -> Plan | None:
     """Plan the absorption of ``X`` (``n x b``) by its Gram matrix; None when not allowed.
 
+    ``X`` is an array, or a block the basis reads by row chunks
+    (:class:`~streamsvd.sources.LazyBlock`, the tall mode), which this path reads once.
     See the module docstring for the method and the conditions; None leaves the state
     and the basis as they were (the caller then plans the exact update).
     """
@@ -142,40 +152,50 @@ def plan_absorb_by_gram(
         # paper's Algorithm 3), or nothing at all: every digit is the user's
         return None
     n, b = X.shape
-    basis, inner = state.basis, opts.inner
+    basis = state.basis
     w = basis.width
     k = state.R.shape[0]
     if not _compaction_pays(w, b, state.rank):
         return None
     if _refused_before_block(state, trunc, b, n):
         return None
-    Y, MY = basis.workspace(b)
-    Y[...] = X
+    # with a relative or mean-l2 target the block's Gram alone can refuse the update:
+    # the projection waits for that check (a backend reading the block in one pass
+    # computes both anyway)
+    measured_first = trunc.target is not None and trunc.measure in GRAM_MEASURES
+    # column-major, as the workspace of the exact path: the same BLAS kernels, so a
+    # block scaled by powers of two below gives the same digits, scaled
+    Y = np.asfortranarray(X) if isinstance(X, np.ndarray) else X
     exps = np.zeros(b, dtype=np.int64)
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        S = gram(Y, inner, apply_into(Y, MY, inner))
+        S, C = basis.block_products(Y, project=not measured_first)
     norms2 = np.diag(S)
     if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
         # squares near the ends of the range (or a zero column): scale each column by a
-        # power of two first, exactly, and measure again
+        # power of two first, exactly, and measure again; a block read by row chunks is
+        # left to the exact path, which loads it
+        if not isinstance(X, np.ndarray):
+            return _declined(basis)
+        Y = np.empty(X.shape, order="F")
         exps, zero = scale_into(X, Y)
         if zero.any():
-            return None  # an empty or zero column: the exact path counts it
-        S = gram(Y, inner, apply_into(Y, MY, inner))
+            return _declined(basis)  # an empty or zero column: the exact path counts it
+        S, C = basis.block_products(Y, project=not measured_first)
         norms2 = np.diag(S)
     top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
     if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
-        return None
+        return _declined(basis)
     size = k + b
-    if trunc.target is not None and trunc.measure in GRAM_MEASURES:
+    if measured_first:
         # the budget's growth is known before the projection: with ||F||^2 = ||R||^2 +
         # ||X||^2 (U orthonormal), a target the rounding cannot meet skips it
         energy = (float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2
                   + float(np.sum(norms2 * np.ldexp(1.0, 2 * (exps - top)))))
         if _allowance(energy, size, n) > _ALLOWANCE_SHARE * _room(
                 trunc, np.zeros(0), S, exps, top, b):
-            return None
-    C = basis.project(Y, None) if w else np.zeros((0, b))
+            return _declined(basis)
+    if C is None:
+        C = basis.project(Y, None) if w else np.zeros((0, b))
     # F = [Q, Y] Z 2^top with Z = blockdiag(Zq, diag(d)), every entry at most about 1;
     # Phi = Z^T B Z, B = [[H, C], [C^T, S]] the Gram of [Q, Y], formed by blocks
     Zq = np.ldexp(state.coords @ state.R.T, -top)
@@ -190,7 +210,7 @@ def plan_absorb_by_gram(
     lam, W = np.maximum(lam[::-1], 0.0), W[:, ::-1]
     total = float(np.sum(lam))
     if total <= 0.0:
-        return None
+        return _declined(basis)
     allowance = _allowance(total, size, n)
     amps = np.ldexp(np.sqrt(lam), top)
     spent = math.hypot(state.bound.bound, math.ldexp(math.sqrt(allowance), top))
@@ -198,20 +218,17 @@ def plan_absorb_by_gram(
     keep = trunc.keep_count(amps, spent=spent, m=m)
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one
     perturbation = _ROUNDING_LAMBDA * (math.sqrt(n) + size) * _EPS * total
-    if keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation:
-        return None
-    if allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], S, exps, top, b):
-        return None
-    if not _compaction_pays(w, b, keep):
-        return None
+    if (keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation
+            or allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], S, exps, top, b)
+            or not _compaction_pays(w, b, keep)):
+        return _declined(basis)
     Wk = W[:, :keep] / np.sqrt(lam[:keep])
     G = np.empty((w + b, keep))
     G[:w] = Zq @ Wk[:k]
     G[w:] = d[:, np.newaxis] * Wk[k:]
-    H = basis.compact_planned(G, b)
+    H = basis.compact_with_block(G)
     if _drift(H) > _MAX_DRIFT:
-        basis.discard_planned()
-        return None
+        return _declined(basis)
     L = np.linalg.cholesky(H)
     coords = dtrtri(L, lower=1)[0].T  # L^{-T}
     R = amps[:keep, np.newaxis] * L

@@ -172,7 +172,7 @@ def test_an_interrupted_gram_absorb_changes_nothing(tmp_path, monkeypatch):
             raise KeyboardInterrupt
 
         with monkeypatch.context() as mp:
-            mp.setattr(basis, "compact_planned", interrupt)
+            mp.setattr(basis, "compact_with_block", interrupt)
             with pytest.raises(KeyboardInterrupt):
                 sc.absorb(A[:, 200:240])
         after = sc.expansion
