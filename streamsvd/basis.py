@@ -124,6 +124,9 @@ class BasisStaging(Protocol):
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete stored data that neither the state nor these commits' attributes use."""
 
+    def release(self, committed: Sequence[dict]) -> None:
+        """Delete what this basis replaced and none of these commits' attributes use."""
+
 
 class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
     """What an update needs from the n-sized factor: its algebra and its staging."""
@@ -391,6 +394,9 @@ class MemoryBasis:
         return arrays, {"capacity": self.capacity}
 
     def collect(self, committed: Sequence[dict]) -> None:
+        """Nothing to delete: the buffers are in memory."""
+
+    def release(self, committed: Sequence[dict]) -> None:
         """Nothing to delete: the buffers are in memory."""
 
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:

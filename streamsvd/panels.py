@@ -7,8 +7,9 @@ local directory or an object store: :mod:`streamsvd.storage`); every product wit
 (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph over the row
 chunks, run on the threaded scheduler or on a ``distributed`` cluster whose workers
 reach the directory or the object store (a panel pickles as its zarr store: a path, or a
-URL and its ``storage_options``). The block being absorbed and its workspace are in memory
-(``n x b``), the basis never is.
+URL and its ``storage_options``). The basis is never in memory; a block is read by row
+chunks within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
+path orthonormalises an in-memory block (``n x b``) in an in-memory workspace.
 
 The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
 sweeps, truncation and bound), so both backends give the same basis to rounding.
@@ -73,6 +74,7 @@ class PanelBasis:
         self._staged_compact: tuple[str, int] | None = None
         self._staged_block: tuple[str, Any] | None = None  # (scratch panel or "", dask)
         self._zarrs: dict[str, Any] = {}
+        self._retired: list[str] = []  # panels a compaction replaced, not yet deleted
         self.compactions = 0
 
     # ------------------------------------------------------------------ panels
@@ -291,6 +293,7 @@ class PanelBasis:
         """Make the panel written by :meth:`compact_planned` the stored basis."""
         assert self._staged_compact is not None and self._staged_compact[1] == p
         name, _ = self._staged_compact
+        self._retired += [old for old in self.panels if old != name]
         self.panels, self.widths = ([name], [p]) if p else ([], [])
         self._staged_compact, self._ws, self._mws = None, None, None
         self._drop_block()
@@ -367,6 +370,19 @@ class PanelBasis:
             return
         name, width, _ = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
         self.panels, self.widths = [name], [width]
+
+    def release(self, committed: Sequence[dict]) -> None:
+        """Delete the panels a compaction replaced that none of these commits refers to.
+
+        Only panels this basis wrote and replaced are deleted, so a work directory
+        shared with other data is safe; without a store the replaced basis goes at once.
+        """
+        live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
+        keep = [name for name in self._retired if name in live]
+        for name in self._retired:
+            if name not in live:
+                self._delete(name)
+        self._retired = keep
 
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""

@@ -170,9 +170,11 @@ def tall_compress(
     Parameters
     ----------
     source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
-        The ``n x m`` snapshot matrix, read by the prefetching block reader
-        (:meth:`~streamsvd.sources.Source.blocks`, each block once, the next one read
-        while the current one is absorbed) and absorbed by :func:`streamsvd.ingest.ingest`.
+        The ``n x m`` snapshot matrix, absorbed block by block by
+        :func:`streamsvd.ingest.ingest`; each block is handed over unread
+        (:meth:`~streamsvd.sources.Source.lazy`) and read once, by chunks of
+        ``chunk_rows`` rows, in the update's pass over the panels (into memory first when
+        the update takes the exact path: see :class:`TallCompressor`).
     block : int
         Columns per update.
     dataset : str, optional

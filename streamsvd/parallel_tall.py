@@ -9,12 +9,16 @@ chunks with dask, on the threaded scheduler or on a ``distributed`` cluster. The
 step, the options, ``add``, ``merge``, the error bound, the history and the store are the
 in-memory compressor's (one implementation), so both give the same basis to rounding.
 
-Memory: the block being absorbed (``n x b``) and its Gram-Schmidt workspace are held in
-memory, with the next block that :func:`~streamsvd.parallel.tall_compress` reads ahead
-(float32 for a float32 source), plus the small matrices and the right vectors (``m x p``,
-or none with ``right_vectors=False``); the basis (``n x w``) never is. At ``n = 2e5``,
-``b = 100`` the process peaks at 1.0 to 1.1 GB (``bench/outofcore_benchmark.py``): the
-peak grows with ``n``.
+Memory: when the update cuts (``max_rank`` or ``target_error``: the Gram path of
+:mod:`streamsvd.update_gram`), a block from :func:`~streamsvd.parallel.tall_compress` or a
+dask block is read by row chunks in the update's own pass over the panels, each chunk
+written to a scratch panel as it enters the products, so neither the block nor the basis
+is ever in memory: a few row chunks per dask thread, the small matrices and the right
+vectors (``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the
+process peaked at 378 MB at ``n = 2e5`` and 326 MB at ``n = 2e6``
+(``bench/outofcore_benchmark.py``). An update that takes the exact path (no cut, ``eps``
+or ``rtol`` alone, ``window``, ``forget``, a block the Gram path declines) reads its block
+into memory first (``n x b``) and orthonormalises it there.
 
 Crash safety: an update writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two
@@ -239,9 +243,10 @@ class TallCompressor(StreamCompressor):
     (:mod:`streamsvd.update`), each product with the basis a dask graph over the row
     chunks that reads the panels once; a new panel of ``n x r`` (or the compacted basis
     ``n x p``) is written per update. A dask block is read by row chunks (on the cluster
-    when there is one) into memory first; on any error (bad input, a failing read, a lost
-    worker) the state in memory and in the store is unchanged, and what the update wrote
-    is removed. Without ``store`` or ``workdir``, :meth:`close` removes the panels and
+    when there is one): within the update's pass when the update cuts (see the module
+    docstring), into memory first otherwise; on any error (bad input, a failing read, a
+    lost worker) the state in memory and in the store is unchanged, and what the update
+    wrote is removed. Without ``store`` or ``workdir``, :meth:`close` removes the panels and
     finalises nothing.
     """
 

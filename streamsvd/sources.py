@@ -20,7 +20,9 @@ Files and URLs are opened by :mod:`streamsvd.formats`, the one place that knows 
 formats.
 
 ``Source.blocks`` is the one block reader of the package (the command line, the tall
-mode and the tree leaves all read through it, driven by :func:`streamsvd.ingest.ingest`):
+mode and the tree leaves all read through it, driven by :func:`streamsvd.ingest.ingest`).
+For the tall mode it yields each block unread, as a :class:`LazyBlock` whose row chunks
+the update's dask pass reads and checks (``rows=``); otherwise
 a background thread reads the next blocks while the caller works on the current one,
 through a bounded queue (``depth`` blocks ahead, one by default, so at most two blocks
 are in memory), and each block of the range is read exactly once. That hides the read

@@ -253,6 +253,8 @@ class StoreLifecycle:
         self._ledger, self._removed = self._pending
         if p is not None:
             p.tracker.settle(self._state.extents(), len(self._history))
+        # what the update replaced goes, unless a recent commit still refers to it
+        self._state.basis.release(() if p is None else p.recent)
         self._version += 1
         self.source_offset = source_offset
         return plan.record

@@ -126,6 +126,11 @@ class StreamStore:
         """Whether the store was opened to continue the stream (mode ``"a"``)."""
         return self.handle.mode == "a"
 
+    @property
+    def recent(self) -> tuple[dict[str, Any], ...]:
+        """The basis attributes of the last two commits (what readers may still use)."""
+        return self._recent
+
     def due(self) -> bool:
         """Whether the next update is committed (``commit_every``: :class:`CommitSchedule`)."""
         return self.schedule.due(self.uncommitted)

@@ -473,6 +473,99 @@ def test_tall_basis_is_never_in_memory(rng, tmp_path):
     assert max(sizes) <= n * b * 8 < n * 12 * 8
 
 
+def _zarr_source(tmp_path, A, rows, cols, dtype="float64"):
+    z = zarr.create_array(str(tmp_path / "a.zarr"), shape=A.shape, chunks=(rows, cols),
+                          dtype=dtype)
+    z[:] = A.astype(dtype)
+    return tmp_path / "a.zarr"
+
+
+def test_tall_block_is_read_by_row_chunks_and_never_whole(rng, tmp_path, monkeypatch):
+    """With a cut, a block of a zarr source is read row chunk by row chunk within the
+    update's pass: no task holds it whole, it is never loaded into memory, and the result
+    is the in-memory stream's."""
+    from streamsvd.parallel_tall import PanelBackend
+
+    n, rows, b = 4000, 250, 20
+    A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
+    path = _zarr_source(tmp_path, A, rows, b)
+    sizes = []
+
+    class Largest(dask.callbacks.Callback):
+        def _posttask(self, key, result, dsk, state, id):
+            sizes.append(getattr(result, "nbytes", 0))
+
+    def loaded(self, block):
+        raise AssertionError("the block was loaded into memory")
+
+    monkeypatch.setattr(PanelBackend, "in_memory", loaded)
+    with Largest():
+        tc = tall_compress(path, block=b, max_rank=12, oversampling=0)
+    with tc:
+        assert tc.chunk_rows == rows
+        width = tc.stored_width
+        got = tc.expansion  # gathers U (n x 12), outside the stream
+        kinds = {r.kind for r in tc.history}
+    assert kinds == {"absorb"} and width == 12
+    # the largest task result is a row chunk of [Q, X] (or its product), never n x b
+    assert max(sizes) <= rows * (width + b) * 8 < n * b * 8
+    want = stream(A, b, max_rank=12, oversampling=0).expansion
+    assert rel_diff(got.U, want.U) < 1e-10 and rel_diff(got.V, want.V) < 1e-10
+
+
+def test_tall_float32_source_stays_float32_in_the_scratch_panel(rng, tmp_path, monkeypatch):
+    from streamsvd.panels import PanelBasis
+
+    A = low_rank(rng, n=600, m=40, rank=15, noise=1e-6)
+    path = _zarr_source(tmp_path, A, 100, 10, dtype="float32")
+    dtypes = []
+    new_panel = PanelBasis._new_panel
+
+    def spy(self, cols, dtype=np.float64):
+        dtypes.append(np.dtype(dtype))
+        return new_panel(self, cols, dtype)
+
+    monkeypatch.setattr(PanelBasis, "_new_panel", spy)
+    with tall_compress(path, block=10, max_rank=8) as tc:
+        got = tc.expansion
+    assert np.dtype(np.float32) in dtypes  # the scratch panels; the basis is float64
+    want = stream(A.astype(np.float32).astype(np.float64), 10, max_rank=8).expansion
+    # the leading 8 (separated singular values; the oversampled tail is float32 noise)
+    assert got.rank == want.rank and rel_diff(got.U[:, :8], want.U[:, :8]) < 1e-10
+
+
+def test_tall_lazy_source_names_a_non_finite_entry_in_source_coordinates(rng, tmp_path):
+    A = low_rank(rng, n=1000, m=40, noise=1e-8)
+    A[730, 23] = np.inf
+    path = _zarr_source(tmp_path, A, 250, 10)
+    with pytest.raises(NonFiniteError, match=r"holds inf at column 23, row 730 .*rows "
+                       r"500:750 of columns 20:30"):
+        tall_compress(path, block=10, max_rank=5, store=tmp_path / "s.zarr")
+    with TallCompressor.open(tmp_path / "s.zarr", mode="r") as tc:
+        assert tc.n_seen == 20 and tc.source_offset == 20
+
+
+@pytest.mark.parametrize("with_store", [False, True])
+def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
+    """A compaction's old basis and every scratch panel go once nothing refers to them:
+    at once without a store, after the next commits with one (readers may be on the
+    last two)."""
+    A = low_rank(rng, n=500, m=200, noise=1e-6)
+    store = tmp_path / "s.zarr" if with_store else None
+    opts = dict(commit_every=3) if with_store else {}
+    with TallCompressor(500, chunk_rows=100, max_rank=6, store=store, **opts) as tc:
+        for j in range(0, 200, 20):
+            tc.absorb(A[:, j:j + 20])
+            on_disk = {p for p in tc._state.basis.root.list("panels") if p.startswith("p")}
+            live = set(tc._state.basis.panels)
+            if with_store:
+                recent = set().union(*(a["panels"] for a in tc._persistence.recent))
+                assert live <= on_disk <= live | recent
+            else:
+                assert on_disk == live
+        assert tc._state.basis.compactions == 10
+
+
 # ----------------------------------------------------------------------- drivers
 
 

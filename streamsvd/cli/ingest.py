@@ -115,7 +115,7 @@ def _ingest_dask(args: Any, mode: str, store: Storage, block: int, options: dict
                 **options,
             )
     except NonFiniteError:
-        if mode == "tall":  # the tall engine counts the bad entries but cannot place them
+        if mode == "tall":  # row chunks are read in parallel: the first may not be named
             _locate_non_finite(args, store, block)
         raise
 
