@@ -39,6 +39,7 @@ def as_float_array(
     cols: int | None = None,
     allow_empty: bool = True,
     copy: bool = False,
+    finite: bool = True,
 ) -> np.ndarray:
     """Return ``x`` as a finite float64 array of the given number of dimensions.
 
@@ -56,6 +57,9 @@ def as_float_array(
         Whether a zero-sized array is acceptable.
     copy : bool
         Return a copy even when ``x`` is already a float64 array.
+    finite : bool
+        Check that every entry is finite (False: the caller checks it later, with
+        :func:`check_finite` or from a product that propagates NaN and infinities).
 
     Raises
     ------
@@ -107,7 +111,8 @@ def as_float_array(
     if not allow_empty and arr.size == 0:
         raise InputError(f"`{name}` must not be empty; got shape {arr.shape}.")
     out = np.array(arr, dtype=np.float64, copy=True) if copy else arr.astype(np.float64, copy=False)
-    check_finite(out, name)
+    if finite:
+        check_finite(out, name)
     return out
 
 

@@ -46,7 +46,7 @@ import numpy as np
 import scipy.linalg.blas as blas
 
 from ._blocks import gram
-from ._validation import as_float_array
+from ._validation import as_float_array, check_finite
 from .inner import InnerProduct
 
 __all__ = [
@@ -155,7 +155,7 @@ class Backend(Protocol):
         """
 
     def in_memory(self, block: Any) -> np.ndarray:
-        """Return a block from :meth:`load` as a float64 array."""
+        """Return a block from :meth:`load` as a float64 array, its entries checked finite."""
 
     def describe(self, basis: BasisBackend) -> str:
         """Return what ``repr`` of a compressor shows of its basis (may be empty)."""
@@ -183,11 +183,17 @@ class MemoryBackend:
         return copy.deepcopy(basis)
 
     def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
-        """Return the block checked and converted to a float64 array."""
-        return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False)
+        """Return the block checked and converted to a float64 array.
+
+        Its entries are checked later: by :meth:`in_memory`, or by the Gram path from
+        the block's Gram (:mod:`streamsvd.update_gram`), which costs nothing more.
+        """
+        return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False,
+                              finite=False)
 
     def in_memory(self, block: Any) -> np.ndarray:
-        """Return the block (it is in memory already)."""
+        """Return the block (in memory already) once its entries are checked finite."""
+        check_finite(block, "columns")
         return block
 
     def describe(self, basis: BasisBackend) -> str:

@@ -38,7 +38,7 @@ from typing import Any, cast
 import numpy as np
 
 from ._scaling import safe_column_norms
-from ._validation import as_float_array, check_positive_int
+from ._validation import as_float_array, check_finite, check_positive_int
 from .basis import BasisBackend
 from .errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
 from .inner import DiagonalInner, InnerProduct
@@ -163,8 +163,9 @@ class PanelBackend:
             block = columns
         elif isinstance(columns, da.Array):
             block = LazyBlock(_checked_dask(columns), first, "dask array `columns`")
-        else:
-            return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False)
+        else:  # checked finite later, as by MemoryBackend
+            return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False,
+                                  finite=False)
         shape = block.shape
         if len(shape) != 2 or shape[0] != rows:
             raise ShapeMismatchError(
@@ -181,6 +182,7 @@ class PanelBackend:
         Raises the block's :class:`~streamsvd.errors.SourceError` when the read fails.
         """
         if not isinstance(block, LazyBlock):
+            check_finite(block, "columns")
             return cast(np.ndarray, block)
         try:
             (out,) = execute([block.data.astype(np.float64)], client=self.client)

@@ -170,11 +170,14 @@ def plan_absorb_by_gram(
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
         S, C = basis.block_products(Y, project=not measured_first)
     norms2 = np.diag(S)
+    # a finite diagonal of the Gram means a finite block (each entry of column j enters
+    # S_jj, and BLAS propagates NaN and infinities): the block is checked here for free
     if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
         # squares near the ends of the range (or a zero column): scale each column by a
-        # power of two first, exactly, and measure again; a block read by row chunks is
-        # left to the exact path, which loads it
-        if not isinstance(X, np.ndarray):
+        # power of two first, exactly, and measure again; a block read by row chunks,
+        # or one holding NaN or infinities, is left to the exact path, which loads and
+        # checks it
+        if not isinstance(X, np.ndarray) or not np.isfinite(X).all():
             return _declined(basis)
         Y = np.empty(X.shape, order="F")
         exps, zero = scale_into(X, Y)

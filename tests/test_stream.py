@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.sparse
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
@@ -226,6 +227,38 @@ def test_bad_blocks_leave_the_state_bitwise_unchanged(rng, bad, exc, match):
     ref.absorb(A[:, 6:])
     np.testing.assert_array_equal(sc.expansion.U, ref.expansion.U)
     np.testing.assert_array_equal(sc.expansion.V, ref.expansion.V)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("options", [
+    dict(max_rank=4),
+    dict(target_error=1e-3, error_measure="relative"),
+    dict(target_error=1e-3, error_measure="mean_l2", inner=np.linspace(1e-3, 2.0, 20)),
+    dict(max_rank=4, inner=scipy.sparse.diags([-0.4, 1.0, -0.4], [-1, 0, 1], shape=(20, 20),
+                                              format="csr")),
+])
+def test_the_gram_path_refuses_a_non_finite_entry(rng, value, options):
+    """The Gram path checks the block from its Gram's diagonal; one bad entry anywhere,
+    in the first or the last row, is refused with the state bitwise unchanged."""
+    U = np.linalg.qr(rng.standard_normal((20, 20)))[0]
+    V = np.linalg.qr(rng.standard_normal((30, 20)))[0]
+    A = (U * np.logspace(0, -2, 20)) @ V.T
+    sc = ss.StreamCompressor(20, **options)
+    sc.absorb(A[:, :10])
+    sc.absorb(A[:, 10:20])
+    assert sc.history[-1].passes == 2  # the Gram path
+    state = _snapshot(sc)
+    for row in (0, 19):
+        bad = A[:, 20:].copy()
+        bad[row, 7] = value
+        with pytest.raises(ss.NonFiniteError, match=r"`columns` must be finite; got 1 NaN or "
+                           rf"infinite entries, the first at index \({row}, 7\)"):
+            sc.absorb(bad)
+        after = _snapshot(sc)
+        assert all(np.array_equal(a, b) for a, b in zip(state[0], after[0], strict=True))
+        assert state[1:] == after[1:]
+    sc.absorb(A[:, 20:])
+    assert sc.n_seen == 30 and sc.history[-1].passes == 2
 
 
 def test_add_checks_shapes(rng):
