@@ -179,7 +179,7 @@ class MemoryBackend:
         return self
 
     def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
-        """Return a deep copy of the buffers."""
+        """Return a deep copy of the stored columns (without the compaction buffer)."""
         return copy.deepcopy(basis)
 
     def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
@@ -227,6 +227,12 @@ class MemoryBasis:
         self._spare: tuple[np.ndarray, np.ndarray] | None = None
         self._planned_width = 0
         self._block: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickle and copy the stored columns only: the compaction buffer is scratch."""
+        state = dict(self.__dict__)
+        state["_spare"], state["_block"] = None, None
+        return state
 
     # ------------------------------------------------------------------ buffers
     def _allocate(self, cap: int) -> tuple[np.ndarray, np.ndarray]:

@@ -56,6 +56,7 @@ def ingest(
     stop: int | None = None,
     block: int = 100,
     depth: int = 1,
+    prefetch: bool = True,
     min_last: int = 0,
     rows: int | None = None,
     progress: bool = False,
@@ -78,6 +79,10 @@ def ingest(
     depth : int
         Blocks the reader keeps ahead of the update (at most ``depth + 1`` blocks in
         memory).
+    prefetch : bool
+        Read ahead in a background thread (False: each block is read when the previous
+        one is absorbed, one block in memory; for callers that keep the cores busy
+        otherwise, such as the leaves of a tree).
     min_last : int
         A last block shorter than this joins the one before it (:meth:`Source.blocks
         <streamsvd.sources.Source.blocks>`).
@@ -113,7 +118,7 @@ def ingest(
         bar = tqdm(total=last, initial=first, unit="col", dynamic_ncols=True, desc=desc,
                    file=sys.stderr)
     blocks = source.blocks(block, start=first, stop=last, depth=depth, min_last=min_last,
-                           rows=rows)
+                           rows=rows, prefetch=prefetch)
     try:
         while True:
             t = time.perf_counter()

@@ -168,7 +168,8 @@ def _compress_leaf(
     """Compress columns ``start:stop`` of the source (runs on a worker)."""
     sc = StreamCompressor(spec.n, **options)
     with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
-        ingest(src, sc, start=start, stop=stop, block=block)
+        # the other leaves keep the cores busy: no read-ahead, one block per leaf
+        ingest(src, sc, start=start, stop=stop, block=block, prefetch=False)
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
                 sc.error_bound)
     return sc
