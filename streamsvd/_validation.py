@@ -116,6 +116,20 @@ def as_float_array(
     return out
 
 
+def first_non_finite(block: np.ndarray) -> tuple[int, int, int] | None:
+    """Return ``(row, column, count)`` of a 2-D block's first NaN or infinite entry.
+
+    The first in column order (the earliest snapshot), and how many there are; None
+    when every entry is finite.
+    """
+    finite = np.isfinite(block)
+    if finite.all():
+        return None
+    col = int(np.flatnonzero(~finite.all(axis=0))[0])
+    row = int(np.flatnonzero(~finite[:, col])[0])
+    return row, col, int(block.size - np.count_nonzero(finite))
+
+
 def check_finite(arr: np.ndarray, name: str) -> None:
     """Raise :class:`NonFiniteError` if ``arr`` holds NaN or infinite entries."""
     if arr.size and not np.isfinite(arr).all():

@@ -38,7 +38,7 @@ from typing import Any, cast
 import numpy as np
 
 from ._scaling import safe_column_norms
-from ._validation import as_float_array, check_finite, check_positive_int
+from ._validation import as_float_array, check_finite, check_positive_int, first_non_finite
 from .basis import BasisBackend
 from .errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
 from .inner import DiagonalInner, InnerProduct
@@ -365,11 +365,10 @@ def _checked_dask(columns: Any) -> Any:
 
 def _finite_chunk(part: np.ndarray, block_info: dict | None = None) -> np.ndarray:
     """Return a chunk of a dask block; raise NonFiniteError naming its first bad entry."""
-    finite = np.isfinite(part)
-    if finite.all():
+    bad = first_non_finite(part)
+    if bad is None:
         return part
-    col = int(np.flatnonzero(~finite.all(axis=0))[0])
-    row = int(np.flatnonzero(~finite[:, col])[0])
+    row, col, _ = bad
     r0, c0 = ((0, 0) if block_info is None
               else (int(block_info[0]["array-location"][0][0]),
                     int(block_info[0]["array-location"][1][0])))

@@ -52,7 +52,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from ._validation import check_positive_int
+from ._validation import check_positive_int, first_non_finite
 from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
 from .formats import no_dataset, open_file, open_zarr_url
 from .storage import is_url
@@ -208,12 +208,10 @@ class Source:
         entry is the first in column order (the earliest snapshot), reported by its row
         and its column in the whole source, not by its index inside the block.
         """
-        finite = np.isfinite(block)
-        if finite.all():
+        bad = first_non_finite(block)
+        if bad is None:
             return
-        col = int(np.flatnonzero(~finite.all(axis=0))[0])
-        row = int(np.flatnonzero(~finite[:, col])[0])
-        count = int(block.size - np.count_nonzero(finite))
+        row, col, count = bad
         rows = "" if row0 == 0 and block.shape[0] == self.n else (
             f" rows {row0}:{row0 + block.shape[0]} of")
         raise NonFiniteError(
