@@ -201,25 +201,9 @@ class Source:
             _copy_by_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
 
-    def _check_finite(self, block: np.ndarray, start: int, *, row0: int = 0) -> None:
-        """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates.
-
-        ``block`` holds columns ``start:start + b`` (of rows ``row0:``); the first bad
-        entry is the first in column order (the earliest snapshot), reported by its row
-        and its column in the whole source, not by its index inside the block.
-        """
-        bad = first_non_finite(block)
-        if bad is None:
-            return
-        row, col, count = bad
-        rows = "" if row0 == 0 and block.shape[0] == self.n else (
-            f" rows {row0}:{row0 + block.shape[0]} of")
-        raise NonFiniteError(
-            f"`source` must be finite; {self.description} holds {float(block[row, col])} "
-            f"at column {start + col}, row {row0 + row} (counted from 0; {count} NaN or "
-            f"infinite entries in{rows} columns {start}:{start + block.shape[1]}). Repair or "
-            "remove that snapshot."
-        )
+    def _check_finite(self, block: np.ndarray, start: int) -> None:
+        """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates."""
+        _check_finite(block, start, 0, self.n, self.description)
 
     def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
         """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
@@ -239,19 +223,13 @@ class Source:
         name = f"streamsvd-source-{uuid.uuid4().hex}"
         if self._compute:
             part = self._data[:, start:stop].rechunk(chunks).astype(self.block_dtype)
-            data = part.map_blocks(self._checked_chunk, start, dtype=self.block_dtype,
-                                   name=name, meta=np.empty((0, 0), self.block_dtype))
+            data = part.map_blocks(_checked_chunk, start, self.n, self.description,
+                                   dtype=self.block_dtype, name=name,
+                                   meta=np.empty((0, 0), self.block_dtype))
         else:
             data = da.from_array(_ChunkReader(self, start, stop), chunks=chunks, name=name,
                                  meta=np.empty((0, 0), self.block_dtype))
         return LazyBlock(data, start, self.description)
-
-    def _checked_chunk(self, part: np.ndarray, start: int,
-                       block_info: dict | None = None) -> np.ndarray:
-        """Check a chunk of a dask source (``block_info`` gives its rows); return it."""
-        row0 = 0 if block_info is None else int(block_info[0]["array-location"][0][0])
-        self._check_finite(part, start, row0=row0)
-        return part
 
     def blocks(
         self, block: int = 100, *, start: int = 0, stop: int | None = None,
@@ -421,10 +399,17 @@ class LazyBlock:
 
 
 class _ChunkReader:
-    """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked."""
+    """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked.
+
+    It holds what a task needs and nothing more (it is shipped to the workers of a
+    cluster): the data, or for an in-memory array only the view of its columns.
+    """
 
     def __init__(self, source: Source, start: int, stop: int) -> None:
-        self.source, self.start, self.stop = source, start, stop
+        data = source._data
+        self.offset = 0 if isinstance(data, np.ndarray) else start
+        self.data = data[:, start:stop] if isinstance(data, np.ndarray) else data
+        self.start, self.stop, self.description = start, stop, source.description
         self.shape = (source.n, stop - start)
         self.dtype, self.ndim = source.block_dtype, 2
 
@@ -432,18 +417,47 @@ class _ChunkReader:
         rows, cols = key
         r0, r1, _ = rows.indices(self.shape[0])
         c0, c1, _ = cols.indices(self.shape[1])
-        src, a = self.source, self.start + c0
-        out = np.empty((r1 - r0, c1 - c0), dtype=src.block_dtype, order="F")
+        out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype, order="F")
         try:
-            _copy_by_slabs(out, src._data[r0:r1, a:self.start + c1])
+            _copy_by_slabs(out, self.data[r0:r1, self.offset + c0:self.offset + c1])
         except Exception as exc:  # any reader failure is reported with its offset
             raise SourceError(
                 f"reading columns {self.start}:{self.stop} (offset {self.start}) of "
-                f"{src.description} failed: {type(exc).__name__}: {exc}. Check that the "
+                f"{self.description} failed: {type(exc).__name__}: {exc}. Check that the "
                 f"data is readable and resume from offset {self.start}."
             ) from exc
-        src._check_finite(out, a, row0=r0)
+        _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
         return out
+
+
+def _checked_chunk(part: np.ndarray, start: int, n: int, description: str,
+                   block_info: dict | None = None) -> np.ndarray:
+    """Check a chunk of a dask source's columns from ``start`` (``block_info``: its rows)."""
+    row0 = 0 if block_info is None else int(block_info[0]["array-location"][0][0])
+    _check_finite(part, start, row0, n, description)
+    return part
+
+
+def _check_finite(block: np.ndarray, start: int, row0: int, n: int, description: str) -> None:
+    """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates.
+
+    ``block`` holds columns ``start:start + b`` of rows ``row0:`` of a source of ``n``
+    rows; the first bad entry is the first in column order (the earliest snapshot),
+    reported by its row and its column in the whole source, not by its index inside
+    the block.
+    """
+    bad = first_non_finite(block)
+    if bad is None:
+        return
+    row, col, count = bad
+    rows = "" if row0 == 0 and block.shape[0] == n else (
+        f" rows {row0}:{row0 + block.shape[0]} of")
+    raise NonFiniteError(
+        f"`source` must be finite; {description} holds {float(block[row, col])} "
+        f"at column {start + col}, row {row0 + row} (counted from 0; {count} NaN or "
+        f"infinite entries in{rows} columns {start}:{start + block.shape[1]}). Repair or "
+        "remove that snapshot."
+    )
 
 
 _READ_BYTES = 1 << 25  # rows read at a time from the data (32 MiB)

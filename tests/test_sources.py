@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zarr
 
-from streamsvd.errors import InputError, ShapeMismatchError, SourceError
+from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
 from streamsvd.sources import Source, open_source
 
 N, M = 9, 23
@@ -109,6 +109,42 @@ def test_every_kind_gives_the_same_blocks(kind, A, tmp_path):
         assert src.read(4, 4).shape == (N, 0)
     if kind == "h5py_dataset":
         obj.file.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_gives_the_same_lazy_blocks(kind, A, tmp_path):
+    """Blocks handed over unread (``rows=``) hold the same values, by row chunks."""
+    obj, dataset = make_source(kind, A, tmp_path)
+    want = expected_matrix(kind, A)
+    with open_source(obj, dataset=dataset) as src:
+        blocks = list(src.blocks(7, start=2, rows=9))
+        assert [o for o, _ in blocks] == list(range(2, M, 7))
+        for offset, X in blocks:
+            assert X.first == offset and X.data.chunks[0][0] == 9
+            got = X.data.compute(scheduler="synchronous")
+            assert got.dtype == src.block_dtype
+            assert np.array_equal(got, want[:, offset : offset + 7])
+    if kind == "h5py_dataset":
+        obj.file.close()
+
+
+def test_a_lazy_block_of_an_array_carries_its_columns_only():
+    """What a cluster's workers receive for a block of an in-memory array is the block's
+    columns, not the whole array."""
+    import pickle
+
+    A = np.random.default_rng(0).standard_normal((2000, 200))
+    block = open_source(A).lazy(50, 60, rows=500)
+    assert len(pickle.dumps(block.data)) < 2 * 2000 * 10 * 8 < A.nbytes
+    assert np.array_equal(block.data.compute(), A[:, 50:60])
+
+
+def test_a_lazy_block_names_a_bad_entry_in_source_coordinates(A):
+    bad = A.copy()
+    bad[N - 1, 9] = np.nan
+    block = open_source(bad, dataset=None).lazy(8, 12, rows=5)
+    with pytest.raises(NonFiniteError, match=rf"holds nan at column 9, row {N - 1} "):
+        block.data.compute(scheduler="synchronous")
 
 
 def test_prefetch_on_and_off_agree(A):
