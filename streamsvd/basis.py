@@ -17,8 +17,9 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
   ``MQ^T X`` with the block staged as it is (in memory: referenced, not copied; a block
   read by row chunks: written once to a scratch panel as it is read), then
   ``Q <- [Q, X] G`` written aside like ``compact_planned``;
-* ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``: what a commit
-  to a store needs, and what it may delete afterwards; ``compactions`` counts the swaps,
+* ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``,
+  ``release(...)``: what a commit to a store needs, what it may delete afterwards, and
+  what an update replaced that no recent commit uses; ``compactions`` counts the swaps,
   so a commit tells the columns appended since the previous one (the others are
   unchanged) from a basis replaced whole.
 * ``lincomb(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
