@@ -272,17 +272,23 @@ class PanelBasis:
         return self._compact(G, [self._staged_block[1]])
 
     def _compact(self, G: np.ndarray, extra: list[Any]) -> np.ndarray:
-        """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram."""
-        import dask.array as da
+        """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram.
 
+        ``Q G_q + X G_x``, a product per part summed chunk by chunk (as the in-memory
+        basis does), so no row chunk of ``[Q, X]`` is ever concatenated.
+        """
         Q0 = self._q()
         parts = ([] if Q0 is None else [Q0]) + extra
         p = G.shape[1]
         if not parts or p == 0:
             self._staged_compact = ("", 0)
             return np.zeros((p, p))
-        Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
-        P = Q.rechunk({1: -1}) @ G
+        P, row = None, 0
+        for part in parts:
+            width = int(part.shape[1])
+            term = part.rechunk({1: -1}) @ G[row:row + width]
+            row += width
+            P = term if P is None else P + term
         # one pass: each row chunk of P is written and enters its Gram as it is computed
         name, _, (H,) = self._write(P, self._weighted(P).T @ P)
         self._staged_compact = (name, p)
