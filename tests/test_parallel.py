@@ -599,6 +599,25 @@ def test_h5_source_for_the_tall_mode(rng, tmp_path, client):
             assert rel_diff(tc.expansion.U, want.U) < 1e-10
 
 
+@pytest.mark.parametrize("fmt", ["zarr", "h5"])
+def test_tall_row_chunk_reads_on_a_cluster(rng, tmp_path, client, fmt):
+    """The Gram path's one pass reads the source on the cluster's workers, by row chunks,
+    and gives the in-memory stream's basis."""
+    A = low_rank(rng, n=400, m=80, rank=20, noise=1e-6)
+    if fmt == "zarr":
+        path = _zarr_source(tmp_path, A, 100, 20)
+    else:
+        path = tmp_path / "a.h5"
+        with h5py.File(path, "w") as h5:
+            h5.create_dataset("u", data=A, chunks=(100, 20))
+    with tall_compress(path, block=20, chunk_rows=100, max_rank=4, oversampling=2,
+                       client=client) as tc:
+        assert all(r.passes == 2 for r in tc.history)  # the Gram path, every update
+        got = tc.expansion
+    want = stream(A, 20, max_rank=4, oversampling=2).expansion
+    assert rel_diff(got.U, want.U) < 1e-10 and rel_diff(got.V, want.V) < 1e-10
+
+
 def test_results_do_not_depend_on_the_path_taken(rng):
     """In memory, tree of one leaf and tall: one basis (the issue's cross-check)."""
     A = low_rank(rng, n=200, m=60, rank=15, noise=1e-9)
