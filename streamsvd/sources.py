@@ -172,11 +172,7 @@ class Source:
         try:
             out = self._read_slabs(start, stop)
         except Exception as exc:  # any reader failure is reported with its offset
-            raise SourceError(
-                f"reading columns {start}:{stop} (offset {start}) of {self.description} "
-                f"failed: {type(exc).__name__}: {exc}. Check that the data is readable and "
-                f"resume from offset {start}."
-            ) from exc
+            raise _read_failed(exc, start, stop, self.description) from exc
         self._check_finite(out, start)
         return out
 
@@ -421,13 +417,18 @@ class _ChunkReader:
         try:
             _copy_by_slabs(out, self.data[r0:r1, self.offset + c0:self.offset + c1])
         except Exception as exc:  # any reader failure is reported with its offset
-            raise SourceError(
-                f"reading columns {self.start}:{self.stop} (offset {self.start}) of "
-                f"{self.description} failed: {type(exc).__name__}: {exc}. Check that the "
-                f"data is readable and resume from offset {self.start}."
-            ) from exc
+            raise _read_failed(exc, self.start, self.stop, self.description) from exc
         _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
         return out
+
+
+def _read_failed(exc: Exception, start: int, stop: int, description: str) -> SourceError:
+    """Return the error that reports a failed read of columns ``start:stop``."""
+    return SourceError(
+        f"reading columns {start}:{stop} (offset {start}) of {description} failed: "
+        f"{type(exc).__name__}: {exc}. Check that the data is readable and resume from "
+        f"offset {start}."
+    )
 
 
 def _checked_chunk(part: np.ndarray, start: int, n: int, description: str,
