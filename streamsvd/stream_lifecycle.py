@@ -229,6 +229,9 @@ class StoreLifecycle:
         # before the switch leaves both the memory and the store as they were, and the
         # backend drops what the plan wrote in its workspace
         p = self._persistence
+        if p is not None:
+            # refused before planning: a plan may write (the tall mode's panels)
+            p.check_writable()
         try:
             with blas_threads(self.threads):
                 plan = make_plan()

@@ -126,6 +126,14 @@ class StreamStore:
         """Whether the store was opened to continue the stream (mode ``"a"``)."""
         return self.handle.mode == "a"
 
+    def check_writable(self) -> None:
+        """Raise :class:`~streamsvd.errors.StoreError` when the store is open read-only."""
+        if not self.writable:
+            raise StoreError(
+                f"the store {self.path} is open read-only; reopen it with "
+                "`StreamCompressor.open(path, mode='a')` to continue the stream."
+            )
+
     @property
     def recent(self) -> tuple[dict[str, Any], ...]:
         """The basis attributes of the last two commits (what readers may still use)."""
@@ -142,11 +150,7 @@ class StreamStore:
 
         Raises :class:`~streamsvd.errors.StoreError` on a store opened read-only.
         """
-        if not self.writable:
-            raise StoreError(
-                f"the store {self.path} is open read-only; reopen it with "
-                "`StreamCompressor.open(path, mode='a')` to continue the stream."
-            )
+        self.check_writable()
         if plan is None:
             basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
             rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)

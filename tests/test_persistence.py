@@ -242,6 +242,24 @@ def test_read_only_compressor_cannot_absorb(tmp_path, rng):
             sc.absorb(A[:, :3])
 
 
+def test_read_only_tall_compressor_writes_nothing(tmp_path, rng):
+    """Refused before planning, also when no commit would be due: a tall update writes
+    panels while it plans."""
+    from streamsvd.parallel_tall import TallCompressor
+
+    A = rng.standard_normal((300, 60))
+    path = tmp_path / "t.zarr"
+    with TallCompressor(300, chunk_rows=100, max_rank=4, store=path, commit_every=5) as tc:
+        tc.absorb(A[:, :30])
+        tc.flush()
+    listing = sorted(p.name for p in (path / "panels").iterdir())
+    with TallCompressor.open(path, mode="r") as tc:
+        with pytest.raises(ss.StoreError, match=r"open read-only"):
+            tc.absorb(A[:, 30:])
+        assert tc.n_seen == 30
+    assert sorted(p.name for p in (path / "panels").iterdir()) == listing
+
+
 def _ingest_cmd(src, store, *extra):
     return [sys.executable, "-m", "streamsvd", "ingest", str(src), str(store), "--block", "16",
             "--max-rank", "10", "--quiet", *extra]
