@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg.blas as blas
 
+from ._scaling import column_exponents
 from .inner import InnerProduct
 
 if TYPE_CHECKING:
@@ -31,6 +32,7 @@ COND_SPLIT = 2.0**-40
 ONE_PASS_COND = 16.0
 # a projection that leaves less than this share of a column's norm is made again (DGKS)
 _REPROJECT = 0.5
+_TRANSPOSE_BYTES = 1 << 21  # rows copied at a time into a column-major block (2 MiB)
 
 
 def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -61,11 +63,15 @@ def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
     the scaling is exact, subnormal peaks included.
     """
-    Y[...] = X
+    if X.flags.f_contiguous or not Y.flags.f_contiguous:
+        Y[...] = X
+    else:  # a transposing copy by slabs of rows that fit in the cache
+        step = max(1, _TRANSPOSE_BYTES // (8 * max(1, X.shape[1])))
+        for i in range(0, X.shape[0], step):
+            Y[i:i + step] = X[i:i + step]
     if Y.shape[0] == 0:
         return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
-    peak = np.max(np.abs(Y), axis=0)
-    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0).astype(np.int64)
+    exps, peak = column_exponents(Y)
     if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
         Y *= np.ldexp(1.0, -exps)
     else:

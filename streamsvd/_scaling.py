@@ -12,7 +12,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm"]
+__all__ = [
+    "column_exponents", "pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm",
+]
 
 
 def pow2_exponent(x: np.ndarray) -> int:
@@ -25,20 +27,46 @@ def pow2_exponent(x: np.ndarray) -> int:
     return int(np.frexp(peak)[1])
 
 
+_SLAB_BYTES = 1 << 21  # rows scaled at a time (2 MiB): no n-sized temporaries
+
+
+def _row_slabs(X: np.ndarray) -> range:
+    """Return the first rows of the slabs of about 2 MiB that the norms run over."""
+    return range(0, X.shape[0], max(1, _SLAB_BYTES // (8 * max(1, X.shape[1]))))
+
+
+def column_exponents(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return each column's binary exponent ``e`` and its largest absolute entry ``peak``.
+
+    ``peak 2^-e`` lies in [1/2, 1) (``e = 0`` for a zero column); taken by slabs of rows,
+    without a copy of ``X``.
+    """
+    peak = np.zeros(X.shape[1])
+    starts = _row_slabs(X)
+    for i in starts:
+        np.maximum(peak, np.max(np.abs(X[i:i + starts.step]), axis=0), out=peak)
+    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
+    return exps.astype(np.int64), peak
+
+
 def safe_column_norms(X: np.ndarray) -> np.ndarray:
     """Euclidean norms of the columns of ``X`` without overflow or harmful underflow.
 
     Each column is scaled by the power of two nearest its largest entry before squaring,
-    as LAPACK's ``dnrm2`` does with a running scale.
+    as LAPACK's ``dnrm2`` does with a running scale. The squares are summed by slabs of
+    rows, each copied in Fortran order: the summation order, hence the rounding, does
+    not depend on the caller's memory layout (equal columns get bit-identical norms),
+    and nothing of the size of ``X`` is allocated.
     """
     if X.shape[0] == 0:
         return np.zeros(X.shape[1])
-    peak = np.max(np.abs(X), axis=0)
-    exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
-    # Fortran order makes the summation order, hence the rounding, independent of the
-    # caller's memory layout: equal columns always get bit-identical norms
-    scaled = np.asfortranarray(np.ldexp(X, -exps[np.newaxis, :]))
-    return np.ldexp(np.sqrt(np.einsum("ij,ij->j", scaled, scaled)), exps)
+    starts = _row_slabs(X)
+    exps = column_exponents(X)[0]
+    total = np.zeros(X.shape[1])
+    for i in starts:
+        scaled = np.asfortranarray(np.ldexp(X[i:i + starts.step], -exps[np.newaxis, :]))
+        total += np.einsum("ij,ij->j", scaled, scaled)
+    return np.ldexp(np.sqrt(total), exps)
 
 
 def safe_norm(X: np.ndarray) -> float:
@@ -51,7 +79,8 @@ def safe_m_norms(X: np.ndarray, inner: Any) -> np.ndarray:
     """``M``-norms of the columns, each scaled by a power of two first (no overflow)."""
     if inner.is_euclidean:
         return safe_column_norms(X)
-    peak = np.max(np.abs(X), axis=0) if X.shape[0] else np.zeros(X.shape[1])
-    e = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
+    if X.shape[0] == 0:
+        return np.zeros(X.shape[1])
+    e = column_exponents(X)[0]
     Y = np.ldexp(X, -e[np.newaxis, :])
     return np.ldexp(np.sqrt(np.maximum(np.einsum("ij,ij->j", Y, inner.apply(Y)), 0.0)), e)

@@ -128,6 +128,9 @@ class BasisStaging(Protocol):
     def release(self, committed: Sequence[dict]) -> None:
         """Delete what this basis replaced and none of these commits' attributes use."""
 
+    def drop_scratch(self) -> None:
+        """Free the scratch kept between updates (a compaction buffer, ...)."""
+
 
 class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
     """What an update needs from the n-sized factor: its algebra and its staging."""
@@ -180,7 +183,7 @@ class MemoryBackend:
         return self
 
     def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
-        """Return a deep copy of the stored columns (without the compaction buffer)."""
+        """Return a deep copy of the stored columns (no workspace, no compaction buffer)."""
         return copy.deepcopy(basis)
 
     def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
@@ -230,10 +233,22 @@ class MemoryBasis:
         self._block: tuple[np.ndarray, np.ndarray] | None = None
 
     def __getstate__(self) -> dict[str, Any]:
-        """Pickle and copy the stored columns only: the compaction buffer is scratch."""
+        """Pickle and copy the stored columns only (not the workspace, not the scratch).
+
+        A copy's buffers hold its ``w`` columns; they grow again when it appends.
+        """
         state = dict(self.__dict__)
+        w = self._w
+        Q, MQ = self._bufs
+        state["_bufs"] = (Q[:, :w], None if self.inner.is_euclidean else MQ[:, :w])
         state["_spare"], state["_block"] = None, None
         return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Restore a pickled or copied basis (``M Q`` is ``Q`` when Euclidean)."""
+        self.__dict__.update(state)
+        Q, MQ = self._bufs
+        self._bufs = (Q, Q if MQ is None else MQ)
 
     # ------------------------------------------------------------------ buffers
     def _allocate(self, cap: int) -> tuple[np.ndarray, np.ndarray]:
@@ -388,6 +403,10 @@ class MemoryBasis:
         """Forget the staged block: a plan only wrote scratch columns and the spare buffer."""
         self._block = None
 
+    def drop_scratch(self) -> None:
+        """Free the compaction buffer kept for the next update (made again when needed)."""
+        self._spare = None
+
     def swap(self, p: int) -> None:
         """Make the spare buffer written by :meth:`compact_planned` the stored basis."""
         assert self._spare is not None and p == self._planned_width
@@ -397,8 +416,10 @@ class MemoryBasis:
         self.compactions += 1
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
-        """Return ``Q G`` as a new array."""
-        return self.Q @ G
+        """Return ``Q G`` as a new column-major array."""
+        if self._w == 0 or G.shape[1] == 0:
+            return np.zeros((self.n, G.shape[1]), order="F")
+        return blas.dgemm(1.0, self.Q, G)
 
     def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
         """Return the arrays (views) and attributes a commit of the planned basis writes."""

@@ -390,6 +390,9 @@ class PanelBasis:
                 self._delete(name)
         self._retired = keep
 
+    def drop_scratch(self) -> None:
+        """Nothing to free: the block's scratch panel goes when its update ends."""
+
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))

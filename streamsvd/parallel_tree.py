@@ -170,6 +170,7 @@ def _compress_leaf(
     with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
         # the other leaves keep the cores busy: no read-ahead, one block per leaf
         ingest(src, sc, start=start, stop=stop, block=block, prefetch=False)
+    sc._drop_scratch()  # it waits for its merge: its compaction buffer is not needed
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
                 sc.error_bound)
     return sc
@@ -187,6 +188,7 @@ def _merge_pair(
     out = left.copy()
     with threadpool_limits(limits=blas_threads, user_api="blas"):
         out.merge(right, spend_target=False)
+    out._drop_scratch()
     logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
                 out.rank, out.error_bound)
     return out

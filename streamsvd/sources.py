@@ -461,7 +461,7 @@ def _check_finite(block: np.ndarray, start: int, row0: int, n: int, description:
     )
 
 
-_READ_BYTES = 1 << 25  # rows read at a time from the data (32 MiB)
+_READ_BYTES = 1 << 23  # rows read at a time from the data (8 MiB)
 _COPY_BYTES = 1 << 21  # rows copied at a time when a block changes layout (2 MiB)
 
 

@@ -118,6 +118,13 @@ class StoreLifecycle:
         """Return an independent copy of the compressor (without its store)."""
         return self._copy_with()
 
+    def _drop_scratch(self) -> None:
+        """Free the buffers the basis keeps for its next update (they come back when needed).
+
+        For a compressor that will not be updated soon, such as a finished leaf of a tree.
+        """
+        self._state.basis.drop_scratch()
+
     def _copy_with(self, **changes: Any) -> Any:
         """Return an independent copy whose options differ by ``changes``."""
         out = self._empty_copy(**changes)

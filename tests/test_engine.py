@@ -363,3 +363,51 @@ def test_finalize_converges_the_core_to_the_svd_and_truncates_optimally(rng, bac
     assert np.linalg.norm(A - e.to_dense()) <= sc.error_bound * (1 + 1e-9)
     assert e.orthogonality_error() <= 50 * n * EPS
     sc.close()
+
+
+def test_a_copy_holds_the_stored_columns_only_and_continues_bit_for_bit(rng):
+    """Pickling or copying a compressor carries its ``w`` stored columns, not the capacity
+    of its buffers nor its compaction buffer; the copy, and a compressor whose scratch
+    was dropped, go on exactly as the original."""
+    import pickle
+
+    n = 3000
+    A = with_spectrum(np.logspace(0, -8, 60), n, 200, rng)
+    sc = ss.StreamCompressor(n, max_rank=40, oversampling=0)  # the exact path here
+    for j in range(0, 100, 25):
+        sc.absorb(A[:, j:j + 25])
+    basis = sc._state.basis
+    assert basis.capacity > basis.width  # room for a workspace, and a compaction buffer
+    assert basis._spare is not None
+    blob = pickle.dumps(sc)
+    assert len(blob) < (basis.width + 5) * n * 8 < basis.capacity * n * 8
+    copies = [pickle.loads(blob), sc.copy()]
+    dropped = sc.copy()
+    dropped._drop_scratch()
+    assert dropped._state.basis._spare is None
+    for other in [sc, *copies, dropped]:
+        for j in range(100, 200, 25):
+            other.absorb(A[:, j:j + 25])
+    U, V = sc.expansion.U, sc.expansion.V
+    for other in [*copies, dropped]:
+        assert np.array_equal(other.expansion.U, U) and np.array_equal(other.expansion.V, V)
+
+
+@pytest.mark.parametrize("layout", ["C", "F"])
+def test_safe_column_norms_match_lapack_at_any_scale_and_layout(rng, layout):
+    """Column norms by slabs of rows: within a few eps of LAPACK's ``dnrm2`` from 1e-300 to
+    1e300, bit-identical whatever the memory layout, with a zero column."""
+    import scipy.linalg.blas as blas
+
+    from streamsvd._scaling import column_exponents, safe_column_norms
+
+    X = rng.standard_normal((70001, 6)) * np.array([1e-300, 1e-150, 1.0, 1e150, 1e300, 0.0])
+    X = np.asarray(X, order=layout)
+    norms = safe_column_norms(X)
+    ref = np.array([blas.dnrm2(np.ascontiguousarray(X[:, j])) for j in range(6)])
+    assert norms[5] == 0.0 and np.all(np.isfinite(norms))
+    np.testing.assert_allclose(norms[:5], ref[:5], rtol=8 * EPS * math.sqrt(70001), atol=0)
+    assert np.array_equal(norms, safe_column_norms(np.asarray(X, order="F" if layout == "C" else "C")))
+    exps, peak = column_exponents(X)
+    np.testing.assert_array_equal(peak, np.max(np.abs(X), axis=0))
+    assert np.all((peak[:5] * np.ldexp(1.0, -exps[:5]) >= 0.5) & (peak[:5] * np.ldexp(1.0, -exps[:5]) < 1))
