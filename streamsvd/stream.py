@@ -51,11 +51,12 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+import scipy.linalg.blas as blas
 
 from ._core import UpdateRecord, r_factor
 from ._threads import check_threads
 from ._validation import as_float_array, check_choice, check_positive_int
-from .basis import MEMORY_KIND, Backend, MemoryBackend
+from .basis import MEMORY_KIND, Backend, MemoryBackend, MemoryBasis
 from .bound import Bound
 from .errors import InputError
 from .expansion import Expansion
@@ -75,7 +76,7 @@ from .update import (
     plan_finalize,
     plan_merge,
 )
-from .update_gram import plan_absorb_by_gram
+from .update_gram import plan_absorb_by_gram, plan_merge_by_gram
 
 __all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 
@@ -336,18 +337,20 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         cut in the root's :meth:`finalize`, as pyMOR's ``dist_vectorarray_hapod`` does.
         """
         t0 = time.perf_counter()
-        U_o, R_o, Y_o, m_o, prior = _merge_operand(
-            other, n=self.n, inner=self.inner, keep_rows=self._state.rows is not None)
-        prior = self._state.bound.combine(prior)
+        op = _merge_operand(other, n=self.n, inner=self.inner,
+                            keep_rows=self._state.rows is not None)
+        prior = self._state.bound.combine(op.bound)
         opts = self._opts
         if not spend_target:
             opts = dataclasses.replace(
                 opts, truncation=dataclasses.replace(opts.truncation, target=None)
             )
+        s = self._state
         return self._run(
-            lambda: plan_merge(self._state, U_o, R_o, Y_o, m_o, prior, opts, t0=t0),
-            self.source_offset + m_o,
-            ledger=self._ledger.appended(self.n_seen + m_o, prior.bound),
+            lambda: plan_merge_by_gram(s, op.Q, op.Z, op.R, op.Y, op.m, prior, opts, t0=t0)
+            or plan_merge(s, op.left_vectors(), op.R, op.Y, op.m, prior, opts, t0=t0),
+            self.source_offset + op.m,
+            ledger=self._ledger.appended(self.n_seen + op.m, prior.bound),
         )
 
     def finalize(
@@ -385,15 +388,38 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
     # ------------------------------------------------------------------ internals
 
 
+@dataclasses.dataclass(frozen=True)
+class _MergeOperand:
+    """What :meth:`StreamCompressor.merge` absorbs: ``U_o V_o^T`` with ``U_o = Q Z``.
+
+    ``Q`` is the other expansion's basis (its left vectors when ``Z`` is the identity),
+    ``R`` the core (``V_o = Y R``), ``Y`` the orthonormal right factor (None when the right
+    vectors are not kept), ``m`` the number of snapshots and ``bound`` the error bound
+    the other expansion carries.
+    """
+
+    Q: np.ndarray
+    Z: np.ndarray
+    R: np.ndarray
+    Y: np.ndarray | None
+    m: int
+    bound: Bound
+
+    def left_vectors(self) -> np.ndarray:
+        """Return ``U_o = Q Z`` (column-major)."""
+        if self.Q.shape[1] == 0 or self.Z.shape[1] == 0:
+            return np.zeros((self.Q.shape[0], self.Z.shape[1]), order="F")
+        return blas.dgemm(1.0, self.Q, self.Z)
+
+
 def _merge_operand(
     other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int, Bound]:
+) -> _MergeOperand:
     """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
 
-    ``(U_o, R_o, Y_o, m_o, prior)``: the left vectors, the core (``V_o = Y_o R_o``), the
-    orthonormal right factor (None when the right vectors are not kept), the number of
-    snapshots and the error bound ``other`` carries. ``other`` is checked first: a
-    compressor or an expansion of snapshots of size ``n`` in the inner product ``inner``.
+    ``other`` is checked first: a compressor or an expansion of snapshots of size ``n``
+    in the inner product ``inner``. A compressor's basis in memory is used as it is; a
+    basis elsewhere (panels) gives its left vectors.
     """
     if not isinstance(other, StreamCompressor | Expansion):
         raise InputError(
@@ -410,12 +436,16 @@ def _merge_operand(
                 "compressor does; merge compressors created alike."
             )
         Y_o = o.rows.value() if keep_rows and o.rows is not None else None
-        return o.basis.lincomb(o.coords), o.R, Y_o, o.m, o.bound
-    V_o = np.array(other.V)
+        if isinstance(o.basis, MemoryBasis):
+            return _MergeOperand(o.basis.Q, o.coords, o.R, Y_o, o.m, o.bound)
+        U_o = o.basis.lincomb(o.coords)
+        return _MergeOperand(U_o, np.eye(U_o.shape[1]), o.R, Y_o, o.m, o.bound)
+    U_o, V_o = np.array(other.U, order="F"), np.array(other.V)
     if not keep_rows:
-        return np.array(other.U), r_factor(V_o), None, V_o.shape[0], Bound()
+        return _MergeOperand(U_o, np.eye(U_o.shape[1]), r_factor(V_o), None, V_o.shape[0],
+                             Bound())
     Y_o, R_o = np.linalg.qr(V_o)
-    return np.array(other.U), R_o, Y_o, V_o.shape[0], Bound()
+    return _MergeOperand(U_o, np.eye(U_o.shape[1]), R_o, Y_o, V_o.shape[0], Bound())
 
 
 def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any

@@ -1,4 +1,4 @@
-"""Absorb a block through the Gram matrix of the snapshots, when the cut allows it.
+"""Absorb a block, or merge an expansion, through a Gram matrix, when the cut allows it.
 
 The exact path (:func:`streamsvd.update.plan_absorb`) orthonormalises the block's residual
 to working accuracy, which takes several passes when the snapshots are nearly collinear
@@ -21,6 +21,15 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
 Cost: about ``2 n (w + b) b + 2 n (w + b) k`` flops and one ``M X``: two passes over the
 basis and the block, whatever the conditioning of the block.
 
+A merge (:func:`plan_merge_by_gram`) is the same update with the other expansion's basis
+``Q_o`` as the block and ``Z_o R_o^T`` as its coefficients (``U_o = Q_o Z_o``, ``V_o = Y_o
+R_o``): the Gram of ``[Q, Q_o]`` needs one product over ``Q_o`` (``U_o`` is never formed),
+and the appended rows are ``Y_o`` instead of the identity. Where the exact merge
+(:func:`streamsvd.update.plan_merge`) orthonormalises ``U_o`` against the basis in up to
+seven passes and converges the core by sweeps, this path makes two passes and no sweep
+(the root merge of a two-leaf tree on 200000 x 1000: 0.74 s against 3.2 s,
+``bench/README.md``).
+
 Accuracy, and what the bound counts. What is discarded is ``F W_r W_r^T``, ``W_r`` the
 eigenvectors not kept: it is orthogonal to the kept terms on the right, as a cut of the
 converged core, so the bound grows by the Pythagorean rule (:mod:`streamsvd.bound`). Its
@@ -36,10 +45,12 @@ vectors' Gram is within 1/4 of the identity. "The growth of the budget" is, for 
 budget; for an ``absolute`` target or a rank cap, the energy this update cuts (the
 allowance then adds at most 0.5% to the discarded norm). Otherwise the exact path runs:
 for updates that cut nothing, for ``eps`` and ``rtol`` alone (they act after the rule's
-sweeps, as in the paper's Algorithm 3), for blocks so narrow that writing a new basis
-costs more than four times the flops of the exact path's products (the exact path reads
-the basis three or four times per block, so at equal flops it is slower: blocks of 10
-columns at rank 70 run 20% faster through the Gram), and for ``add`` and ``merge``.
+sweeps, as in the paper's Algorithm 3), with a ``reject_tol`` above its default ``n eps``
+(residuals that weak are then rejected one by one, as asked), for blocks so narrow that
+writing a new basis costs more than four times the flops of the exact path's products
+(the exact path reads the basis three or four times per block, so at equal flops it is
+slower: blocks of 10 columns at rank 70 run 20% faster through the Gram), for an
+expansion whose basis is not in memory, and for ``add``.
 """
 
 from __future__ import annotations
@@ -55,9 +66,11 @@ from ._blocks import scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
 from .basis import BasisBackend
+from .bound import Bound
+from .gram_schmidt import default_reject_tol
 from .update import Plan, State, StepOptions, Writes, gram_orthogonality, plan_rows
 
-__all__ = ["plan_absorb_by_gram"]
+__all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]
 
 _EPS = float(np.finfo(np.float64).eps)
 GRAM_MEASURES = ("relative", "mean_l2")
@@ -103,6 +116,21 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bo
     return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
 
 
+def _path_applies(opts: StepOptions, n: int) -> bool:
+    """Whether the options let an update take this path at all.
+
+    Not when nothing is cut but by ``eps`` and ``rtol``, which act after the rule's
+    sweeps (the paper's Algorithm 3), or nothing at all (every digit is the user's), and
+    not with a ``reject_tol`` above the default ``n eps``: residuals that weak are
+    rejected one by one on the exact path, as the user asked, where this path would
+    keep a term the rule keeps.
+    """
+    trunc = opts.truncation
+    if trunc.target is None and trunc.max_rank is None:
+        return False
+    return opts.reject_tol <= default_reject_tol(n)
+
+
 def _declined(basis: BasisBackend) -> None:
     """Drop what the basis staged for this path; None sends the update to the exact path."""
     basis.discard_planned()
@@ -119,21 +147,31 @@ def _compaction_pays(w: int, b: int, keep: int) -> bool:
 
 
 def _room(
-    trunc: Truncation, cut: np.ndarray, S: np.ndarray, exps: np.ndarray, top: int, b: int
+    trunc: Truncation, cut: np.ndarray, block_energy: float, added: int, top: int
 ) -> float:
     """Return the energy (scaled by ``4^-top``) the rounding allowance is measured against.
 
     With a ``relative`` or ``mean_l2`` target: the growth of the squared streaming budget
-    in this update (the block's energy, or ``b``, times ``(share target)^2``); otherwise
-    the energy this update cuts (``cut``: the eigenvalues not kept).
+    in this update (the energy appended, ``block_energy``, or the number of snapshots
+    appended, ``added``, times ``(share target)^2``); otherwise the energy this update
+    cuts (``cut``: the eigenvalues not kept).
     """
     if trunc.target is not None and trunc.measure in GRAM_MEASURES:
         share_eps = trunc.share * trunc.target
         if trunc.measure == "mean_l2":
-            return share_eps**2 * math.ldexp(float(b), -2 * top)
-        block = float(np.sum(np.diag(S) * np.ldexp(1.0, 2 * (exps - top))))
-        return share_eps**2 * block
+            return share_eps**2 * math.ldexp(float(added), -2 * top)
+        return share_eps**2 * block_energy
     return float(np.sum(cut))
+
+
+def _times(A: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """Return ``A Z``, ``Z`` a matrix or a diagonal given by its entries (1-D)."""
+    return A * Z if Z.ndim == 1 else A @ Z
+
+
+def _times_left(Z: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Return ``Z A``, ``Z`` a matrix or a diagonal given by its entries (1-D)."""
+    return Z[:, np.newaxis] * A if Z.ndim == 1 else Z @ A
 
 
 def plan_absorb_by_gram(
@@ -147,15 +185,12 @@ def plan_absorb_by_gram(
     and the basis as they were (the caller then plans the exact update).
     """
     trunc = opts.truncation
-    if trunc.target is None and trunc.max_rank is None:
-        # nothing is cut but by eps and rtol, which act after the rule's sweeps (the
-        # paper's Algorithm 3), or nothing at all: every digit is the user's
-        return None
     n, b = X.shape
+    if not _path_applies(opts, n):
+        return None
     basis = state.basis
-    w = basis.width
     k = state.R.shape[0]
-    if not _compaction_pays(w, b, state.rank):
+    if not _compaction_pays(basis.width, b, state.rank):
         return None
     if _refused_before_block(state, trunc, b, n):
         return None
@@ -188,27 +223,112 @@ def plan_absorb_by_gram(
     top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
     if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return _declined(basis)
-    size = k + b
+    block_energy = float(np.sum(norms2 * np.ldexp(1.0, 2 * (exps - top))))
     if measured_first:
         # the budget's growth is known before the projection: with ||F||^2 = ||R||^2 +
         # ||X||^2 (U orthonormal), a target the rounding cannot meet skips it
-        energy = (float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2
-                  + float(np.sum(norms2 * np.ldexp(1.0, 2 * (exps - top)))))
-        if _allowance(energy, size, n) > _ALLOWANCE_SHARE * _room(
-                trunc, np.zeros(0), S, exps, top, b):
+        energy = float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2 + block_energy
+        if _allowance(energy, k + b, n) > _ALLOWANCE_SHARE * _room(
+                trunc, np.zeros(0), block_energy, b, top):
             return _declined(basis)
     if C is None:
-        C = basis.project(Y, None) if w else np.zeros((0, b))
-    # F = [Q, Y] Z 2^top with Z = blockdiag(Zq, diag(d)), every entry at most about 1;
+        C = basis.project(Y, None) if basis.width else np.zeros((0, b))
+    return _plan_by_gram(
+        state, opts, S=S, C=C, Zb=np.ldexp(1.0, exps - top), top=top,
+        block_energy=block_energy, prior=state.bound, Y_appended=None, added=b,
+        kind="absorb", t0=t0,
+    )
+
+
+def plan_merge_by_gram(
+    state: State,
+    Q_o: np.ndarray,
+    Z_o: np.ndarray,
+    R_o: np.ndarray,
+    Y_o: np.ndarray | None,
+    m_o: int,
+    prior: Bound,
+    opts: StepOptions,
+    *,
+    t0: float,
+) -> Plan | None:
+    """Plan appending ``m_o`` snapshots ``Q_o Z_o R_o^T Y_o^T`` by the Gram path, or None.
+
+    ``Q_o`` is the other expansion's basis (``n x c``, in memory), ``U_o = Q_o Z_o`` its
+    left vectors, ``V_o = Y_o R_o`` its right ones (``Y_o`` orthonormal, None when the
+    right vectors are not kept); ``prior`` is the composed bound of both parts. As for
+    a block (the module docstring) with ``F = [Q, Q_o] blockdiag(coords R^T, Z_o R_o^T)``:
+    the Gram of ``[Q, Q_o]`` is one product over ``Q_o`` (``U_o`` is never formed) and the
+    kept vectors are written in one more, where the exact path (:func:`streamsvd.update.
+    plan_merge`) orthonormalises ``U_o`` against the basis in several passes. The same
+    conditions apply; None leaves the state and the basis as they were.
+    """
+    trunc = opts.truncation
+    if not isinstance(Q_o, np.ndarray) or not _path_applies(opts, Q_o.shape[0]):
+        return None
+    n, c = Q_o.shape
+    basis = state.basis
+    if c == 0 or R_o.size == 0 or not _compaction_pays(basis.width, c, state.rank):
+        return None
+    if _refused_before_block(state, trunc, m_o, n):
+        return None
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        S, C = basis.block_products(np.asfortranarray(Q_o), project=True)
+    norms2 = np.diag(S)
+    if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
+        return _declined(basis)  # not the basis of an expansion: left to the exact path
+    top = max(pow2_exponent(R_o), pow2_exponent(state.R) if state.R.size else -_MAX_SPREAD)
+    if abs(top) > _MAX_SPREAD:
+        return _declined(basis)
+    Zb = np.ldexp(Z_o @ R_o.T, -top)
+    block_energy = float(np.sum(Zb * (S @ Zb)))
+    if C is None:
+        C = basis.project(Q_o, None) if basis.width else np.zeros((0, c))
+    return _plan_by_gram(
+        state, opts, S=S, C=C, Zb=Zb, top=top, block_energy=block_energy, prior=prior,
+        Y_appended=Y_o, added=m_o, kind="merge", t0=t0,
+    )
+
+
+def _plan_by_gram(
+    state: State,
+    opts: StepOptions,
+    *,
+    S: np.ndarray,
+    C: np.ndarray,
+    Zb: np.ndarray,
+    top: int,
+    block_energy: float,
+    prior: Bound,
+    Y_appended: np.ndarray | None,
+    added: int,
+    kind: str,
+    t0: float,
+) -> Plan | None:
+    """Plan the update ``F = [Q, Y] blockdiag(Zq, Zb) 2^top`` from the Gram of ``[Q, Y]``.
+
+    ``Y`` (``n x c``) is the block the basis staged, ``S = Y^T M Y``, ``C = MQ^T Y``; ``Zb``
+    (``c x k_b``, or the ``c`` entries of a diagonal) its coefficients, scaled by
+    ``2^-top`` as ``Zq = coords R^T 2^-top``; ``block_energy = ||Y Zb||_M^2``. The rows
+    appended are ``Y_appended`` (the identity when None), ``added`` snapshots; ``prior``
+    is the bound before this update's cut.
+    """
+    trunc = opts.truncation
+    basis = state.basis
+    n, w = basis.n, basis.width
+    k = state.R.shape[0]
+    c = C.shape[1]
+    kb = c if Zb.ndim == 1 else Zb.shape[1]
+    size = k + kb
     # Phi = Z^T B Z, B = [[H, C], [C^T, S]] the Gram of [Q, Y], formed by blocks
     Zq = np.ldexp(state.coords @ state.R.T, -top)
-    d = np.ldexp(1.0, exps - top)
-    ZC = (Zq.T @ C) * d
+    ZbT = Zb if Zb.ndim == 1 else Zb.T
+    ZC = _times(Zq.T @ C, Zb)
     Phi = np.empty((size, size))
     Phi[:k, :k] = Zq.T @ state.gram @ Zq
     Phi[:k, k:] = ZC
     Phi[k:, :k] = ZC.T
-    Phi[k:, k:] = (d[:, np.newaxis] * S) * d
+    Phi[k:, k:] = _times(_times_left(ZbT, S), Zb)
     lam, W = np.linalg.eigh(0.5 * (Phi + Phi.T))
     lam, W = np.maximum(lam[::-1], 0.0), W[:, ::-1]
     total = float(np.sum(lam))
@@ -216,31 +336,32 @@ def plan_absorb_by_gram(
         return _declined(basis)
     allowance = _allowance(total, size, n)
     amps = np.ldexp(np.sqrt(lam), top)
-    spent = math.hypot(state.bound.bound, math.ldexp(math.sqrt(allowance), top))
-    m = state.m + b
+    spent = math.hypot(prior.bound, math.ldexp(math.sqrt(allowance), top))
+    m = state.m + added
     keep = trunc.keep_count(amps, spent=spent, m=m)
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one
     perturbation = _ROUNDING_LAMBDA * (math.sqrt(n) + size) * _EPS * total
     if (keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation
-            or allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], S, exps, top, b)
-            or not _compaction_pays(w, b, keep)):
+            or allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], block_energy, added,
+                                                    top)
+            or not _compaction_pays(w, c, keep)):
         return _declined(basis)
     Wk = W[:, :keep] / np.sqrt(lam[:keep])
-    G = np.empty((w + b, keep))
+    G = np.empty((w + c, keep))
     G[:w] = Zq @ Wk[:k]
-    G[w:] = d[:, np.newaxis] * Wk[k:]
+    G[w:] = _times_left(Zb, Wk[k:])
     H = basis.compact_with_block(G)
     if _drift(H) > _MAX_DRIFT:
         return _declined(basis)
     L = np.linalg.cholesky(H)
     coords = dtrtri(L, lower=1)[0].T  # L^{-T}
     R = amps[:keep, np.newaxis] * L
-    rows = None if state.rows is None else plan_rows(state, W[:, :keep], None)
+    rows = None if state.rows is None else plan_rows(state, W[:, :keep], Y_appended)
     discarded = math.ldexp(math.sqrt(float(np.sum(lam[keep:])) + allowance), top)
-    bound = state.bound.step(discarded, 0.0, overlapping=False)
+    bound = prior.step(discarded, 0.0, overlapping=False)
     orth = gram_orthogonality(coords, H)
     record = UpdateRecord(
-        kind="absorb", columns=b, rank=keep, new_directions=b, rejected=0,
+        kind=kind, columns=added, rank=keep, new_directions=c, rejected=0,
         cut=size - keep, discarded=discarded, sweeps=0, max_cosine=0.0,
         orthogonality=orth, error_bound=bound.bound, seconds=time.perf_counter() - t0,
         passes=2,

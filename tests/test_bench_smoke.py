@@ -139,3 +139,17 @@ def test_target_benchmark_quick(bench, tmp_path):
         assert 1.0 - 1e-9 <= r["bound_over_true"] <= 1.5
         if r["mode"] == "memory":
             assert r["worst_true_over_bound"] <= 1.0 + 1e-9
+
+
+def test_merge_benchmark(bench, tmp_path):
+    """Both merge paths run, give the same optimal error and orthonormal factors."""
+    mod = bench("merge_benchmark")
+    mod.main(["--quick", "--out", str(tmp_path)])
+    assert_drawn(tmp_path / "merge_benchmark.png")
+    rows = {r["path"]: r for r in _read(tmp_path / "merge_benchmark.json")["rows"]}
+    assert rows["gram"]["passes"] == 2 and rows["gram"]["sweeps"] == 0
+    assert rows["exact"]["passes"] > 2
+    for r in rows.values():
+        assert 1.0 <= r["err_over_opt"] <= 1.0001
+        assert r["orthogonality"] <= 100 * 3000 * np.finfo(float).eps
+    assert abs(rows["gram"]["err_over_opt"] - rows["exact"]["err_over_opt"]) <= 1e-6
