@@ -153,3 +153,13 @@ def test_merge_benchmark(bench, tmp_path):
         assert 1.0 <= r["err_over_opt"] <= 1.0001
         assert r["orthogonality"] <= 100 * 3000 * np.finfo(float).eps
     assert abs(rows["gram"]["err_over_opt"] - rows["exact"]["err_over_opt"]) <= 1e-6
+
+
+def test_commit_benchmark(bench, tmp_path):
+    """Both layouts commit and read back the basis exactly; compression saves few bytes."""
+    mod = bench("commit_benchmark")
+    mod.main(["--quick", "--out", str(tmp_path), "--dir", str(tmp_path)])
+    assert_drawn(tmp_path / "commit_benchmark.png")
+    rows = {r["layout"]: r for r in _read(tmp_path / "commit_benchmark.json")["rows"]}
+    assert rows["stored as is"]["bytes_over_data"] == pytest.approx(1.0, abs=0.01)
+    assert 0.8 < rows["zstd level 3"]["bytes_over_data"] < 1.0

@@ -172,8 +172,8 @@ def test_large_commits_are_chunked(tmp_path, rng):
     assert sorted(p.name for p in gdir.iterdir()) == (
         [f"c.{i}" for i in range(5)] + ["committed.json", "zarr.json"]
     )
-    (zstd,) = [codec for codec in meta["codecs"] if codec["name"] == "zstd"]
-    assert zstd["configuration"]["checksum"] is False  # one checksum: the SHA-256
+    # stored as they are (the SHA-256 of each segment is the checksum)
+    assert [codec["name"] for codec in meta["codecs"]] == ["bytes"]
     (record,) = meta["attributes"]["streamsvd"]["arrays"].values()
     assert [seg["shape"] for seg in record["segments"]] == [[1000, 3]]
 
@@ -213,6 +213,31 @@ def test_commit_after_reopen_continues_numbering(store_path, rng):
 
 
 # ----------------------------------------------------------------- appended arrays
+
+
+def test_packs_compressed_by_an_earlier_version_are_read_and_appended_to(
+        tmp_path, rng, monkeypatch):
+    """Generations written with zstd-compressed chunks (the layout before) stay readable,
+    also as the kept segments of a new, uncompressed generation."""
+    import zarr.codecs
+
+    T = rng.standard_normal((50, 4))
+    with BasisStore.create(tmp_path / "s", n=7, inner_fingerprint=FP, chunk_bytes=256) as s:
+        monkeypatch.setattr(store_mod, "PACK_COMPRESSORS",
+                            (zarr.codecs.ZstdCodec(level=3, checksum=False),))
+        s.commit({"a": np.ones(3)}, appended={"T": Appended(T[:30], axis=0)})
+        meta = json.loads((s.path / "generations/g00000001/zarr.json").read_text())
+        assert "zstd" in [codec["name"] for codec in meta["codecs"]]
+        monkeypatch.undo()
+        s.commit({"a": np.ones(3)}, appended={"T": Appended(T, axis=0, unchanged=30)})
+        assert s.last_written == {"a": 3, "T": 80}
+    with open_store(tmp_path / "s") as reader:
+        assert np.array_equal(reader.read().arrays["T"], T)
+        assert np.array_equal(reader.read(generation=1).arrays["T"], T[:30])
+    from streamsvd.storage import open_storage
+    from streamsvd.store.reading import check_store
+
+    assert check_store(open_storage(tmp_path / "s")).healthy
 
 
 def test_appended_array_writes_only_what_changed(tmp_path, rng):
@@ -508,8 +533,8 @@ def test_flipped_bytes_in_a_chunk_are_detected(store_path, rng):
 
 def test_missing_chunk_is_detected_by_the_checksum(store_path, rng):
     committed_store(store_path, rng)
-    (store_path / "generations/g00000002/c.4").unlink()  # V and the amplitudes
-    with pytest.raises(StoreFormatError, match=r"array 'V' of generation 2 .*SHA-256"):
+    (store_path / "generations/g00000002/c.0").unlink()  # the start of the pack: U
+    with pytest.raises(StoreFormatError, match=r"array 'U' of generation 2 .*SHA-256"):
         open_store(store_path).read()
 
 
