@@ -168,8 +168,10 @@ def _compress_leaf(
     """Compress columns ``start:stop`` of the source (runs on a worker)."""
     sc = StreamCompressor(spec.n, **options)
     with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
-        # the other leaves keep the cores busy: no read-ahead, one block per leaf
-        ingest(src, sc, start=start, stop=stop, block=block, prefetch=False)
+        # the other leaves keep the cores busy: no read-ahead, one block per leaf; the
+        # root is finalised by the caller, maybe in another process: no kernels here
+        ingest(src, sc, start=start, stop=stop, block=block, prefetch=False,
+               preload_sweeps=False)
     sc._drop_scratch()  # it waits for its merge: its compaction buffer is not needed
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
                 sc.error_bound)

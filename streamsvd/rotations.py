@@ -26,6 +26,7 @@ Two implementations of the sweep of Algorithms 2 and 3 are kept:
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -36,6 +37,7 @@ __all__ = [
     "PairDynamics",
     "PairRotation",
     "SweepStats",
+    "load_kernels_in_background",
     "pair_dynamics",
     "rotate_pair",
     "rotation_tangent",
@@ -318,6 +320,33 @@ def sweep_core(
     out = np.zeros(4)
     q = int(_sweep_rows(Rt, Qt, order, q, nrm2, rule == "jacobi", eps * eps, tol, out))
     return SweepStats(q, float(out[0]), float(out[1]), int(out[2]), float(out[3]))
+
+
+_loading: threading.Thread | None = None
+
+
+def load_kernels_in_background() -> threading.Thread | None:
+    """Start loading the compiled sweep kernels in a daemon thread (once per process).
+
+    A process's first sweep loads them from numba's cache, about half a second, and on a
+    stream whose updates all take the Gram path that first sweep is the final one
+    (:meth:`~streamsvd.StreamCompressor.finalize`): a driver calls this while its first
+    blocks are read, so that the load overlaps the reads. A sweep that starts before the
+    load ends waits for it (numba's compiler lock); nothing else changes. Returns the
+    loading thread (started now or before), or None when a sweep loaded them.
+    """
+    global _loading
+    if _loading is None and not _sweep_rows.signatures:
+        _loading = threading.Thread(target=_sweep_once, name="streamsvd-kernels",
+                                    daemon=True)
+        _loading.start()
+    return _loading
+
+
+def _sweep_once() -> None:
+    """Run one sweep on a 2 x 2 core: the argument types of every sweep of the package."""
+    Rt, Qt = np.eye(2), np.eye(2)
+    sweep_core(Rt, Qt, np.arange(2, dtype=np.int64), 2, rule="jacobi", eps=0.0, tol=0.0)
 
 
 def sweep_literal(

@@ -14,6 +14,7 @@ from streamsvd import StreamCompressor
 from streamsvd.errors import InputError, NonFiniteError, SourceError
 from streamsvd.ingest import IngestResult, ingest
 from streamsvd.parallel import tall_compress, tree_compress
+from streamsvd.rotations import load_kernels_in_background
 from streamsvd.scheduling import execute
 from streamsvd.sources import Source, open_source
 
@@ -117,6 +118,9 @@ def test_driver_resumes_at_the_compressor_offset_and_stops_at_stop(A):
 def test_driver_stops_the_reader_on_a_failed_update(A):
     bad = A.copy()
     bad[3, 12] = np.inf
+    loading = load_kernels_in_background()  # once per process, by the first ingest
+    if loading is not None:
+        loading.join()
     before = threading.active_count()
     sc = StreamCompressor(N)
     with pytest.raises(NonFiniteError, match="column 12, row 3"):
