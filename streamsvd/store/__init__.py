@@ -99,12 +99,12 @@ therefore writes and deletes nothing that anybody names.
 *Checksums.* One per segment: its SHA-256, recorded in the attributes, verified on
 every read (this also catches a missing chunk, which zarr would read as zeros). The
 chunks are stored as they are: a basis is floating-point noise to a compressor (zstd at
-level 3 saved 4 % of the bytes and cost 40 % of a commit's processor time and 40 % of a
+level 3 saved 4 % of the bytes and took 34 % of a commit's processor time and 43 % of a
 read's time, ``bench/commit_benchmark.py``); packs written compressed by earlier
 versions are read through their own metadata.
 
 *Chunks.* A pack is chunked in equal pieces of at most ``chunk_bytes`` bytes (16 MiB by
-default: large enough for efficient compressed reads, small enough to be written and
+default: large enough for efficient reads, small enough to be written and
 verified with bounded memory).
 
 *Lock.* A writer (mode ``"a"``) creates ``writer.lock`` with ``O_CREAT | O_EXCL``; it

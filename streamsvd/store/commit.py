@@ -51,8 +51,8 @@ logger = logging.getLogger(__name__)
 
 
 #: The codecs a pack's chunks are compressed with: none. A pack is mostly the basis, whose
-#: floating-point digits zstd (level 3) shrank by 4 % at the cost of a third of a commit's
-#: time and of a read's (``bench/commit_benchmark.py``). Readers follow each pack's own
+#: floating-point digits zstd (level 3) shrank by 4 % for a third of a commit's processor
+#: time and 43 % of a read's (``bench/commit_benchmark.py``). Readers follow each pack's own
 #: metadata, so packs written compressed before stay readable.
 PACK_COMPRESSORS: tuple[Any, ...] = ()
 
