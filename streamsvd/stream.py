@@ -347,7 +347,8 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
             )
         s = self._state
         return self._run(
-            lambda: plan_merge_by_gram(s, op.Q, op.Z, op.R, op.Y, op.m, prior, opts, t0=t0)
+            lambda: plan_merge_by_gram(s, op.Q, op.coordinates(), op.R, op.Y, op.m, prior,
+                                       opts, t0=t0)
             or plan_merge(s, op.left_vectors(), op.R, op.Y, op.m, prior, opts, t0=t0),
             self.source_offset + op.m,
             ledger=self._ledger.appended(self.n_seen + op.m, prior.bound),
@@ -392,21 +393,27 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
 class _MergeOperand:
     """What :meth:`StreamCompressor.merge` absorbs: ``U_o V_o^T`` with ``U_o = Q Z``.
 
-    ``Q`` is the other expansion's basis (its left vectors when ``Z`` is the identity),
-    ``R`` the core (``V_o = Y R``), ``Y`` the orthonormal right factor (None when the right
-    vectors are not kept), ``m`` the number of snapshots and ``bound`` the error bound
-    the other expansion carries.
+    ``Q`` is the other expansion's basis, ``Z`` its coordinates (None when ``Q`` holds the
+    left vectors themselves), ``R`` the core (``V_o = Y R``), ``Y`` the orthonormal right
+    factor (None when the right vectors are not kept), ``m`` the number of snapshots and
+    ``bound`` the error bound the other expansion carries.
     """
 
     Q: np.ndarray
-    Z: np.ndarray
+    Z: np.ndarray | None
     R: np.ndarray
     Y: np.ndarray | None
     m: int
     bound: Bound
 
+    def coordinates(self) -> np.ndarray:
+        """Return ``Z`` (the identity when ``Q`` holds the left vectors)."""
+        return np.eye(self.Q.shape[1]) if self.Z is None else self.Z
+
     def left_vectors(self) -> np.ndarray:
-        """Return ``U_o = Q Z`` (column-major)."""
+        """Return ``U_o = Q Z`` (column-major when formed here)."""
+        if self.Z is None:
+            return self.Q
         if self.Q.shape[1] == 0 or self.Z.shape[1] == 0:
             return np.zeros((self.Q.shape[0], self.Z.shape[1]), order="F")
         return blas.dgemm(1.0, self.Q, self.Z)
@@ -438,14 +445,12 @@ def _merge_operand(
         Y_o = o.rows.value() if keep_rows and o.rows is not None else None
         if isinstance(o.basis, MemoryBasis):
             return _MergeOperand(o.basis.Q, o.coords, o.R, Y_o, o.m, o.bound)
-        U_o = o.basis.lincomb(o.coords)
-        return _MergeOperand(U_o, np.eye(U_o.shape[1]), o.R, Y_o, o.m, o.bound)
+        return _MergeOperand(o.basis.lincomb(o.coords), None, o.R, Y_o, o.m, o.bound)
     U_o, V_o = np.array(other.U, order="F"), np.array(other.V)
     if not keep_rows:
-        return _MergeOperand(U_o, np.eye(U_o.shape[1]), r_factor(V_o), None, V_o.shape[0],
-                             Bound())
+        return _MergeOperand(U_o, None, r_factor(V_o), None, V_o.shape[0], Bound())
     Y_o, R_o = np.linalg.qr(V_o)
-    return _MergeOperand(U_o, np.eye(U_o.shape[1]), R_o, Y_o, V_o.shape[0], Bound())
+    return _MergeOperand(U_o, None, R_o, Y_o, V_o.shape[0], Bound())
 
 
 def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any

@@ -184,3 +184,63 @@ def test_an_interrupted_gram_absorb_changes_nothing(tmp_path, monkeypatch):
         sc.close(finalize=False)
     with ss.StreamCompressor.open(path) as back:
         assert back.n_seen == 240
+
+
+@pytest.mark.parametrize("inner", [None, "weights"])
+def test_a_merge_that_cuts_takes_the_gram_path_and_keeps_the_exact_paths_result(
+        rng, monkeypatch, inner):
+    """Two halves of a stream merged under a rank cap: two passes and no sweep, the
+    other's left vectors never formed; the same amplitudes and right vectors as the
+    exact merge to a few eps of the largest over the smallest kept, orthonormal factors
+    measured from themselves, and a bound that holds (with the right vectors kept, in a
+    weighted inner product too)."""
+    n, m = 2000, 240
+    A = with_spectrum(np.logspace(0, -6, 60), n, m, rng)
+    w = _weights(n) if inner else None
+    kw = dict(max_rank=20, right_vectors=True, inner=w)
+
+    def merged():
+        left = _stream(A[:, :m // 2], **kw)
+        right = _stream(A[:, m // 2:], **kw)
+        left.merge(right, spend_target=False)
+        return left
+
+    monkeypatch.setattr(ss.basis.MemoryBasis, "lincomb", lambda *a: pytest.fail("U_o formed"))
+    fast = merged()
+    monkeypatch.undo()
+    assert _by_gram(fast.history[-1]) and fast.history[-1].kind == "merge"
+    monkeypatch.setattr(stream_module, "plan_merge_by_gram", lambda *a, **k: None)
+    exact = merged()
+    assert not _by_gram(exact.history[-1])
+    for sc in (fast, exact):
+        sc.finalize()
+    k = fast.rank
+    assert k == exact.rank == 20
+    s = fast.amplitudes
+    tol = 100 * np.sqrt(n) * EPS * s[0] ** 2 / s[k - 1]
+    np.testing.assert_allclose(fast.amplitudes, exact.amplitudes, rtol=0, atol=tol)
+    U, V = fast.expansion.U, fast.expansion.V
+    M = np.ones(n) if w is None else w
+    assert np.linalg.norm(U.T @ (M[:, np.newaxis] * U) - np.eye(k), 2) <= 50 * n * EPS
+    Y = V / s
+    assert np.linalg.norm(Y.T @ Y - np.eye(k), 2) <= 50 * m * EPS
+    R = A - U @ V.T
+    assert np.sqrt(np.sum(M[:, np.newaxis] * R * R)) <= fast.error_bound * (1 + 1e-12)
+
+
+def test_merging_an_expansion_takes_the_same_gram_path(rng):
+    """An Expansion (its U formed, no basis of its own) merges through the Gram path as
+    the compressor it came from does."""
+    n, m = 1500, 160
+    A = with_spectrum(np.logspace(0, -6, 50), n, m, rng)
+    left = _stream(A[:, :80], max_rank=15)
+    right = _stream(A[:, 80:], max_rank=15)
+    via_expansion = left.copy()
+    via_expansion.merge(right.expansion, spend_target=False)
+    left.merge(right, spend_target=False)
+    for sc in (left, via_expansion):
+        assert _by_gram(sc.history[-1])
+        sc.finalize()
+    s = left.amplitudes
+    np.testing.assert_allclose(via_expansion.amplitudes, s, rtol=0,
+                               atol=100 * np.sqrt(n) * EPS * s[0] ** 2 / s[-1])
