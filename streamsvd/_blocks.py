@@ -16,6 +16,7 @@ import numpy as np
 import scipy.linalg.blas as blas
 
 from ._scaling import column_exponents
+from ._slabs import copy_by_row_slabs
 from .inner import InnerProduct
 
 if TYPE_CHECKING:
@@ -32,7 +33,6 @@ COND_SPLIT = 2.0**-40
 ONE_PASS_COND = 16.0
 # a projection that leaves less than this share of a column's norm is made again (DGKS)
 _REPROJECT = 0.5
-_TRANSPOSE_BYTES = 1 << 21  # rows copied at a time into a column-major block (2 MiB)
 
 
 def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -63,12 +63,7 @@ def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
     the scaling is exact, subnormal peaks included.
     """
-    if X.flags.f_contiguous or not Y.flags.f_contiguous:
-        Y[...] = X
-    else:  # a transposing copy by slabs of rows that fit in the cache
-        step = max(1, _TRANSPOSE_BYTES // (8 * max(1, X.shape[1])))
-        for i in range(0, X.shape[0], step):
-            Y[i:i + step] = X[i:i + step]
+    copy_by_row_slabs(Y, X)
     if Y.shape[0] == 0:
         return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
     exps, peak = column_exponents(Y)

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from ._slabs import row_slabs
+
 __all__ = [
     "column_exponents", "pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm",
 ]
@@ -27,14 +29,6 @@ def pow2_exponent(x: np.ndarray) -> int:
     return int(np.frexp(peak)[1])
 
 
-_SLAB_BYTES = 1 << 21  # rows scaled at a time (2 MiB): no n-sized temporaries
-
-
-def _row_slabs(X: np.ndarray) -> range:
-    """Return the first rows of the slabs of about 2 MiB that the norms run over."""
-    return range(0, X.shape[0], max(1, _SLAB_BYTES // (8 * max(1, X.shape[1]))))
-
-
 def column_exponents(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return each column's binary exponent ``e`` and its largest absolute entry ``peak``.
 
@@ -42,7 +36,7 @@ def column_exponents(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     without a copy of ``X``.
     """
     peak = np.zeros(X.shape[1])
-    starts = _row_slabs(X)
+    starts = row_slabs(X)
     for i in starts:
         np.maximum(peak, np.max(np.abs(X[i:i + starts.step]), axis=0), out=peak)
     exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
@@ -60,7 +54,7 @@ def safe_column_norms(X: np.ndarray) -> np.ndarray:
     """
     if X.shape[0] == 0:
         return np.zeros(X.shape[1])
-    starts = _row_slabs(X)
+    starts = row_slabs(X)
     exps = column_exponents(X)[0]
     total = np.zeros(X.shape[1])
     for i in starts:

@@ -52,6 +52,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from ._slabs import copy_by_row_slabs
 from ._validation import check_positive_int, first_non_finite
 from .errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
 from .formats import no_dataset, open_file, open_zarr_url
@@ -194,7 +195,7 @@ class Source:
             rows = max(unit, _READ_BYTES // max(1, cols * self.dtype.itemsize) // unit * unit)
         for r0 in range(0, self.n, rows):
             part = self._data[r0:r0 + rows, start:stop]
-            _copy_by_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
+            copy_by_row_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
 
     def _check_finite(self, block: np.ndarray, start: int) -> None:
@@ -415,7 +416,7 @@ class _ChunkReader:
         c0, c1, _ = cols.indices(self.shape[1])
         out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype, order="F")
         try:
-            _copy_by_slabs(out, self.data[r0:r1, self.offset + c0:self.offset + c1])
+            copy_by_row_slabs(out, self.data[r0:r1, self.offset + c0:self.offset + c1])
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, self.start, self.stop, self.description) from exc
         _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
@@ -462,21 +463,6 @@ def _check_finite(block: np.ndarray, start: int, row0: int, n: int, description:
 
 
 _READ_BYTES = 1 << 23  # rows read at a time from the data (8 MiB)
-_COPY_BYTES = 1 << 21  # rows copied at a time when a block changes layout (2 MiB)
-
-
-def _copy_by_slabs(out: np.ndarray, part: Any) -> None:
-    """Copy a 2-D block into the column-major ``out``, converting its dtype.
-
-    Row-major data (zarr, HDF5, ``.npy``) is copied by slabs of rows that fit in the
-    cache: a transposing copy of the whole block at once runs several times slower.
-    """
-    part = np.asarray(part)
-    step = max(1, _COPY_BYTES // max(1, part.shape[1] * out.itemsize))
-    for i in range(0, part.shape[0], step):
-        out[i:i + step] = part[i:i + step]
-
-
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
     if dtype.kind == "c":
         raise InputError(

@@ -282,8 +282,7 @@ def plan_merge_by_gram(
         return _declined(basis)
     Zb = np.ldexp(Z_o @ R_o.T, -top)
     block_energy = float(np.sum(Zb * (S @ Zb)))
-    if C is None:
-        C = basis.project(Q_o, None) if basis.width else np.zeros((0, c))
+    assert C is not None  # asked for with the block's Gram
     return _plan_by_gram(
         state, opts, S=S, C=C, Zb=Zb, top=top, block_energy=block_energy, prior=prior,
         Y_appended=Y_o, added=m_o, kind="merge", t0=t0,
