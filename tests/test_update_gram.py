@@ -244,3 +244,18 @@ def test_merging_an_expansion_takes_the_same_gram_path(rng):
     s = left.amplitudes
     np.testing.assert_allclose(via_expansion.amplitudes, s, rtol=0,
                                atol=100 * np.sqrt(n) * EPS * s[0] ** 2 / s[-1])
+
+
+def test_a_merge_of_scales_far_apart_takes_the_exact_path(rng):
+    """Amplitudes 1e250 and 1e-250 have no common power-of-two scaling (the other's
+    energy would underflow in the Gram): the merge is left to the exact path, and every
+    term and the bound stay finite."""
+    n = 300
+    A = with_spectrum(np.logspace(0, -3, 20), n, 40, rng)
+    big, small = _stream(A[:, :20] * 1e250, max_rank=8), _stream(A[:, 20:] * 1e-250, max_rank=8)
+    big.merge(small, spend_target=False)
+    assert not _by_gram(big.history[-1])
+    assert np.all(np.isfinite(big.amplitudes)) and np.isfinite(big.error_bound)
+    dense = big.expansion.to_dense()
+    R = (A[:, :20] * 1e250 - dense[:, :20]) * 1e-250  # scaled: the squares would overflow
+    assert np.linalg.norm(R) <= big.error_bound * 1e-250 * (1 + 1e-12)
