@@ -174,13 +174,13 @@ class Source:
             out = self._read_slabs(start, stop)
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, start, stop, self.description) from exc
-        self._check_finite(out, start)
+        _check_finite(out, start, 0, self.n, self.description)
         return out
 
     def _read_slabs(self, start: int, stop: int) -> np.ndarray:
         """Read columns ``start:stop`` into a new column-major array, by slabs of rows.
 
-        A slab is a whole number of the data's row chunks, about 32 MiB, so that a read
+        A slab is a whole number of the data's row chunks, about 8 MiB, so that a read
         never holds the block twice in the data's layout (a dask array, or data one chunk
         tall, is read whole).
         """
@@ -197,10 +197,6 @@ class Source:
             part = self._data[r0:r0 + rows, start:stop]
             copy_by_row_slabs(out[r0:r0 + rows], part.compute() if self._compute else part)
         return out
-
-    def _check_finite(self, block: np.ndarray, start: int) -> None:
-        """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates."""
-        _check_finite(block, start, 0, self.n, self.description)
 
     def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
         """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
