@@ -20,6 +20,7 @@ import types
 from typing import TYPE_CHECKING, Any
 
 from .errors import (
+    BrokenStateError,
     ConvergenceError,
     InnerProductMismatchError,
     InputError,
@@ -119,6 +120,7 @@ sys.modules[__name__].__class__ = _Package
 
 __all__ = [
     "BasisStore",
+    "BrokenStateError",
     "CompressResult",
     "ConvergenceError",
     "DiagonalInner",

@@ -16,7 +16,8 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
   (:mod:`streamsvd.update_gram`): the block's Gram ``X^T M X`` and its projection
   ``MQ^T X`` with the block staged as it is (in memory: referenced, not copied; a block
   read by row chunks: written once to a scratch panel as it is read), then
-  ``Q <- [Q, X] G`` written aside like ``compact_planned``;
+  ``Q <- [Q, X] G`` written aside like ``compact_planned`` (or over ``Q`` itself by a
+  basis made to, below);
 * ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``,
   ``release(...)``: what a commit to a store needs, what it may delete afterwards, and
   what an update replaced that no recent commit uses; ``compactions`` counts the swaps,
@@ -29,7 +30,16 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
 column-major buffers whose capacity grows geometrically, so appending columns never
 copies the basis (the buffers are reallocated ``O(log)`` times over a stream, counted in
 :attr:`MemoryBasis.reallocations`); a compaction writes into a second buffer of the same
-capacity, swapped in by ``swap``.
+capacity, swapped in by ``swap``. Made with ``compact_in_place=True``, it writes the Gram
+path's compactions over the stored columns instead, slab of rows by slab of rows (each row
+of ``[Q, X] G`` depends on the same row of ``Q`` and ``X`` only), and keeps no second
+buffer between updates: one ``n x k`` buffer less, for compactions about 20% slower (the
+slabs of a column-major basis are strided). The stored columns are then gone as soon as
+the compaction starts: an update that does not complete afterwards (an interrupt, or the
+Gram path declining the basis it wrote, which its rounding bound rules out) leaves the
+basis unusable (:class:`~streamsvd.errors.BrokenStateError`), so only a compressor thrown
+away or recomputed on failure should be made so (the leaves and merges of
+:func:`~streamsvd.parallel.tree_compress`).
 
 A compressor does not choose its basis class: it is given a :class:`Backend`, which
 makes its basis and says what that choice implies (the kind of store it writes, how a
@@ -47,7 +57,9 @@ import numpy as np
 import scipy.linalg.blas as blas
 
 from ._blocks import gram
+from ._slabs import row_slabs
 from ._validation import as_float_array, check_finite
+from .errors import BrokenStateError
 from .inner import InnerProduct
 
 __all__ = [
@@ -169,22 +181,39 @@ class Backend(Protocol):
 
 
 class MemoryBackend:
-    """The basis in memory (:class:`MemoryBasis`): the default of every compressor."""
+    """The basis in memory (:class:`MemoryBasis`): the default of every compressor.
+
+    Parameters
+    ----------
+    compact_in_place : bool
+        Make bases that write the compactions they keep over their stored columns (see
+        :class:`MemoryBasis`): one ``n x k`` buffer less, for compressors thrown away when
+        an update fails (the leaves and merges of a tree).
+    """
 
     kind = MEMORY_KIND
     temporary = False
 
+    def __init__(self, *, compact_in_place: bool = False) -> None:
+        self.compact_in_place = bool(compact_in_place)
+
     def new_basis(self, n: int, inner: InnerProduct) -> MemoryBasis:
         """Return an empty in-memory basis."""
-        return MemoryBasis(n, inner)
+        return MemoryBasis(n, inner, compact_in_place=self.compact_in_place)
 
     def fresh(self) -> MemoryBackend:
         """Return this backend (it holds nothing)."""
         return self
 
     def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
-        """Return a deep copy of the stored columns (no workspace, no compaction buffer)."""
-        return copy.deepcopy(basis)
+        """Return a deep copy of the stored columns (no workspace, no compaction buffer).
+
+        The copy compacts as ``blank`` (the new compressor's own basis) does.
+        """
+        out = copy.deepcopy(basis)
+        assert isinstance(out, MemoryBasis) and isinstance(blank, MemoryBasis)
+        out.compact_in_place = blank.compact_in_place
+        return out
 
     def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
         """Return the block checked and converted to a float64 array.
@@ -219,17 +248,25 @@ class MemoryBasis:
         The inner product ``M`` (``M Q`` is kept beside ``Q`` unless it is Euclidean).
     capacity : int
         Initial number of columns the buffers hold.
+    compact_in_place : bool
+        Write the compactions the caller keeps over the stored columns, and keep no
+        compaction buffer between updates (module docstring).
     """
 
-    def __init__(self, n: int, inner: InnerProduct, *, capacity: int = 0) -> None:
+    def __init__(
+        self, n: int, inner: InnerProduct, *, capacity: int = 0, compact_in_place: bool = False
+    ) -> None:
         self.n = int(n)
         self.inner = inner
+        self.compact_in_place = bool(compact_in_place)
         self._w = 0
         self.reallocations = 0
         self.compactions = 0  # columns only appended between two (what a commit writes)
         self._bufs = self._allocate(int(capacity))
         self._spare: tuple[np.ndarray, np.ndarray] | None = None
         self._planned_width = 0
+        self._overwritten = False  # the planned basis is in the stored buffers
+        self._broken = False  # they were overwritten by an update that did not complete
         self._block: tuple[np.ndarray, np.ndarray] | None = None
 
     def __getstate__(self) -> dict[str, Any]:
@@ -282,12 +319,22 @@ class MemoryBasis:
     @property
     def Q(self) -> np.ndarray:
         """The stored columns (a view, ``n x w``)."""
+        self._check_usable()
         return self._bufs[0][:, : self._w]
 
     @property
     def MQ(self) -> np.ndarray:
         """``M Q`` (the same view as :attr:`Q` for the Euclidean inner product)."""
+        self._check_usable()
         return self._bufs[1][:, : self._w]
+
+    def _check_usable(self) -> None:
+        if self._broken:
+            raise BrokenStateError(
+                "this compressor's basis was written over by an update that did not "
+                "complete (its compactions are made in place, `compact_in_place=True`): "
+                "its stored columns are lost. Start again, or reopen its store."
+            )
 
     # ------------------------------------------------------------------ products
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
@@ -330,9 +377,10 @@ class MemoryBasis:
     def _planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
         """Return the stored columns after :meth:`accept` (``r``) or :meth:`swap` (views)."""
         if compacted:
-            assert self._spare is not None
             p = self._planned_width
-            return self._spare[0][:, :p], self._spare[1][:, :p]
+            planned = self._bufs if self._overwritten else self._spare
+            assert planned is not None
+            return planned[0][:, :p], planned[1][:, :p]
         w = self._w + r
         return self._bufs[0][:, :w], self._bufs[1][:, :w]
 
@@ -361,10 +409,44 @@ class MemoryBasis:
     def compact_with_block(self, G: np.ndarray) -> np.ndarray:
         """Write ``[Q, X] G`` into the spare buffer (``X`` staged by :meth:`block_products`).
 
-        As :meth:`compact_planned`, without the block ever copied next to the basis.
+        As :meth:`compact_planned`, without the block ever copied next to the basis. A
+        basis made with ``compact_in_place=True`` writes it over ``Q`` instead, when it
+        fits.
         """
         assert self._block is not None
-        return self._compact(G, [(self.Q, self.MQ), self._block])
+        parts = [(self.Q, self.MQ), self._block]
+        if self.compact_in_place and G.shape[1] <= self.capacity:
+            return self._compact_over(G, parts)
+        return self._compact(G, parts)
+
+    def _compact_over(
+        self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]
+    ) -> np.ndarray:
+        """Write ``[Q, X] G`` (and its ``M`` image) over ``Q``, a slab of rows at a time.
+
+        Row ``i`` of the result depends on row ``i`` of ``Q`` and ``X`` only, so each slab is
+        computed from the stored rows, then written over them. Returns the Gram of the
+        columns written.
+        """
+        p = G.shape[1]
+        self._planned_width, self._overwritten = p, True
+        buffers = self._bufs[:1] if self.inner.is_euclidean else self._bufs
+        starts = row_slabs(buffers[0][:, :p])
+        slabs = [np.empty((starts.step, p), order="F") for _ in parts]
+        for image, target in enumerate(buffers):
+            for i in starts:
+                rows = slice(i, min(i + starts.step, self.n))
+                h = rows.stop - i
+                out = slabs if h == starts.step else [np.empty((h, p), order="F") for _ in parts]
+                row = 0
+                for part, slab in zip(parts, out, strict=True):
+                    A = part[image]
+                    np.matmul(A[rows], G[row:row + A.shape[1]], out=slab)
+                    row += A.shape[1]
+                for slab in out[1:]:
+                    out[0] += slab
+                target[rows, :p] = out[0]
+        return self._gram_of(self._bufs[0][:, :p], self._bufs[1][:, :p])
 
     def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
         """Write ``[A_1, A_2, ...] G`` (and its ``M`` image) into the spare buffer.
@@ -394,23 +476,42 @@ class MemoryBasis:
                 res = blas.dgemm(1.0, source, Gi, beta=1.0, c=target, overwrite_c=1)
                 if not np.shares_memory(res, target):
                     target[...] = res
+        return self._gram_of(self._spare[0][:, :p], self._spare[1][:, :p])
+
+    def _gram_of(self, Q: np.ndarray, MQ: np.ndarray) -> np.ndarray:
+        """Return the Gram ``Q^T M Q`` of written columns, symmetric."""
         if self.inner.is_euclidean:
-            return out[0].T @ out[0]  # a rank-k update (numpy calls syrk), symmetric
-        H = out[1].T @ out[0]
+            return Q.T @ Q  # a rank-k update (numpy calls syrk), symmetric
+        H = MQ.T @ Q
         return 0.5 * (H + H.T)
 
     def discard_planned(self) -> None:
-        """Forget the staged block: a plan only wrote scratch columns and the spare buffer."""
+        """Forget the staged block: a plan only wrote scratch columns and the spare buffer.
+
+        A plan that wrote over the stored columns cannot be forgotten: the basis is then
+        unusable (:class:`~streamsvd.errors.BrokenStateError` on its next use).
+        """
         self._block = None
+        if self._overwritten:
+            self._overwritten, self._broken = False, True
 
     def drop_scratch(self) -> None:
         """Free the compaction buffer kept for the next update (made again when needed)."""
         self._spare = None
 
     def swap(self, p: int) -> None:
-        """Make the spare buffer written by :meth:`compact_planned` the stored basis."""
-        assert self._spare is not None and p == self._planned_width
-        self._spare, self._bufs = self._bufs, self._spare
+        """Make the spare buffer written by :meth:`compact_planned` the stored basis.
+
+        A basis made with ``compact_in_place=True`` frees the replaced buffer (it keeps no
+        compaction buffer between updates).
+        """
+        assert p == self._planned_width
+        if not self._overwritten:
+            assert self._spare is not None
+            self._spare, self._bufs = self._bufs, self._spare
+            if self.compact_in_place:
+                self._spare = None
+        self._overwritten = False
         self._w = p
         self._block = None
         self.compactions += 1

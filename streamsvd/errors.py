@@ -54,6 +54,14 @@ class ConvergenceError(StreamSVDError, RuntimeError):
         self.result = result
 
 
+class BrokenStateError(StreamSVDError, RuntimeError):
+    """A compressor was left unusable by an update that wrote in place and did not complete.
+
+    Only a compressor whose basis compacts in place (the leaves and merges of a tree) can
+    be left so; a store it writes keeps its last commit.
+    """
+
+
 class StoreError(StreamSVDError, OSError):
     """A basis store cannot be read or written."""
 

@@ -36,7 +36,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ._validation import check_positive_int
-from .errors import InputError, ShapeMismatchError, StoreError
+from .basis import MemoryBackend
+from .errors import BrokenStateError, InputError, ShapeMismatchError, StoreError
 from .ingest import ingest
 from .inner import as_inner
 from .options import TREE_OPTIONS as COMPRESSOR_OPTIONS
@@ -164,14 +165,26 @@ def _compress_leaf(
     block: int,
     options: dict[str, Any],
     blas_threads: int,
+    in_place: bool = True,
 ) -> StreamCompressor:
-    """Compress columns ``start:stop`` of the source (runs on a worker)."""
-    sc = StreamCompressor(spec.n, **options)
-    with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
-        # the other leaves keep the cores busy: no read-ahead, one block per leaf; the
-        # root is finalised by the caller, maybe in another process: no kernels here
-        ingest(src, sc, start=start, stop=stop, block=block, prefetch=False,
-               preload_sweeps=False)
+    """Compress columns ``start:stop`` of the source (runs on a worker).
+
+    The leaf compacts in place (one ``n x k`` buffer less); should an update leave its
+    basis broken (:class:`~streamsvd.errors.BrokenStateError`), the leaf is compressed
+    again with compactions written aside (``in_place=False``).
+    """
+    sc = StreamCompressor(spec.n, backend=MemoryBackend(compact_in_place=in_place), **options)
+    try:
+        with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
+            # the other leaves keep the cores busy: no read-ahead, one block per leaf; the
+            # root is finalised by the caller, maybe in another process: no kernels here
+            ingest(src, sc, start=start, stop=stop, block=block, prefetch=False,
+                   preload_sweeps=False)
+    except BrokenStateError:
+        if not in_place:
+            raise
+        logger.warning("leaf %d:%d compressed again, compacting aside", start, stop)
+        return _compress_leaf(spec, start, stop, block, options, blas_threads, False)
     sc._drop_scratch()  # it waits for its merge: its compaction buffer is not needed
     logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
                 sc.error_bound)
@@ -185,11 +198,18 @@ def _merge_pair(
 
     Neither input is modified (a task's inputs may be shared with the threaded scheduler
     or re-used when a task is retried after a crash), so a merge that fails or is re-run
-    starts again from the same inputs.
+    starts again from the same inputs: the copy compacts in place, and is made again
+    compacting aside should the merge leave it broken.
     """
-    out = left.copy()
     with threadpool_limits(limits=blas_threads, user_api="blas"):
-        out.merge(right, spend_target=False)
+        try:
+            out = left._copy_with(backend=MemoryBackend(compact_in_place=True))
+            out.merge(right, spend_target=False)
+        except BrokenStateError:
+            logger.warning("merge up to column %d made again, compacting aside",
+                           right.source_offset)
+            out = left._copy_with(backend=MemoryBackend())
+            out.merge(right, spend_target=False)
     out._drop_scratch()
     logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
                 out.rank, out.error_bound)
@@ -316,8 +336,10 @@ def tree_compress(
     Cost. With ``L`` leaves of ``c`` columns and rank ``p``, each leaf costs
     ``O(n c (p + block))`` and each merge ``O(n p^2 + c p^2)``; the ``L - 1`` merges form
     ``ceil(log2 L)`` levels, so with ``W`` workers the wall time is about
-    ``(L / W) t_leaf + log2(L) t_merge``. Peak memory per worker is one leaf's factors
-    (``n x 2p``) plus two blocks, and the merge of two ``n x p`` factors.
+    ``(L / W) t_leaf + log2(L) t_merge``. Peak memory per worker is one leaf's basis
+    (``n x p``: the leaves and merges write their compactions over it, see
+    :class:`~streamsvd.basis.MemoryBasis`) plus its block, and the merge of two ``n x p``
+    factors; the returned compressor compacts aside again.
     """
     client = check_client(client)
     block = cast(int, check_positive_int(block, "block"))
@@ -434,4 +456,6 @@ def _run_tree(
         "the threaded scheduler" if client is None else client,
     )
     (root,) = execute(nodes, client=client, progress=progress)
-    return cast(StreamCompressor, root)._copy_with(oversampling=opts["oversampling"])
+    # the user's copy compacts aside again: an interrupted update leaves it as it was
+    return cast(StreamCompressor, root)._copy_with(backend=MemoryBackend(),
+                                                   oversampling=opts["oversampling"])

@@ -242,9 +242,13 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         StreamCompressor.__init__(sc, n, backend=backend, **arguments)
         return sc
 
-    def _empty_copy(self, **changes: Any) -> Any:
-        """Return a compressor with these options (but ``changes``), nothing absorbed."""
-        return self._built(self.n, backend=self._backend.fresh(), inner=self.inner,
+    def _empty_copy(self, *, backend: Backend | None = None, **changes: Any) -> Any:
+        """Return a compressor with these options (but ``changes``), nothing absorbed.
+
+        Its basis is kept by ``backend`` (default: a fresh one of the same settings).
+        """
+        backend = self._backend.fresh() if backend is None else backend
+        return self._built(self.n, backend=backend, inner=self.inner,
                            source_record=self.source_record, threads=self.threads,
                            **{**self.options.as_dict(), **changes})
 

@@ -125,9 +125,12 @@ class StoreLifecycle:
         """
         self._state.basis.drop_scratch()
 
-    def _copy_with(self, **changes: Any) -> Any:
-        """Return an independent copy whose options differ by ``changes``."""
-        out = self._empty_copy(**changes)
+    def _copy_with(self, *, backend: Any = None, **changes: Any) -> Any:
+        """Return an independent copy whose options differ by ``changes``.
+
+        Its basis is kept by ``backend`` (default: a fresh one of the same settings).
+        """
+        out = self._empty_copy(backend=backend, **changes)
         basis = self._backend.copied(self._state.basis, out._state.basis)
         out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
         out._history = list(self._history)

@@ -259,3 +259,103 @@ def test_a_merge_of_scales_far_apart_takes_the_exact_path(rng):
     dense = big.expansion.to_dense()
     R = (A[:, :20] * 1e250 - dense[:, :20]) * 1e-250  # scaled: the squares would overflow
     assert np.linalg.norm(R) <= big.error_bound * 1e-250 * (1 + 1e-12)
+
+
+# ------------------------------------------------------------ compacting in place
+
+
+def _in_place(n, **kw):
+    from streamsvd.basis import MemoryBackend
+
+    return ss.StreamCompressor(n, backend=MemoryBackend(compact_in_place=True), **kw)
+
+
+@pytest.mark.parametrize("inner", [None, "weights"])
+def test_a_basis_compacting_in_place_keeps_the_expansion_with_one_buffer_less(inner, rng):
+    """Written over the stored columns slab by slab, the Gram path's compaction gives the
+    expansion written aside (the same products, row by row), and the basis keeps no
+    compaction buffer: its traced peak is about one ``n x k`` buffer lower."""
+    import tracemalloc
+
+    from streamsvd._slabs import SLAB_BYTES
+
+    n = 60000
+    A = with_spectrum(np.logspace(0, -10, 120), n, 240, rng)
+    kw = dict(max_rank=30, inner=None if inner is None else _weights(n))
+    peaks, results = [], []
+    for make in (lambda: ss.StreamCompressor(n, **kw), lambda: _in_place(n, **kw)):
+        tracemalloc.start()
+        sc = make()
+        sc.absorb(A[:, :40])
+        tracemalloc.reset_peak()  # the updates that compact through the Gram
+        for j in range(40, 240, 40):
+            assert _by_gram(sc.absorb(A[:, j:j + 40]))
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        results.append(sc)
+    aside, over = results
+    assert over._state.basis._spare is None and aside._state.basis._spare is not None
+    k = over._state.basis.capacity
+    images = 1 if inner is None else 2  # the basis, and its M image
+    # a slab of rows per part, and the last, shorter ones
+    assert peaks[1] <= peaks[0] - images * n * k * 8 + 4 * SLAB_BYTES
+    Ea, Eo = aside.expansion, over.expansion
+    s1 = Ea.amplitudes[0]
+    np.testing.assert_allclose(Eo.amplitudes, Ea.amplitudes, rtol=0,
+                               atol=100 * np.sqrt(n) * EPS * s1)
+    gap = np.linalg.norm(Eo.U @ Eo.V.T - Ea.U @ Ea.V.T)
+    assert gap <= 100 * np.sqrt(n) * EPS * s1
+    assert over.error_bound == pytest.approx(aside.error_bound, rel=1e-9)
+    # orthonormality measured from the factors
+    U = Eo.U
+    MU = U if inner is None else _weights(n)[:, np.newaxis] * U
+    assert np.linalg.norm(U.T @ MU - np.eye(U.shape[1]), 2) <= 50 * n * EPS
+
+
+def test_an_interrupted_in_place_compaction_breaks_the_compressor_and_says_so(rng):
+    import streamsvd.update_gram as update_gram
+
+    n = 3000
+    A = with_spectrum(np.logspace(0, -10, 80), n, 200, rng)
+    sc = _in_place(n, max_rank=20)
+    for j in range(0, 100, 50):
+        sc.absorb(A[:, j:j + 50])
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(update_gram, "dtrtri", interrupt)  # after the compaction
+        with pytest.raises(KeyboardInterrupt):
+            sc.absorb(A[:, 100:150])
+    with pytest.raises(ss.BrokenStateError, match="compact_in_place=True"):
+        sc.absorb(A[:, 100:150])
+    with pytest.raises(ss.BrokenStateError):
+        _ = sc.expansion
+
+
+def test_a_tree_whose_in_place_updates_break_compresses_them_again_aside(
+        rng, monkeypatch, caplog):
+    """Should the Gram path decline a basis it wrote over the stored one (its rounding
+    bound rules that out), the leaf or merge is made again compacting aside: the tree
+    completes with a bound that holds, and the user's root compacts aside."""
+    import logging
+
+    import streamsvd.update_gram as update_gram
+    from streamsvd.parallel import tree_compress
+
+    n, m = 2000, 400
+    A = with_spectrum(np.logspace(0, -10, 100), n, m, rng)
+    monkeypatch.setattr(update_gram, "_MAX_DRIFT", -1.0)  # every Gram compaction declined
+    with caplog.at_level(logging.WARNING, logger="streamsvd.parallel_tree"):
+        sc = tree_compress(A, block=50, leaf_columns=100, max_rank=20)
+    assert "compressed again, compacting aside" in caplog.text  # a leaf
+    assert "made again, compacting aside" in caplog.text  # a merge
+    assert not sc._state.basis.compact_in_place
+    E = sc.expansion
+    assert np.linalg.norm(A - E.U @ E.V.T) <= sc.error_bound * (1 + 1e-12)
+    monkeypatch.undo()
+    reference = tree_compress(A, block=50, leaf_columns=100, max_rank=20)
+    s = E.amplitudes
+    np.testing.assert_allclose(s, reference.expansion.amplitudes, rtol=0,
+                               atol=1e3 * np.sqrt(n) * EPS * s[0])
