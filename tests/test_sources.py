@@ -111,6 +111,30 @@ def test_every_kind_gives_the_same_blocks(kind, A, tmp_path):
         obj.file.close()
 
 
+@pytest.mark.parametrize("dtype", ["f8", "f4", "i2"])
+def test_zarr_blocks_decoded_slab_by_slab_are_the_array(rng, tmp_path, monkeypatch, dtype):
+    """A zarr array of the block's dtype is decoded straight into the column-major block,
+    a slab of whole row chunks at a time (the last one shorter); other dtypes are
+    converted as they are copied. Either way the block is the array, and a non-finite
+    entry is named where it is."""
+    import streamsvd.sources as sources
+
+    monkeypatch.setattr(sources, "_READ_BYTES", 3 * 10 * 5 * 8)  # three row chunks
+    A = np.rint(rng.standard_normal((203, 17)) * 100)
+    z = zarr.create_array(tmp_path / "t.zarr", shape=A.shape, chunks=(10, 4), dtype=dtype)
+    z[...] = A.astype(dtype)
+    want = A.astype(np.float32 if dtype == "f4" else np.float64)
+    with open_source(tmp_path / "t.zarr") as src:
+        for offset, X in src.blocks(5, prefetch=False):
+            assert X.flags.f_contiguous and X.dtype == want.dtype
+            assert np.array_equal(X, want[:, offset:offset + 5])
+    if dtype != "i2":
+        z[157, 11] = np.nan
+        with open_source(tmp_path / "t.zarr") as src, pytest.raises(
+                NonFiniteError, match="column 11, row 157"):
+            src.read(10, 15)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_kind_gives_the_same_lazy_blocks(kind, A, tmp_path):
     """Blocks handed over unread (``rows=``) hold the same values, by row chunks."""
