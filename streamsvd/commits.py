@@ -40,12 +40,16 @@ from ._core import HISTORY_FIELDS, UpdateRecord, history_array
 from .segments import Appended
 from .update import Extents
 
-__all__ = ["AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
+__all__ = ["ASSUMED_RATE", "AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
 
 #: The ``commit_every`` value that schedules commits by their cost (:class:`CommitSchedule`).
 AUTO = "auto"
 #: The share of the time the commits may take with :data:`AUTO`.
 COMMIT_OVERHEAD = 0.1
+#: The rate (bytes per second) at which :data:`AUTO` expects a commit to write its basis
+#: until one is measured writing faster (a local disk here writes a 112 MB basis at
+#: 150 to 250 MB/s, fsync included: ``bench/commit_benchmark.py``).
+ASSUMED_RATE = 100e6
 
 
 class CommitSchedule:
@@ -53,17 +57,21 @@ class CommitSchedule:
 
     With an integer ``every``, an update is committed when it is the ``every``-th since
     the previous commit. With ``every="auto"``, an update is committed when the commits
-    made since the schedule started, plus one more costing as much as the last one, take
-    at most ``overhead`` of the time since it started::
+    made since the schedule started, plus this one, take at most ``overhead`` of the time
+    since it started::
 
-        spent + last <= overhead * (now - start)
+        spent + max(last, nbytes / rate) <= overhead * (now - start)
 
-    (``now`` once the update is planned), so that committing takes at most about
-    ``overhead`` of the wall time (a tenth by default) whatever the store (a local disk,
-    an object store) and the size of what a commit writes. Once the commits have spent
-    their share, the time between two commits is about ``last / overhead``: a process
-    killed between two commits loses the updates of at most that long, plus one. The
-    commit that creates a new store is counted in ``spent``; on a reopened store,
+    (``now`` once the update is planned): this commit is expected to cost as much as the
+    last one, or as its ``nbytes`` (the basis it writes) at the fastest rate measured so
+    far (at least :data:`ASSUMED_RATE`) when that is more. Committing then takes at most
+    about ``overhead`` of the wall time (a tenth by default) whatever the store (a local
+    disk, an object store) and the size of what a commit writes. Once the commits have
+    spent their share, the time between two commits is about ``last / overhead``: a
+    process killed between two commits loses the updates of at most that long, plus
+    one. The commit that creates a new store is counted in ``spent``, but it writes no
+    basis: the first update that writes one (112 MB at n = 200000 and 70 terms) is
+    committed once ``nbytes / rate / overhead`` (11 s) have passed. On a reopened store,
     nothing is spent yet and the first update is committed.
 
     Parameters
@@ -84,21 +92,28 @@ class CommitSchedule:
         self._start = self._clock()
         self._spent = 0.0  # seconds spent committing since the start
         self._last = 0.0  # how long the last commit took
+        self._rate = ASSUMED_RATE  # the fastest bytes per second a commit wrote
 
-    def due(self, uncommitted: int) -> bool:
-        """Whether the update planned now, after ``uncommitted`` uncommitted ones, is committed."""
+    def due(self, uncommitted: int, nbytes: int = 0) -> bool:
+        """Whether the update planned now, after ``uncommitted`` uncommitted ones, is committed.
+
+        ``nbytes``: what its commit would write of the basis.
+        """
         if self.every == AUTO:
             elapsed = self._clock() - self._start
-            return self._spent + self._last <= self.overhead * elapsed
+            expected = max(self._last, nbytes / self._rate)
+            return self._spent + expected <= self.overhead * elapsed
         return uncommitted + 1 >= int(self.every)
 
     @contextlib.contextmanager
-    def timed(self) -> Iterator[None]:
-        """Time a commit (one that raises is not counted)."""
+    def timed(self, nbytes: int = 0) -> Iterator[None]:
+        """Time a commit writing ``nbytes`` of the basis (one that raises is not counted)."""
         start = self._clock()
         yield
         self._last = self._clock() - start
         self._spent += self._last
+        if self._last > 0.0:
+            self._rate = max(self._rate, nbytes / self._last)
 
 
 @dataclass(frozen=True)

@@ -134,8 +134,9 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         :meth:`StreamCompressor.open`, not overwritten.
     commit_every : int or "auto"
         Updates between two commits (the last ones are committed by :meth:`flush` or
-        :meth:`close`); ``"auto"`` commits when the commits so far, and one more as long
-        as the last, stay within a tenth of the time since the start
+        :meth:`close`); ``"auto"`` commits when the commits so far, and one more (as long
+        as the last, or as its basis at the fastest rate measured, 100 MB/s before one
+        is), stay within a tenth of the time since the start
         (:class:`streamsvd.commits.CommitSchedule`).
     source_record : SourceRecord, optional
         Where the snapshots come from (path, dataset, shape), kept in the attributes of

@@ -252,7 +252,7 @@ class StoreLifecycle:
             )
             self._history.append(plan.record)
             try:
-                if p is not None and p.due():
+                if p is not None and p.due(self._state, plan):
                     self._commit(plan, source_offset)
                 elif p is not None:
                     p.uncommitted += 1

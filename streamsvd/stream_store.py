@@ -94,6 +94,13 @@ class _Small:
         )
 
 
+def basis_bytes(state: State, plan: Plan) -> int:
+    """Return the bytes of ``Q`` a commit of ``plan`` writes (all, or the appended columns)."""
+    w = plan.writes
+    columns = plan.gram.shape[0] if w.compacted else w.columns
+    return 8 * state.basis.n * int(columns)
+
+
 class StreamStore:
     """A compressor's store: its handle, what the last commit wrote, what waits for one."""
 
@@ -139,9 +146,9 @@ class StreamStore:
         """The basis attributes of the last two commits (what readers may still use)."""
         return self._recent
 
-    def due(self) -> bool:
-        """Whether the next update is committed (``commit_every``: :class:`CommitSchedule`)."""
-        return self.schedule.due(self.uncommitted)
+    def due(self, state: State, plan: Plan) -> bool:
+        """Whether ``plan`` is committed (``commit_every``: :class:`CommitSchedule`)."""
+        return self.schedule.due(self.uncommitted, basis_bytes(state, plan))
 
     def commit(self, state: State, plan: Plan | None, *, attrs: dict[str, Any],
                history: list[UpdateRecord], inner_data: dict[str, np.ndarray],
@@ -179,7 +186,7 @@ class StreamStore:
             "rows_dead": None if state.rows is None else intervals_add(
                 np.zeros((0, 2)), _planned_dead(state.rows.dead, plan)).tolist(),
         }
-        with self.schedule.timed():
+        with self.schedule.timed(0 if plan is None else basis_bytes(state, plan)):
             k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
         self.tracker.committed(k)
         self.uncommitted = 0

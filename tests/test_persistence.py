@@ -113,6 +113,33 @@ def test_auto_schedule_keeps_the_commits_within_a_tenth_of_the_time():
     assert half.due(0)
 
 
+def test_auto_schedule_expects_an_unmeasured_basis_at_the_assumed_rate():
+    """A commit is expected to cost as much as the last one, or as the basis it writes at
+    the fastest rate measured (at least ``ASSUMED_RATE``): after the quick commit that
+    creates a store, the first update writing a 112 MB basis waits until its 1.12 s fit
+    in a tenth of the time; then the rate it was written at is used."""
+    from streamsvd.commits import ASSUMED_RATE
+
+    clock = _Clock()
+    schedule = CommitSchedule("auto", clock=clock)
+    with schedule.timed(0):  # the store's creation: no basis
+        clock.now = 0.01
+    basis = 112_000_000
+    expected = basis / ASSUMED_RATE  # 1.12 s
+    clock.now = 10 * (0.01 + expected) - 0.01
+    assert schedule.due(0, 0)  # appending nothing: as long as the last commit
+    assert not schedule.due(0, basis)
+    clock.now = 10 * (0.01 + expected) + 0.01
+    assert schedule.due(0, basis)
+    with schedule.timed(basis):  # written at 224 MB/s
+        clock.now += 0.5
+    # expected now: max(0.5 s, 2 * basis at 224 MB/s = 1.0 s)
+    clock.now = 10 * (0.51 + 1.0) - 0.01
+    assert schedule.due(0, basis) and not schedule.due(0, 2 * basis)
+    clock.now = 10 * (0.51 + 1.0) + 0.01
+    assert schedule.due(0, 2 * basis)
+
+
 def test_a_failed_commit_leaves_the_schedule_as_it_was():
     clock = _Clock()
     schedule = CommitSchedule("auto", clock=clock)
