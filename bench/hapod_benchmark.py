@@ -79,11 +79,13 @@ def run_streamsvd(blocks: Any, opts: dict[str, Any]) -> tuple[np.ndarray, float]
 
     ``opts``: ``n``, ``inner`` and either ``target`` (a mean-l2 error: the compressor's
     ``target_error`` with ``error_measure="mean_l2"``) or ``max_rank``. The core is
-    converged at every update (Jacobi rule) and ``finalize()`` makes the last cut.
+    converged at every update (Jacobi rule) and ``finalize()`` makes the last cut. Like
+    pyMOR's HAPOD, it returns the modes and forms no right vectors (``right_vectors=False``).
     """
     import streamsvd as ss
 
-    kw: dict[str, Any] = {"inner": opts.get("inner"), "rule": "jacobi", "sweeps": None}
+    kw: dict[str, Any] = {"inner": opts.get("inner"), "rule": "jacobi", "sweeps": None,
+                          "right_vectors": False}
     target = opts.get("target")
     if target is None:
         sc = ss.StreamCompressor(opts["n"], max_rank=opts["max_rank"], **kw)
