@@ -115,3 +115,19 @@ def test_sweep_compresses_the_coupling_of_W(seed, rule):
     assert off(V1.T @ V1) < off(V.T @ V)
     assert np.linalg.norm(U1 @ V1.T - U @ V.T) <= 100 * EPS * np.linalg.norm(V)
     assert np.linalg.norm(U1.T @ U1 - np.eye(p)) <= 100 * EPS * p
+
+
+def test_the_compiled_kernels_are_imported_by_the_first_sweep_only():
+    """Importing the compressor does not import numba (a third of a second): a process
+    that only reads a store never pays for it; the first sweep does."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, streamsvd as ss\n"
+            "sc = ss.StreamCompressor(20, max_rank=2, oversampling=0)\n"
+            "A = np.random.default_rng(0).standard_normal((20, 8))\n"
+            "assert sc.absorb(A).sweeps == 0  # the Gram path: no sweep\n"
+            "assert 'numba' not in sys.modules, 'imported before any sweep'\n"
+            "sc.finalize()\n"
+            "assert 'numba' in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
