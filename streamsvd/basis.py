@@ -186,9 +186,9 @@ class MemoryBackend:
     Parameters
     ----------
     compact_in_place : bool
-        Make bases that write the compactions they keep over their stored columns (see
-        :class:`MemoryBasis`): one ``n x k`` buffer less, for compressors thrown away when
-        an update fails (the leaves and merges of a tree).
+        Make bases that write the Gram path's compactions over their stored columns (see
+        :class:`MemoryBasis`): one ``n x k`` buffer less, for compressors thrown away or
+        made again when an update fails (the leaves and merges of a tree).
     """
 
     kind = MEMORY_KIND
@@ -249,8 +249,8 @@ class MemoryBasis:
     capacity : int
         Initial number of columns the buffers hold.
     compact_in_place : bool
-        Write the compactions the caller keeps over the stored columns, and keep no
-        compaction buffer between updates (module docstring).
+        Write the Gram path's compactions over the stored columns, and keep no compaction
+        buffer between updates (module docstring).
     """
 
     def __init__(
