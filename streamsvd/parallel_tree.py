@@ -43,6 +43,7 @@ from .inner import as_inner
 from .options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 from .options import CompressorOptions
 from .provenance import SourceRecord
+from .rotations import load_kernels_in_background
 from .scheduling import blas_threads_per_task, check_client, execute
 from .sources import Source, open_source, open_zarr_url
 from .storage import is_url, open_storage
@@ -192,15 +193,20 @@ def _compress_leaf(
 
 
 def _merge_pair(
-    left: StreamCompressor, right: StreamCompressor, blas_threads: int
+    left: StreamCompressor, right: StreamCompressor, blas_threads: int,
+    preload_sweeps: bool = False,
 ) -> StreamCompressor:
     """Return a new compressor: ``left`` with ``right``'s columns appended (on a worker).
 
     Neither input is modified (a task's inputs may be shared with the threaded scheduler
     or re-used when a task is retried after a crash), so a merge that fails or is re-run
     starts again from the same inputs: the copy compacts in place, and is made again
-    compacting aside should the merge leave it broken.
+    compacting aside should the merge leave it broken. With ``preload_sweeps`` (the root's
+    merge, run in the caller's process) the compiled sweep kernels that the root's
+    ``finalize`` needs load in the background meanwhile, on the core the leaves left.
     """
+    if preload_sweeps:
+        load_kernels_in_background()
     with threadpool_limits(limits=blas_threads, user_api="blas"):
         try:
             out = left._copy_with(backend=MemoryBackend(compact_in_place=True))
@@ -443,7 +449,8 @@ def _run_tree(
         for i in range(0, len(nodes) - 1, 2):
             a, b = spans[i][0], spans[i + 1][1]
             merged.append(dask.delayed(_merge_pair, pure=False)(
-                nodes[i], nodes[i + 1], blas, dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}"
+                nodes[i], nodes[i + 1], blas, len(nodes) == 2 and client is None,
+                dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}",
             ))
             merged_spans.append((a, b))
         if len(nodes) % 2:

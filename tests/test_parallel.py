@@ -268,6 +268,19 @@ def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, 
     client.wait_for_workers(2, timeout=30)
 
 
+def test_the_root_merge_loads_the_sweep_kernels_that_finalize_needs(rng, monkeypatch):
+    """On the threaded scheduler the root's merge (only it: the leaves keep both cores
+    busy) starts loading the compiled sweep kernels, which the root's ``finalize`` uses."""
+    import streamsvd.parallel_tree as parallel_tree
+
+    calls = []
+    monkeypatch.setattr(parallel_tree, "load_kernels_in_background",
+                        lambda: calls.append("load"))
+    A = low_rank(rng, noise=1e-8)
+    tree_compress(A, block=20, leaf_columns=30, max_rank=5)  # 4 leaves: 3 merges
+    assert calls == ["load"]
+
+
 def test_tree_bad_arguments(rng, tmp_path):
     A = rng.standard_normal((10, 6))
     with pytest.raises(InputError, match="`options` must be among"):
