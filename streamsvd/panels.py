@@ -11,6 +11,13 @@ URL and its ``storage_options``). The basis is never in memory; a block is read 
 chunks within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
 path orthonormalises an in-memory block (``n x b``) in an in-memory workspace.
 
+The Gram path's two passes (the block's products, then the new basis) are one task per
+row chunk each (``map_blocks``): the task reads the chunk's rows of every panel and of
+the block, writes what the pass writes (the scratch chunk, the new basis's chunk) and
+returns its share of the small products, which a reduction sums. A thread then holds
+one chunk of each input, and no chunk waits in the scheduler for its other consumers.
+Local panels are read and written on :mod:`streamsvd.zarr_io`'s event loops.
+
 The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
 sweeps, truncation and bound), so both backends give the same basis to rounding.
 
@@ -33,6 +40,7 @@ from .errors import StoreError, StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
 from .scheduling import execute
 from .storage import LocalStorage, ObjectStorage
+from .zarr_io import Region, write
 
 __all__ = ["PanelBasis"]
 
@@ -122,26 +130,22 @@ class PanelBasis:
             store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
             chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
             fill_value=0.0, compressors=[Crc32cCodec()],
+            # every chunk is written (no comparison with the fill value first)
+            config={"write_empty_chunks": True},
         )
         return name, z
 
-    def _write(self, data: Any, *also: Any) -> tuple[str, int, list[Any]]:
-        """Write an ``n x c`` numpy or dask array as a new panel; return its name and width.
-
-        ``also``: dask collections computed in the same graph as the write of a dask
-        ``data`` (so that the chunks they share with it are computed once), returned in
-        the list.
-        """
+    def _write(self, data: Any) -> tuple[str, int]:
+        """Write an ``n x c`` numpy or dask array as a new panel; return its name and width."""
         import dask.array as da
 
         cols = int(data.shape[1])
         name, z = self._new_panel(cols)
         if isinstance(data, np.ndarray):
             z[:] = data
-            return name, cols, []
-        done = execute([da.store(data, z, lock=False, compute=False), *also],
-                       client=self.client)
-        return name, cols, done[1:]
+        else:
+            execute([da.store(data, z, lock=False, compute=False)], client=self.client)
+        return name, cols
 
     def _q(self, panels: list[str] | None = None) -> Any:
         """Return the stored columns as one dask array (``n x w``), or None if there are none."""
@@ -150,9 +154,17 @@ class PanelBasis:
         names = self.panels if panels is None else panels
         if not names:
             return None
-        parts = [da.from_zarr(self._panel(p), name=f"streamsvd-panel-{p}") for p in names]
+        parts = [self._read(p) for p in names]
         Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
         return Q.rechunk({0: self._row_chunks(), 1: -1})
+
+    def _read(self, name: str) -> Any:
+        """Return panel ``name`` as a dask array of its row chunks."""
+        import dask.array as da
+
+        z = self._panel(name)
+        return da.from_array(Region(z), chunks=z.chunks, name=f"streamsvd-panel-{name}",
+                             meta=np.empty((0, 0), z.dtype), asarray=False)
 
     def _block(self, X: np.ndarray) -> Any:
         """Return an in-memory block as a dask array of its row chunks (views, no copy).
@@ -207,7 +219,7 @@ class PanelBasis:
     def stage_new(self, r: int) -> None:
         """Write the first ``r`` workspace columns as a new panel (before any commit)."""
         if r:
-            self._staged_new = self._write(self.planned_new(r)[0])[:2]
+            self._staged_new = self._write(self.planned_new(r)[0])
 
     def accept(self, r: int) -> None:
         """Append the staged panel to the stored columns."""
@@ -227,44 +239,41 @@ class PanelBasis:
     def block_products(self, X: Any, *, project: bool) -> tuple[np.ndarray, np.ndarray]:
         """Stage ``X`` for :meth:`compact_with_block`; return ``X^T M X`` and ``MQ^T X``.
 
-        One pass over the row chunks computes both (``project`` is not needed). A
-        :class:`~streamsvd.sources.LazyBlock` is read once, chunk by chunk, each chunk
-        written to a scratch panel (in the source's dtype: float32 stays float32) as it
-        enters the products in float64, so the ``n x b`` block is never in memory; an
-        in-memory block is used where it is. A failed read raises the block's
-        :class:`~streamsvd.errors.SourceError`; the scratch panel goes with
-        :meth:`discard_planned`.
+        One pass over the row chunks computes both (``project`` is not needed), one task
+        per chunk (:func:`_chunk_products`). A :class:`~streamsvd.sources.LazyBlock` is
+        read once, chunk by chunk, each chunk written to a scratch panel (in the
+        source's dtype: float32 stays float32) by the task that uses it in float64, so
+        the ``n x b`` block is never in memory; an in-memory block is used where it is.
+        A failed read raises the block's :class:`~streamsvd.errors.SourceError`; the
+        scratch panel goes with :meth:`discard_planned`.
         """
-        import dask.array as da
-
         from .errors import StreamSVDError
         from .sources import LazyBlock
 
         b = int(X.shape[1])
         lazy = isinstance(X, LazyBlock)
         Xd = (X.data.rechunk({0: self._row_chunks(), 1: -1}) if lazy else self._block(X))
-        X64 = Xd.astype(np.float64)
-        wanted = [self._weighted(X64).T @ X64]
-        Q = self._q()
-        if Q is not None:
-            wanted.append(self._weighted(Q).T @ X64)
+        scratch = None
         if lazy:
-            name, z = self._new_panel(b, Xd.dtype)
+            name, scratch = self._new_panel(b, Xd.dtype)
             self._staged_block = (name, None)
-            try:
-                done = execute([da.store(Xd, z, lock=False, compute=False), *wanted],
-                               client=self.client)[1:]
-            except StreamSVDError:
-                raise
-            except Exception as exc:
+        rows = b + self.width
+        shares = self._pass(_chunk_products, [Xd, *self._parts()], rows, b, target=scratch)
+        try:
+            (done,) = execute([shares], client=self.client)
+        except StreamSVDError:
+            raise
+        except Exception as exc:
+            if lazy:
                 raise X.failed(exc) from exc
-            self._staged_block = (name, da.from_zarr(self._panel(name)).astype(np.float64))
+            raise
+        total = np.asarray(done)
+        if lazy:
+            self._staged_block = (self._staged_block[0], self._read(self._staged_block[0]))
         else:
-            done = execute(wanted, client=self.client)
             self._staged_block = ("", Xd)
-        S = np.asarray(done[0])
-        C = np.asarray(done[1]) if Q is not None else np.zeros((0, b))
-        return 0.5 * (S + S.T), C
+        S = total[:b]
+        return 0.5 * (S + S.T), total[b:]
 
     def compact_with_block(self, G: np.ndarray) -> np.ndarray:
         """Write ``[Q, X] G`` as one new panel (``X`` staged by :meth:`block_products`)."""
@@ -274,26 +283,46 @@ class PanelBasis:
     def _compact(self, G: np.ndarray, extra: list[Any]) -> np.ndarray:
         """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram.
 
-        ``Q G_q + X G_x``, a product per part summed chunk by chunk (as the in-memory
-        basis does), so no row chunk of ``[Q, X]`` is ever concatenated.
+        ``Q G_q + X G_x``, a product per part summed in each row chunk's task
+        (:func:`_chunk_compaction`, as the in-memory basis does), so no row chunk of
+        ``[Q, X]`` is ever concatenated; the task writes its rows of the new panel and
+        returns their share of its Gram.
         """
-        Q0 = self._q()
-        parts = ([] if Q0 is None else [Q0]) + extra
+        parts = self._parts() + extra
         p = G.shape[1]
         if not parts or p == 0:
             self._staged_compact = ("", 0)
             return np.zeros((p, p))
-        P, row = None, 0
-        for part in parts:
-            width = int(part.shape[1])
-            term = part.rechunk({1: -1}) @ G[row:row + width]
-            row += width
-            P = term if P is None else P + term
-        # one pass: each row chunk of P is written and enters its Gram as it is computed
-        name, _, (H,) = self._write(P, self._weighted(P).T @ P)
+        name, z = self._new_panel(p)
         self._staged_compact = (name, p)
-        H = np.asarray(H)
+        shares = self._pass(_chunk_compaction, parts, p, p, target=z, G=G)
+        (done,) = execute([shares], client=self.client)
+        H = np.asarray(done)
         return 0.5 * (H + H.T)
+
+    def _parts(self) -> list[Any]:
+        """Return the stored panels as dask arrays of their row chunks (not concatenated)."""
+        return [self._read(name) for name in self.panels]
+
+    def _pass(self, task: Any, arrays: list[Any], rows: int, cols: int, **kwargs: Any) -> Any:
+        """Return the sum of the ``rows x cols`` shares ``task`` computes per row chunk.
+
+        ``arrays`` are chunked by the basis's rows (one column chunk each); a diagonal
+        inner product's weights are passed to ``task`` as the keyword ``weights``.
+        """
+        import dask.array as da
+
+        if not self.inner.is_euclidean:
+            w = cast(DiagonalInner, self.inner).weights.reshape(-1, 1)
+            arrays = [*arrays, da.from_array(w, chunks=(self._row_chunks(), (1,)))]
+        chunks = arrays[0].rechunk({0: self._row_chunks()}).chunks[0]
+        aligned = [a.rechunk({0: chunks, 1: -1}) for a in arrays]
+        shares = da.map_blocks(
+            task, *aligned, weighted=not self.inner.is_euclidean,
+            chunks=((rows,) * len(chunks), (cols,)), dtype=np.float64,
+            meta=np.empty((0, 0)), name=f"streamsvd-pass-{uuid.uuid4().hex}", **kwargs,
+        )
+        return shares.reshape((len(chunks), rows, cols)).sum(axis=0)
 
     def swap(self, p: int) -> None:
         """Make the panel written by :meth:`compact_planned` the stored basis."""
@@ -374,7 +403,7 @@ class PanelBasis:
         if Q is None:
             self.panels, self.widths = [], []
             return
-        name, width, _ = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
+        name, width = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
         self.panels, self.widths = [name], [width]
 
     def release(self, committed: Sequence[dict]) -> None:
@@ -400,6 +429,46 @@ class PanelBasis:
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
                 self._delete(entry)
+
+
+def _chunk_products(x: np.ndarray, *rest: np.ndarray, weighted: bool, target: Any,
+                    block_info: dict | None = None) -> np.ndarray:
+    """Return ``[X^T M X; MQ_1^T X; ...]`` of one row chunk; write the chunk to ``target``.
+
+    ``x`` is the block's chunk, ``rest`` the panels' chunks (then the weights' when
+    ``weighted``); ``target`` is the scratch panel of a block read from its source, or
+    None.
+    """
+    if target is not None:
+        assert block_info is not None
+        write(target, (slice(*block_info[0]["array-location"][0]),), x)
+    panels = rest[:-1] if weighted else rest
+    x64 = np.asarray(x, dtype=np.float64)
+    mx = x64 * rest[-1] if weighted else x64
+    b = x.shape[1]
+    out = np.empty((b + sum(q.shape[1] for q in panels), b))
+    out[:b] = mx.T @ x64  # a rank-k update (syrk) when Euclidean
+    row = b
+    for q in panels:
+        out[row:row + q.shape[1]] = q.T @ mx
+        row += q.shape[1]
+    return out
+
+
+def _chunk_compaction(*parts: np.ndarray, weighted: bool, target: Any, G: np.ndarray,
+                      block_info: dict | None = None) -> np.ndarray:
+    """Write one row chunk of ``[Q_1, ..., X] G`` to ``target``; return its ``P^T M P``."""
+    assert block_info is not None
+    blocks = parts[:-1] if weighted else parts
+    P, row = None, 0
+    for part in blocks:
+        width = part.shape[1]
+        term = np.asarray(part, dtype=np.float64) @ G[row:row + width]
+        P = term if P is None else P.__iadd__(term)
+        row += width
+    assert P is not None
+    write(target, (slice(*block_info[0]["array-location"][0]),), P)
+    return (P * parts[-1]).T @ P if weighted else P.T @ P
 
 
 class _Rows:

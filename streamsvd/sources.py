@@ -478,6 +478,8 @@ def _fill(out: np.ndarray, data: Any, r0: int, start: int, stop: int, *,
         return
     part = data[rows, start:stop]
     copy_by_row_slabs(out, part.compute() if compute else part)
+
+
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
     if dtype.kind == "c":
         raise InputError(

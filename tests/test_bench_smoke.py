@@ -163,3 +163,21 @@ def test_commit_benchmark(bench, tmp_path):
     rows = {r["layout"]: r for r in _read(tmp_path / "commit_benchmark.json")["rows"]}
     assert rows["stored as is"]["bytes_over_data"] == pytest.approx(1.0, abs=0.01)
     assert 0.8 < rows["zstd level 3"]["bytes_over_data"] < 1.0
+
+
+def test_zarr_io_benchmark(bench, tmp_path):
+    """Both routes run the tall mode and the chunk reads and writes, in child processes."""
+    import zarr
+
+    mod = bench("zarr_io_benchmark")
+    A = np.random.default_rng(0).standard_normal((2000, 30))
+    z = zarr.create_array(str(tmp_path / "a.zarr"), shape=A.shape, chunks=(500, 10),
+                          dtype="float64")
+    z[:] = A
+    mod.main(["--source", str(tmp_path / "a.zarr"), "--repeat", "1", "--rows", "200",
+              "--ops", "4", "--out", str(tmp_path)])
+    assert_drawn(tmp_path / "zarr_io_benchmark.png")
+    data = _read(tmp_path / "zarr_io_benchmark.json")
+    assert set(data["tall_medians"]) == {"loops", "zarr"}
+    assert all(v > 0 for v in data["tall_medians"].values())
+    assert set(data["ops_medians"]) == {"loops@1", "zarr@1", "loops@2", "zarr@2"}

@@ -526,6 +526,33 @@ def test_tall_block_is_read_by_row_chunks_and_never_whole(rng, tmp_path, monkeyp
     assert rel_diff(got.U, want.U) < 1e-10 and rel_diff(got.V, want.V) < 1e-10
 
 
+def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
+    """Each of the Gram path's two passes runs one task per row chunk, which reads its
+    rows of every input and writes its rows of the output."""
+    import functools
+
+    from streamsvd import panels
+
+    n, rows, b = 4000, 250, 20
+    A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
+    path = _zarr_source(tmp_path, A, rows, b)
+    calls = {"_chunk_products": [], "_chunk_compaction": []}
+    for name, seen in calls.items():
+        task = getattr(panels, name)
+
+        def counted(*args, _task=task, _seen=seen, **kw):
+            _seen.append(kw["block_info"][0]["array-location"][0])
+            return _task(*args, **kw)
+
+        monkeypatch.setattr(panels, name, functools.wraps(task)(counted))
+    with tall_compress(path, block=b, max_rank=12, oversampling=0) as tc:
+        updates = sum(r.kind == "absorb" for r in tc.history)
+    every_chunk = sorted((i, i + rows) for i in range(0, n, rows))
+    for seen in calls.values():
+        assert len(seen) == updates * n // rows
+        assert sorted(seen) == sorted(every_chunk * updates)
+
+
 def test_tall_float32_source_stays_float32_in_the_scratch_panel(rng, tmp_path, monkeypatch):
     from streamsvd.panels import PanelBasis
 
