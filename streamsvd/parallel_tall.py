@@ -13,9 +13,10 @@ Memory: when the update cuts (``max_rank`` or ``target_error``: the Gram path of
 :mod:`streamsvd.update_gram`), a block from :func:`~streamsvd.parallel.tall_compress` or a
 dask block is read by row chunks in the update's own pass over the panels, each chunk
 written to a scratch panel as it enters the products, so neither the block nor the basis
-is ever in memory: a few row chunks per dask thread, the small matrices and the right
-vectors (``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the
-process peaked at 378 MB at ``n = 2e5`` and 326 MB at ``n = 2e6``
+is ever in memory: one row chunk of each input per dask thread (each pass is one task
+per row chunk: :mod:`streamsvd.panels`), the small matrices and the right vectors
+(``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the process
+peaked at 367 to 378 MB at ``n = 2e5`` and 376 MB at ``n = 2e6``
 (``bench/outofcore_benchmark.py``). An update that takes the exact path (no cut, ``eps``
 or ``rtol`` alone, ``window``, ``forget``, a block the Gram path declines) reads its block
 into memory first (``n x b``) and orthonormalises it there.
