@@ -12,7 +12,7 @@ in-memory compressor's (one implementation), so both give the same basis to roun
 Memory: when the update cuts (``max_rank`` or ``target_error``: the Gram path of
 :mod:`streamsvd.update_gram`), a block from :func:`~streamsvd.parallel.tall_compress` or a
 dask block is read by row chunks in the update's own pass over the panels, each chunk
-written to a scratch panel as it enters the products, so neither the block nor the basis
+written to a scratch copy as it enters the products, so neither the block nor the basis
 is ever in memory: one row chunk of each input per dask thread (each pass is one task
 per row chunk: :mod:`streamsvd.panels`), the small matrices and the right vectors
 (``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the process

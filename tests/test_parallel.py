@@ -553,25 +553,59 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
         assert sorted(seen) == sorted(every_chunk * updates)
 
 
-def test_tall_float32_source_stays_float32_in_the_scratch_panel(rng, tmp_path, monkeypatch):
-    from streamsvd.panels import PanelBasis
+def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, monkeypatch):
+    from streamsvd.panels import PanelBasis, _RawScratch
 
     A = low_rank(rng, n=600, m=40, rank=15, noise=1e-6)
     path = _zarr_source(tmp_path, A, 100, 10, dtype="float32")
-    dtypes = []
-    new_panel = PanelBasis._new_panel
+    sizes = []
+    new_scratch = PanelBasis._new_scratch
 
-    def spy(self, cols, dtype=np.float64):
-        dtypes.append(np.dtype(dtype))
-        return new_panel(self, cols, dtype)
+    def spy(self, cols, dtype):
+        name, scratch = new_scratch(self, cols, dtype)
+        assert isinstance(scratch, _RawScratch)  # a local store: one raw file
+        sizes.append((scratch.dtype, scratch.path.stat().st_size))
+        return name, scratch
 
-    monkeypatch.setattr(PanelBasis, "_new_panel", spy)
+    monkeypatch.setattr(PanelBasis, "_new_scratch", spy)
     with tall_compress(path, block=10, max_rank=8) as tc:
         got = tc.expansion
-    assert np.dtype(np.float32) in dtypes  # the scratch panels; the basis is float64
+    assert sizes and all(s == (np.dtype(np.float32), 600 * 10 * 4) for s in sizes)
     want = stream(A.astype(np.float32).astype(np.float64), 10, max_rank=8).expansion
     # the leading 8 (separated singular values; the oversampled tail is float32 noise)
     assert got.rank == want.rank and rel_diff(got.U[:, :8], want.U[:, :8]) < 1e-10
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
+    """Row ranges written by separate calls (any memory order) read back exactly, by any
+    row range and column slice."""
+    from streamsvd.panels import _RawScratch
+
+    A = rng.standard_normal((1003, 7)).astype(dtype)
+    scratch = _RawScratch(tmp_path / "pabc", A.shape, dtype)
+    assert scratch.path.stat().st_size == A.nbytes
+    for r0 in range(0, 1003, 250):
+        scratch[r0:r0 + 250] = np.asfortranarray(A[r0:r0 + 250])
+    assert np.array_equal(scratch[0:1003, 0:7], A)
+    assert np.array_equal(scratch[(slice(240, 777), slice(2, 5))], A[240:777, 2:5])
+    assert scratch[5:9].dtype == np.dtype(dtype)
+
+
+def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
+    """A scratch copy left by a killed process (named as a panel, referred to by no
+    commit) goes when the store is next opened for writing."""
+    from streamsvd.panels import _RawScratch
+
+    A = low_rank(rng, n=500, m=40, rank=10, noise=1e-8)
+    store = tmp_path / "s.zarr"
+    with tall_compress(A, block=10, max_rank=6, store=store, chunk_rows=100):
+        pass
+    stray = _RawScratch(store / "panels" / "p0123456789abcdef", (500, 10), "float64")
+    assert stray.path.exists()
+    with TallCompressor.open(store):
+        pass
+    assert not stray.path.parent.exists()
 
 
 def test_tall_lazy_source_names_a_non_finite_entry_in_source_coordinates(rng, tmp_path):
