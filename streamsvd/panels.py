@@ -332,8 +332,9 @@ class PanelBasis:
     def _pass(self, task: Any, arrays: list[Any], rows: int, cols: int, **kwargs: Any) -> Any:
         """Return the sum of the ``rows x cols`` shares ``task`` computes per row chunk.
 
-        ``arrays`` are chunked by the basis's rows (one column chunk each); a diagonal
-        inner product's weights are passed to ``task`` as the keyword ``weights``.
+        ``arrays`` are chunked by the basis's rows (one column chunk each); with a
+        diagonal inner product the weights' chunk is passed after them, and ``task``
+        gets ``weighted=True``.
         """
         import dask.array as da
 
@@ -484,14 +485,12 @@ def _chunk_compaction(*parts: np.ndarray, weighted: bool, target: Any, G: np.nda
                       block_info: dict | None = None) -> np.ndarray:
     """Write one row chunk of ``[Q_1, ..., X] G`` to ``target``; return its ``P^T M P``."""
     assert block_info is not None
-    blocks = parts[:-1] if weighted else parts
-    P, row = None, 0
-    for part in blocks:
-        width = part.shape[1]
-        term = np.asarray(part, dtype=np.float64) @ G[row:row + width]
-        P = term if P is None else P.__iadd__(term)
-        row += width
-    assert P is not None
+    first, *others = parts[:-1] if weighted else parts
+    row = first.shape[1]
+    P = np.asarray(first, dtype=np.float64) @ G[:row]
+    for part in others:
+        P += np.asarray(part, dtype=np.float64) @ G[row:row + part.shape[1]]
+        row += part.shape[1]
     target[slice(*block_info[0]["array-location"][0])] = P
     return (P * parts[-1]).T @ P if weighted else P.T @ P
 
@@ -533,7 +532,13 @@ class _RawScratch:
         out = np.empty((r1 - r0, self.shape[1]), dtype=self.dtype)
         with open(self.path, "rb") as f:
             f.seek(r0 * self._row_bytes)
-            f.readinto(memoryview(out).cast("B"))
+            read = f.readinto(memoryview(out).cast("B"))
+        if read != out.nbytes:
+            raise StoreError(
+                f"the scratch copy {self.path} holds {r0 * self._row_bytes + read} bytes "
+                f"up to row {r1}, expected {r1 * self._row_bytes}: it was truncated "
+                "during the update. Resume from the last commit."
+            )
         return out[(slice(None), *key[1:])]
 
 

@@ -590,6 +590,10 @@ def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
     assert np.array_equal(scratch[0:1003, 0:7], A)
     assert np.array_equal(scratch[(slice(240, 777), slice(2, 5))], A[240:777, 2:5])
     assert scratch[5:9].dtype == np.dtype(dtype)
+    with open(scratch.path, "r+b") as f:
+        f.truncate(A.nbytes // 2)
+    with pytest.raises(StoreError, match="truncated"):
+        scratch[400:900]
 
 
 def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
