@@ -145,7 +145,8 @@ class PanelBasis:
         if isinstance(data, np.ndarray):
             z[:] = data
         else:
-            execute([da.store(data, z, lock=False, compute=False)], client=self.client)
+            execute([da.store(data, Region(z), lock=False, compute=False)],
+                    client=self.client)
         return name, cols
 
     def _q(self, panels: list[str] | None = None) -> Any:

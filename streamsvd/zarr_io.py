@@ -80,14 +80,14 @@ def _parallel(array: Any) -> bool:
     return isinstance(array.store, LocalStore | MemoryStore)
 
 
-def read(array: Any, selection: tuple[slice, ...]) -> np.ndarray:
+def read(array: Any, selection: slice | tuple[slice, ...]) -> np.ndarray:
     """Return ``array[selection]`` (row-major)."""
     if not _parallel(array):
         return np.asarray(array[selection])
     return np.asarray(_run(array.async_array.getitem(selection)))
 
 
-def write(array: Any, selection: tuple[slice, ...], value: np.ndarray) -> None:
+def write(array: Any, selection: slice | tuple[slice, ...], value: np.ndarray) -> None:
     """``array[selection] = value``."""
     if not _parallel(array):
         array[selection] = value
@@ -109,8 +109,8 @@ class Region:
         self.dtype = np.dtype(array.dtype)
         self.ndim = len(self.shape)
 
-    def __getitem__(self, key: tuple[slice, ...]) -> np.ndarray:
+    def __getitem__(self, key: slice | tuple[slice, ...]) -> np.ndarray:
         return read(self.array, key)
 
-    def __setitem__(self, key: tuple[slice, ...], value: np.ndarray) -> None:
+    def __setitem__(self, key: slice | tuple[slice, ...], value: np.ndarray) -> None:
         write(self.array, key, value)
