@@ -331,7 +331,10 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         the basis, and its right vectors enter the small core through their core ``R_o``,
         so the cost is ``O(n w p_o + p_o^2 (p + p_o))`` (plus ``O(m_o p_o p)`` for the new
         rows of ``V`` when they are kept), never ``O(n m_o)``. A term of ``other`` is
-        rejected relative to the energy of ``other`` (see :func:`streamsvd.update.plan_merge`).
+        rejected relative to the energy of ``other``, and a term of the merged core below
+        ``reject_tol`` times the largest amplitude of the smaller expansion is cut as
+        rounding noise, its norm counted in the bound (see
+        :func:`streamsvd.update.plan_merge`).
         Error bounds compose: the two parts cover disjoint columns, so before the merge's
         own truncation the bound is ``sqrt(b_self^2 + b_other^2)``, as in the hierarchical
         POD of Himpe, Leibner and Rave (2018).

@@ -38,7 +38,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -283,8 +283,23 @@ def plan_merge(
     only when the right vectors are kept. A term is rejected when its residual carries
     ``||r_j||_M ||v_j|| <= reject_tol * max_i ||u_i||_M ||v_i||``: relative to the energy
     of the expansion merged, as a snapshot's residual is relative to the snapshot.
+
+    The residuals of several terms can be large one by one and cancel in the merged core
+    (the weak left vectors of two expansions of the same data differ by their rounding):
+    so a term of the merged core whose amplitude is at most ``reject_tol`` times the
+    largest amplitude of the smaller of the two expansions is rounding noise of the
+    merge as well, and is cut like a term below ``eps`` (its norm counted in the bound).
+    With a target error the merge cuts nothing (:mod:`streamsvd.parallel_tree`): the
+    final optimal cut takes such terms within the budget.
     """
-    ref = _energy_reference(safe_m_norms(U_o, opts.inner), safe_column_norms(R_o))
+    u_norms, v_norms = safe_m_norms(U_o, opts.inner), safe_column_norms(R_o)
+    ref = _energy_reference(u_norms, v_norms)
+    tops = [float(np.max(u_norms * v_norms)) if v_norms.size else 0.0]
+    if state.rank:
+        tops.append(float(np.max(safe_column_norms(state.R))))
+    floor = opts.reject_tol * min(tops)
+    if opts.truncation.target is None and floor > opts.truncation.eps:
+        opts = replace(opts, truncation=replace(opts.truncation, eps=floor))
     ext = extend_basis(
         state.basis, state.coords, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, basis_gram=state.gram,

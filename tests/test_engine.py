@@ -238,6 +238,32 @@ def test_error_bound_holds_after_every_operation(ops, weighted, rule, trunc, rej
 
 
 # ------------------------------------------------------------------ tree merges
+def test_a_merge_cuts_a_term_its_core_leaves_below_the_rejection_threshold(rng):
+    """An operand term ``u = cos(a) q_w + sin(a) r`` whose residual ``sin(a)`` passes the
+    rejection rule, beside a weak term ``t q_w`` of the current expansion, leaves the merged
+    core a term of amplitude ``t sin(a)``: below ``reject_tol`` times the top amplitude it is
+    cut, and counted in the bound; above it, it is kept."""
+    n = 400
+    Q = np.linalg.qr(rng.standard_normal((n, 3)))[0]
+    q1, qw, r = Q.T
+    a = 1e-3
+    u = math.cos(a) * qw + math.sin(a) * r
+    for t, rank in ((1e-11, 2), (1e-7, 3)):
+        sc = ss.StreamCompressor(n, rule="jacobi", sweeps=None)
+        sc.absorb(np.column_stack([q1, t * qw]))
+        other = ss.StreamCompressor(n, rule="jacobi", sweeps=None)
+        other.absorb(u[:, np.newaxis])
+        record = sc.merge(other)
+        A = np.column_stack([q1, t * qw, u])
+        s = np.linalg.svd(A, compute_uv=False)
+        assert s[2] == pytest.approx(t * a, rel=1e-3)
+        assert sc.rank == rank and record.cut == 3 - rank
+        err = np.linalg.norm(A - sc.expansion.to_dense())
+        assert err <= sc.error_bound * (1 + 1e-12) + 10 * n * np.finfo(float).eps
+        if rank == 2:
+            assert record.discarded == pytest.approx(t * a, rel=1e-3)
+
+
 def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
     """A rank-80 matrix compressed in a tree of 60-column leaves: rounding-noise terms of
     the leaves are rejected relative to the energy they carry, so the tree's rank is the

@@ -2,6 +2,7 @@
 
 import json
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -145,9 +146,10 @@ def test_cli_target_error_and_info(tmp_path, matrix, capsys):
 
 @pytest.mark.parametrize("target", [1e-2, 1e-4])
 def test_tree_spends_its_leaves_budget_once_and_keeps_the_streams_modes(target):
-    """The tree's merges cut nothing for the target; its leaves spend the streaming share
-    and the root's finalize the rest, as pyMOR's dist_vectorarray_hapod: the tree keeps
-    the modes of the stream (within one) and its bound holds."""
+    """The tree's merges cut nothing for the target (only rounding noise, below the
+    rejection threshold ``n eps`` of the largest amplitude); its leaves spend the
+    streaming share and the root's finalize the rest, as pyMOR's dist_vectorarray_hapod:
+    the tree keeps the modes of the stream (within one) and its bound holds."""
     from streamsvd.parallel import tree_compress
 
     x = np.linspace(0.0, 1.0, 400)[:, np.newaxis]
@@ -159,7 +161,9 @@ def test_tree_spends_its_leaves_budget_once_and_keeps_the_streams_modes(target):
         sc.absorb(A[:, j : j + 40])
     sc.finalize()
     tree = tree_compress(A, block=40, leaf_columns=40, **kw)
-    assert all(r.cut == 0 for r in tree.history if r.kind == "merge")
+    noise = 400 * np.finfo(float).eps * np.linalg.norm(A, 2)
+    merges = [r for r in tree.history if r.kind == "merge"]
+    assert merges and all(r.discarded <= math.sqrt(r.cut + r.rejected) * noise for r in merges)
     tree.finalize()
     err = np.linalg.norm(A - tree.expansion.to_dense()) / np.sqrt(320)
     assert err <= tree.error_in_measure * (1 + 1e-9) <= target * (1 + 1e-12)
