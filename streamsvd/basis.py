@@ -163,6 +163,13 @@ class Backend(Protocol):
     def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
         """Return ``basis`` copied for a compressor whose own empty basis is ``blank``."""
 
+    def into_store(self, basis: BasisBackend, storage: Any) -> tuple[Backend, BasisBackend]:
+        """Return the backend and basis that a new store in ``storage`` commits.
+
+        This backend and ``basis`` when a commit writes the basis itself; else a copy
+        of the basis written into ``storage``, which ``basis`` is left as it was.
+        """
+
     def load(self, columns: Any, *, rows: int, first: int) -> Any:
         """Return ``columns`` checked as a block of ``rows`` rows the basis takes.
 
@@ -214,6 +221,10 @@ class MemoryBackend:
         assert isinstance(out, MemoryBasis) and isinstance(blank, MemoryBasis)
         out.compact_in_place = blank.compact_in_place
         return out
+
+    def into_store(self, basis: BasisBackend, storage: Any) -> tuple[MemoryBackend, BasisBackend]:
+        """Return this backend and ``basis``: a commit writes its stored columns."""
+        return self, basis
 
     def load(self, columns: Any, *, rows: int, first: int) -> np.ndarray:
         """Return the block checked and converted to a float64 array.

@@ -64,16 +64,22 @@ class PanelBasis:
         Where the graphs run (the threaded scheduler when None).
     root : LocalStorage or ObjectStorage
         Where ``panels/`` is (the store's root, or a work directory).
+    committed : bool
+        Whether commits refer to the panels (``root`` is a store). Panels that no commit
+        refers to, in a local directory, are raw row-major files (:class:`_RawArray`):
+        they live while the compressor does, so they need no codec or checksum.
     """
 
     def __init__(
-        self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any
+        self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any,
+        committed: bool = True,
     ) -> None:
         self.n = int(n)
         self.inner = inner
         self.chunk_rows = int(chunk_rows)
         self.client = client
         self.root: LocalStorage | ObjectStorage = root
+        self.raw = not committed and isinstance(root, LocalStorage)
         self._zstore: Any = None
         self.panels: list[str] = []
         self.widths: list[int] = []
@@ -122,11 +128,16 @@ class PanelBasis:
         return z
 
     def _new_panel(self, cols: int, dtype: Any = np.float64) -> tuple[str, Any]:
-        """Create an empty ``n x cols`` panel; return its name and zarr array."""
+        """Create an empty ``n x cols`` panel; return its name and array (zarr or raw)."""
         import zarr
         from zarr.codecs import Crc32cCodec
 
         name = f"p{uuid.uuid4().hex}"
+        if self.raw:
+            raw = _RawArray(cast(LocalStorage, self.root).root / "panels" / name,
+                            (self.n, cols), dtype, chunk_rows=self.chunk_rows)
+            self._zarrs[name] = raw
+            return name, raw
         z = zarr.create_array(
             store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
             chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
@@ -145,7 +156,7 @@ class PanelBasis:
         if isinstance(data, np.ndarray):
             z[:] = data
         else:
-            execute([da.store(data, Region(z), lock=False, compute=False)],
+            execute([da.store(data, _target(z), lock=False, compute=False)],
                     client=self.client)
         return name, cols
 
@@ -165,7 +176,7 @@ class PanelBasis:
         import dask.array as da
 
         z = self._panel(name)
-        return da.from_array(Region(z), chunks=z.chunks, name=f"streamsvd-panel-{name}",
+        return da.from_array(_target(z), chunks=z.chunks, name=f"streamsvd-panel-{name}",
                              meta=np.empty((0, 0), z.dtype), asarray=False)
 
     def _block(self, X: np.ndarray) -> Any:
@@ -301,7 +312,7 @@ class PanelBasis:
             return np.zeros((p, p))
         name, z = self._new_panel(p)
         self._staged_compact = (name, p)
-        shares = self._pass(_chunk_compaction, parts, p, p, target=Region(z), G=G)
+        shares = self._pass(_chunk_compaction, parts, p, p, target=_target(z), G=G)
         (done,) = execute([shares], client=self.client)
         H = np.asarray(done)
         return 0.5 * (H + H.T)
@@ -310,7 +321,8 @@ class PanelBasis:
         """Create the block's scratch copy (``n x cols``); return its name and array."""
         if isinstance(self.root, LocalStorage):
             name = f"p{uuid.uuid4().hex}"
-            return name, _RawScratch(self.root.root / "panels" / name, (self.n, cols), dtype)
+            return name, _RawArray(self.root.root / "panels" / name, (self.n, cols), dtype,
+                                   chunk_rows=self.chunk_rows)
         name, z = self._new_panel(cols, dtype)
         return name, Region(z)
 
@@ -318,8 +330,8 @@ class PanelBasis:
         """Return the scratch copy as a float64 dask array of the basis's row chunks."""
         import dask.array as da
 
-        if isinstance(scratch, _RawScratch):
-            data = da.from_array(scratch, chunks=(self._row_chunks(), -1),
+        if isinstance(scratch, _RawArray):
+            data = da.from_array(scratch, chunks=scratch.chunks,
                                  name=f"streamsvd-scratch-{name}",
                                  meta=np.empty((0, 0), scratch.dtype), asarray=False)
         else:
@@ -496,21 +508,30 @@ def _chunk_compaction(*parts: np.ndarray, weighted: bool, target: Any, G: np.nda
     return (P * parts[-1]).T @ P if weighted else P.T @ P
 
 
-class _RawScratch:
-    """The block's scratch copy in a local directory: one row-major file, no codec.
+def _target(z: Any) -> Any:
+    """Return what dask reads and writes a panel through (zarr via :mod:`.zarr_io`)."""
+    return z if isinstance(z, _RawArray) else Region(z)
 
-    It lives for one update (written by the first pass, read by the second, deleted
-    with the update, or as a leftover when the store is next opened for writing, like
-    the panels: its directory is named as one), is never committed, and is read by the
-    process that wrote it or by workers sharing its directory; so no chunks, codec or
-    checksum. Each task opens the file for its rows, so a worker reads what the others
-    wrote once their tasks have ended.
+
+class _RawArray:
+    """An ``n x c`` array in a local directory that no commit refers to: one row-major file.
+
+    The block's scratch copy (it lives for one update: written by the first pass, read by
+    the second, deleted with the update) and, without a store, the panels themselves
+    (they live while the compressor does). A leftover is removed when the store or work
+    directory is next opened for writing, like a panel: its directory is named as one.
+    It is read by the process that wrote it or by workers sharing its directory; so no
+    codec or checksum (a zarr write of a 10000 x 100 float64 chunk took 17.7 ms in the
+    tall mode, the raw write about 4 ms: ``bench/README.md``). Each task opens the file
+    for its rows, so a worker reads what the others wrote once their tasks have ended.
     """
 
-    def __init__(self, directory: Any, shape: tuple[int, int], dtype: Any) -> None:
+    def __init__(self, directory: Any, shape: tuple[int, int], dtype: Any, *,
+                 chunk_rows: int) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         self.path = directory / "block"
         self.shape, self.dtype, self.ndim = shape, np.dtype(dtype), 2
+        self.chunks = (chunk_rows, max(shape[1], 1))
         self._row_bytes = shape[1] * self.dtype.itemsize
         with open(self.path, "wb") as f:
             f.truncate(shape[0] * self._row_bytes)
@@ -518,6 +539,7 @@ class _RawScratch:
     def __setitem__(self, key: slice | tuple[slice, ...], value: np.ndarray) -> None:
         r0 = (key[0] if isinstance(key, tuple) else key).indices(self.shape[0])[0]
         data = np.ascontiguousarray(value, dtype=self.dtype)
+        assert data.shape[1] == self.shape[1], "rows are written whole"
         fd = os.open(self.path, os.O_WRONLY)
         try:
             view = memoryview(data).cast("B")
@@ -536,9 +558,10 @@ class _RawScratch:
             read = f.readinto(memoryview(out).cast("B"))
         if read != out.nbytes:
             raise StoreError(
-                f"the scratch copy {self.path} holds {r0 * self._row_bytes + read} bytes "
+                f"{self.path} holds {r0 * self._row_bytes + read} bytes "
                 f"up to row {r1}, expected {r1 * self._row_bytes}: it was truncated "
-                "during the update. Resume from the last commit."
+                "while in use (a full disk, or another process). Resume from the last "
+                "commit, or start again without one."
             )
         return out[(slice(None), *key[1:])]
 

@@ -73,13 +73,18 @@ class PanelBackend:
     temporary : bool
         ``root`` is a temporary directory of this backend, removed by :meth:`close` (or
         when the backend is garbage collected).
+    committed : bool
+        ``root`` is a store whose commits refer to the panels (zarr arrays with
+        checksums); else a work directory, where local panels are raw files
+        (:class:`~streamsvd.panels.PanelBasis`).
     """
 
     kind = KIND
 
     def __init__(self, root: LocalStorage | ObjectStorage, *, chunk_rows: int, client: Any,
-                 temporary: bool = False) -> None:
+                 temporary: bool = False, committed: bool = True) -> None:
         self.root = root
+        self.committed = committed
         self.chunk_rows = int(chunk_rows)
         self.client = client
         self.temporary = temporary
@@ -109,13 +114,15 @@ class PanelBackend:
         else:
             root = open_storage(workdir, storage_options=storage_options, argument="workdir")
             root.prepare()
+            return cls(root, chunk_rows=rows, client=client, committed=False)
         return cls(root, chunk_rows=rows, client=client)
 
     @classmethod
     def temporary_for(cls, *, chunk_rows: int, client: Any) -> PanelBackend:
         """Return a backend whose panels live in a new temporary directory."""
         root = LocalStorage(Path(tempfile.mkdtemp(prefix="streamsvd-tall-")))
-        return cls(root, chunk_rows=chunk_rows, client=client, temporary=True)
+        return cls(root, chunk_rows=chunk_rows, client=client, temporary=True,
+                   committed=False)
 
     def new_basis(self, n: int, inner: InnerProduct) -> PanelBasis:
         """Return an empty basis of panels; ``inner`` must be Euclidean or diagonal."""
@@ -126,7 +133,7 @@ class PanelBackend:
                 "lump the mass matrix into weights."
             )
         return PanelBasis(n, inner, chunk_rows=self.chunk_rows, client=self.client,
-                          root=self.root)
+                          root=self.root, committed=self.committed)
 
     @classmethod
     def for_store(cls, basis_attrs: dict[str, Any], root: Any, *, client: Any) -> PanelBackend:
@@ -148,6 +155,19 @@ class PanelBackend:
         assert isinstance(basis, PanelBasis) and isinstance(blank, PanelBasis)
         blank.adopt(basis)
         return blank
+
+    def into_store(self, basis: BasisBackend, storage: Any) -> tuple[PanelBackend, BasisBackend]:
+        """Return the backend and basis that a new store in ``storage`` commits.
+
+        Panels that no commit refers to (a work directory's) are copied into the store as
+        one panel, chunk by chunk (``O(n w)`` on disk, never in memory); a store's own
+        panels are committed where they are.
+        """
+        if self.committed:
+            return self, basis
+        assert isinstance(basis, PanelBasis)
+        backend = PanelBackend(storage, chunk_rows=self.chunk_rows, client=self.client)
+        return backend, self.copied(basis, backend.new_basis(basis.n, basis.inner))
 
     def load(self, columns: Any, *, rows: int, first: int) -> Any:
         """Return a checked block: a dask array becomes a :class:`~streamsvd.sources.LazyBlock`.

@@ -145,12 +145,20 @@ class StoreLifecycle:
             attrs=self._attrs(None), storage_options=storage_options,
             commit_every=self.options.commit_every,
         )
+        before = self._backend, self._state.basis
         try:
+            # a basis that no commit refers to (a tall mode's work directory) is copied
+            # into the store first
+            self._backend, self._state.basis = self._backend.into_store(
+                self._state.basis, self._persistence.storage)
             self._commit(None, self.source_offset)
         except BaseException:
+            self._backend, self._state.basis = before
             self._persistence.close()  # release the lock of the store left at generation 0
             self._persistence = None
             raise
+        if self._backend is not before[0]:
+            before[0].close()
 
     def save(self, path: Any) -> None:
         """Write the compressor into a new store at ``path`` and keep committing there.

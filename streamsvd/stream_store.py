@@ -129,6 +129,11 @@ class StreamStore:
         return str(self.handle.path)
 
     @property
+    def storage(self) -> Any:
+        """The store's :class:`~streamsvd.storage.Storage`."""
+        return self.handle.storage
+
+    @property
     def writable(self) -> bool:
         """Whether the store was opened to continue the stream (mode ``"a"``)."""
         return self.handle.mode == "a"

@@ -554,7 +554,7 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
 
 
 def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, monkeypatch):
-    from streamsvd.panels import PanelBasis, _RawScratch
+    from streamsvd.panels import PanelBasis, _RawArray
 
     A = low_rank(rng, n=600, m=40, rank=15, noise=1e-6)
     path = _zarr_source(tmp_path, A, 100, 10, dtype="float32")
@@ -563,7 +563,7 @@ def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, mo
 
     def spy(self, cols, dtype):
         name, scratch = new_scratch(self, cols, dtype)
-        assert isinstance(scratch, _RawScratch)  # a local store: one raw file
+        assert isinstance(scratch, _RawArray)  # a local store: one raw file
         sizes.append((scratch.dtype, scratch.path.stat().st_size))
         return name, scratch
 
@@ -580,10 +580,10 @@ def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, mo
 def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
     """Row ranges written by separate calls (any memory order) read back exactly, by any
     row range and column slice."""
-    from streamsvd.panels import _RawScratch
+    from streamsvd.panels import _RawArray
 
     A = rng.standard_normal((1003, 7)).astype(dtype)
-    scratch = _RawScratch(tmp_path / "pabc", A.shape, dtype)
+    scratch = _RawArray(tmp_path / "pabc", A.shape, dtype, chunk_rows=250)
     assert scratch.path.stat().st_size == A.nbytes
     for r0 in range(0, 1003, 250):
         scratch[r0:r0 + 250] = np.asfortranarray(A[r0:r0 + 250])
@@ -596,16 +596,45 @@ def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
         scratch[400:900]
 
 
+@pytest.mark.parametrize("workdir", [False, True])
+def test_tall_panels_are_raw_files_in_a_work_directory_and_saved_as_zarr(rng, tmp_path,
+                                                                          workdir):
+    """Without a store the panels are raw files (no commit refers to them); `save` copies
+    them into the store as zarr, whose reopened compressor is the saved one exactly."""
+    from streamsvd.panels import _RawArray
+
+    A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
+    kw = {"workdir": tmp_path / "work"} if workdir else {}
+    tc = tall_compress(A, block=10, max_rank=8, chunk_rows=100, **kw)
+    basis = tc._state.basis
+    assert basis.panels and all(isinstance(basis._panel(p), _RawArray) for p in basis.panels)
+    tc.finalize()
+    want = tc.expansion
+    tc.save(tmp_path / "s.zarr")
+    panels = tc._state.basis.panels
+    assert all(zarr.open_array(str(tmp_path / "s.zarr" / "panels" / p)).shape == (500, 8)
+               for p in panels)
+    tc.close()
+    with TallCompressor.open(tmp_path / "s.zarr") as back:
+        got = back.expansion
+    assert np.array_equal(got.U, want.U) and np.array_equal(got.amplitudes, want.amplitudes)
+    with tall_compress(A, block=10, max_rank=8, chunk_rows=100,
+                       store=tmp_path / "t.zarr") as stored:
+        assert all(not isinstance(stored._state.basis._panel(p), _RawArray)
+                   for p in stored._state.basis.panels)
+
+
 def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
     """A scratch copy left by a killed process (named as a panel, referred to by no
     commit) goes when the store is next opened for writing."""
-    from streamsvd.panels import _RawScratch
+    from streamsvd.panels import _RawArray
 
     A = low_rank(rng, n=500, m=40, rank=10, noise=1e-8)
     store = tmp_path / "s.zarr"
     with tall_compress(A, block=10, max_rank=6, store=store, chunk_rows=100):
         pass
-    stray = _RawScratch(store / "panels" / "p0123456789abcdef", (500, 10), "float64")
+    stray = _RawArray(store / "panels" / "p0123456789abcdef", (500, 10), "float64",
+                      chunk_rows=100)
     assert stray.path.exists()
     with TallCompressor.open(store):
         pass

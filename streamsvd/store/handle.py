@@ -158,6 +158,11 @@ class BasisStore:
         return self._path
 
     @property
+    def storage(self) -> Storage:
+        """The storage the store lives in (what a backend writes its own arrays to)."""
+        return self._storage
+
+    @property
     def mode(self) -> str:
         """``"r"`` (read only) or ``"a"`` (read and commit)."""
         return self._mode
