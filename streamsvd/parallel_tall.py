@@ -16,7 +16,7 @@ written to a scratch copy as it enters the products, so neither the block nor th
 is ever in memory: one row chunk of each input per dask thread (each pass is one task
 per row chunk: :mod:`streamsvd.panels`), the small matrices and the right vectors
 (``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the process
-peaked at 353 to 359 MB at ``n = 2e5`` and 368 MB at ``n = 2e6``
+peaked at 317 to 333 MB at ``n = 2e5`` and 327 MB at ``n = 2e6`` without a store
 (``bench/outofcore_benchmark.py``). An update that takes the exact path (no cut, ``eps``
 or ``rtol`` alone, ``window``, ``forget``, a block the Gram path declines) reads its block
 into memory first (``n x b``) and orthonormalises it there.
