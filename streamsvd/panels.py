@@ -1,13 +1,15 @@
-"""The n-sized factor out of core: the basis in zarr panels chunked by rows, used by dask.
+"""The n-sized factor out of core: the basis in panels chunked by rows, used by dask.
 
 :class:`PanelBasis` implements :class:`~streamsvd.basis.BasisBackend` for snapshots too
 long for the basis ``n x w`` to stay in memory. The stored columns are a list of
-*panels*, zarr arrays chunked by rows and written once (``<root>/panels/<name>``, in a
-local directory or an object store: :mod:`streamsvd.storage`); every product with them
+*panels*, written once each (``<root>/panels/<name>``, in a local directory or an object
+store: :mod:`streamsvd.storage`): in a local directory a raw row-major file, which the
+passes use, and, once a commit lists it, a zarr copy with checksums beside it, which a
+reopened store reads; in an object store a zarr array. Every product with them
 (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph over the row
 chunks, run on the threaded scheduler or on a ``distributed`` cluster whose workers
-reach the directory or the object store (a panel pickles as its zarr store: a path, or a
-URL and its ``storage_options``). The basis is never in memory; a block is read by row
+reach the directory or the object store (a panel pickles as its path, or as its zarr
+store: a URL and its ``storage_options``). The basis is never in memory; a block is read by row
 chunks within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
 path orthonormalises an in-memory block (``n x b``) in an in-memory workspace.
 
@@ -16,15 +18,16 @@ row chunk each (``map_blocks``): the task reads the chunk's rows of every panel 
 the block, writes what the pass writes (the scratch chunk, the new basis's chunk) and
 returns its share of the small products, which a reduction sums. A thread then holds
 one chunk of each input, and no chunk waits in the scheduler for its other consumers.
-Local panels are read and written on :mod:`streamsvd.zarr_io`'s event loops.
+A panel's zarr copy is written on :mod:`streamsvd.zarr_io`'s event loops.
 
 The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
 sweeps, truncation and bound), so both backends give the same basis to rounding.
 
 Crash safety. A plan writes its new panel (or the compacted basis) before any commit
-refers to it; a panel is deleted only when neither the state nor the last two commits
-refer to it (:meth:`PanelBasis.collect`), so a process or worker killed at any instant
-leaves the last commit readable.
+refers to it, and a commit lists a panel only once its zarr copy is written; a panel is
+deleted only when neither the state nor the last two commits refer to it
+(:meth:`PanelBasis.collect`), so a process or worker killed at any instant leaves the
+last commit readable.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ logger = logging.getLogger(__name__)
 
 
 class PanelBasis:
-    """Basis in zarr panels chunked by rows (see the module docstring).
+    """Basis in panels chunked by rows (see the module docstring).
 
     Parameters
     ----------
@@ -63,23 +66,23 @@ class PanelBasis:
     client : distributed.Client or None
         Where the graphs run (the threaded scheduler when None).
     root : LocalStorage or ObjectStorage
-        Where ``panels/`` is (the store's root, or a work directory).
-    committed : bool
-        Whether commits refer to the panels (``root`` is a store). Panels that no commit
-        refers to, in a local directory, are raw row-major files (:class:`_RawArray`):
-        they live while the compressor does, so they need no codec or checksum.
+        Where ``panels/`` is (the store's root, or a work directory). In a local
+        directory every panel is written as a raw row-major file (:class:`_RawArray`),
+        which the passes read and write; a commit that lists a panel first writes a zarr
+        copy of it beside the file, with checksums (:meth:`commit_arrays`), which a
+        reopened store reads. In an object store the panels are zarr arrays.
     """
 
     def __init__(
-        self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any,
-        committed: bool = True,
+        self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any
     ) -> None:
         self.n = int(n)
         self.inner = inner
         self.chunk_rows = int(chunk_rows)
         self.client = client
         self.root: LocalStorage | ObjectStorage = root
-        self.raw = not committed and isinstance(root, LocalStorage)
+        self.raw = isinstance(root, LocalStorage)
+        self._sealed: set[str] = set()  # raw panels with a zarr copy
         self._zstore: Any = None
         self.panels: list[str] = []
         self.widths: list[int] = []
@@ -129,23 +132,46 @@ class PanelBasis:
 
     def _new_panel(self, cols: int, dtype: Any = np.float64) -> tuple[str, Any]:
         """Create an empty ``n x cols`` panel; return its name and array (zarr or raw)."""
-        import zarr
-        from zarr.codecs import Crc32cCodec
-
         name = f"p{uuid.uuid4().hex}"
         if self.raw:
             raw = _RawArray(cast(LocalStorage, self.root).root / "panels" / name,
                             (self.n, cols), dtype, chunk_rows=self.chunk_rows)
             self._zarrs[name] = raw
             return name, raw
-        z = zarr.create_array(
+        return name, self._new_zarr(name, cols, dtype)
+
+    def _new_zarr(self, name: str, cols: int, dtype: Any = np.float64) -> Any:
+        """Create the zarr array of panel ``name`` (``n x cols``, checksummed chunks)."""
+        import zarr
+        from zarr.codecs import Crc32cCodec
+
+        return zarr.create_array(
             store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
             chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
             fill_value=0.0, compressors=[Crc32cCodec()],
             # every chunk is written (no comparison with the fill value first)
             config={"write_empty_chunks": True},
         )
-        return name, z
+
+    def _seal(self, names: list[str]) -> None:
+        """Write a zarr copy of each raw panel of ``names`` that has none (for a commit).
+
+        The copy lies in the panel's own directory, beside the raw file, which the
+        passes go on using; both go when the panel is deleted.
+        """
+        import dask.array as da
+
+        todo = [name for name in names
+                if name not in self._sealed and isinstance(self._zarrs.get(name), _RawArray)]
+        if not todo:
+            return
+        stores = [
+            da.store(self._read(name), Region(self._new_zarr(name, self._zarrs[name].shape[1])),
+                     lock=False, compute=False)
+            for name in todo
+        ]
+        execute(stores, client=self.client)
+        self._sealed.update(todo)
 
     def _write(self, data: Any) -> tuple[str, int]:
         """Write an ``n x c`` numpy or dask array as a new panel; return its name and width."""
@@ -411,7 +437,11 @@ class PanelBasis:
 
     # ------------------------------------------------------------------ persistence
     def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
-        """Return what a commit writes: no array, the planned list of panels."""
+        """Return what a commit writes: no array, the planned list of panels.
+
+        Each raw panel of the list gets its zarr copy first (:meth:`_seal`), so a commit
+        only ever lists panels that a reopened store can read and check.
+        """
         if compacted:
             assert self._staged_compact is not None
             name, p = self._staged_compact
@@ -422,6 +452,7 @@ class PanelBasis:
             widths = self.widths + [self._staged_new[1]]
         else:
             panels, widths = list(self.panels), list(self.widths)
+        self._seal(panels)
         return {}, {"panels": panels, "widths": widths, "chunk_rows": self.chunk_rows}
 
     def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
@@ -514,16 +545,17 @@ def _target(z: Any) -> Any:
 
 
 class _RawArray:
-    """An ``n x c`` array in a local directory that no commit refers to: one row-major file.
+    """An ``n x c`` array in a local directory, read by no reopened store: one row-major file.
 
     The block's scratch copy (it lives for one update: written by the first pass, read by
-    the second, deleted with the update) and, without a store, the panels themselves
-    (they live while the compressor does). A leftover is removed when the store or work
-    directory is next opened for writing, like a panel: its directory is named as one.
-    It is read by the process that wrote it or by workers sharing its directory; so no
-    codec or checksum (a zarr write of a 10000 x 100 float64 chunk took 17.7 ms in the
-    tall mode, the raw write about 4 ms: ``bench/README.md``). Each task opens the file
-    for its rows, so a worker reads what the others wrote once their tasks have ended.
+    the second, deleted with the update) and the panels as the passes use them (they live
+    while the compressor does; a commit lists only panels with a zarr copy beside the
+    file). A leftover is removed when the store or work directory is next opened for
+    writing, like a panel: its directory is named as one. It is read by the process that
+    wrote it or by workers sharing its directory; so no codec or checksum (a zarr write
+    of a 10000 x 100 float64 chunk took 17.7 ms in the tall mode, the raw write about
+    4 ms: ``bench/README.md``). Each task opens the file for its rows, so a worker reads
+    what the others wrote once their tasks have ended.
     """
 
     def __init__(self, directory: Any, shape: tuple[int, int], dtype: Any, *,

@@ -7,7 +7,7 @@ Three ways to run the same compression beyond one in-memory stream, all built on
   independently on workers and merged pairwise in a tree with
   :meth:`StreamCompressor.merge`, the error bounds composed (pyMOR's distributed HAPOD);
 * :class:`TallCompressor` and :func:`tall_compress` -- tall snapshots: the stored factor
-  ``U`` lives in zarr panels chunked by rows and every product an update needs runs over
+  ``U`` lives in panels chunked by rows and every product an update needs runs over
   row chunks with ``map_blocks`` and ``da.reduction``;
 * :func:`ingest` -- what ``streamsvd ingest --scheduler ... [--tall]`` runs.
 

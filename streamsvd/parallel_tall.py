@@ -3,7 +3,7 @@
 :class:`PanelBackend` is the backend (:class:`~streamsvd.basis.Backend`) that keeps a
 compressor's n-sized factor in a :class:`~streamsvd.panels.PanelBasis`, and
 :class:`TallCompressor` is :class:`~streamsvd.StreamCompressor` built with it (a
-constructor and nothing else): the basis lives in zarr panels chunked by rows
+constructor and nothing else): the basis lives in panels chunked by rows
 in the store directory (``<store>/panels/``), and every product with it runs over row
 chunks with dask, on the threaded scheduler or on a ``distributed`` cluster. The update
 step, the options, ``add``, ``merge``, the error bound, the history and the store are the
@@ -60,7 +60,7 @@ KIND = "streamsvd.TallCompressor"
 
 
 class PanelBackend:
-    """The basis in zarr panels chunked by rows (:class:`~streamsvd.panels.PanelBasis`).
+    """The basis in panels chunked by rows (:class:`~streamsvd.panels.PanelBasis`).
 
     Parameters
     ----------
@@ -74,9 +74,8 @@ class PanelBackend:
         ``root`` is a temporary directory of this backend, removed by :meth:`close` (or
         when the backend is garbage collected).
     committed : bool
-        ``root`` is a store whose commits refer to the panels (zarr arrays with
-        checksums); else a work directory, where local panels are raw files
-        (:class:`~streamsvd.panels.PanelBasis`).
+        ``root`` is a store whose commits refer to the panels; else a work directory,
+        whose panels :meth:`into_store` copies into a store.
     """
 
     kind = KIND
@@ -133,7 +132,7 @@ class PanelBackend:
                 "lump the mass matrix into weights."
             )
         return PanelBasis(n, inner, chunk_rows=self.chunk_rows, client=self.client,
-                          root=self.root, committed=self.committed)
+                          root=self.root)
 
     @classmethod
     def for_store(cls, basis_attrs: dict[str, Any], root: Any, *, client: Any) -> PanelBackend:
@@ -226,7 +225,7 @@ class PanelBackend:
 
 
 class TallCompressor(StreamCompressor):
-    """Stream snapshots into a basis kept out of core, in zarr panels chunked by rows.
+    """Stream snapshots into a basis kept out of core, in panels chunked by rows.
 
     A :class:`~streamsvd.StreamCompressor` whose backend is a :class:`PanelBackend`: this
     class only builds it from the arguments below.

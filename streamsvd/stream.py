@@ -178,7 +178,7 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
     backend : Backend, optional
         Where the n-sized factor lives (:class:`~streamsvd.basis.MemoryBackend`, the
-        default; :class:`~streamsvd.parallel_tall.PanelBackend` keeps it in zarr panels,
+        default; :class:`~streamsvd.parallel_tall.PanelBackend` keeps it in panels on disk,
         as :class:`~streamsvd.parallel.TallCompressor` builds it).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).

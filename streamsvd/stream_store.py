@@ -163,35 +163,37 @@ class StreamStore:
         Raises :class:`~streamsvd.errors.StoreError` on a store opened read-only.
         """
         self.check_writable()
-        if plan is None:
-            basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
-            rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
-            compact = replaced = False
-            small = _Small(state.coords, state.gram, state.R, None if rows is None else rows[1],
-                           state.bound, source_offset, state.m, state.wasted_flops)
-        else:
-            stage_plan(state, plan)
-            w = plan.writes
-            basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
-            rows = _planned_rows(state, plan)
-            compact, replaced = w.compacted, w.rows_replaced is not None
-            small = _Small(plan.coords, plan.gram, plan.R, None if rows is None else rows[1],
-                           plan.bound, source_offset, plan.m, plan.wasted_flops)
-        # only what changed since the previous commit is written (streamsvd.commits)
-        appended = self.tracker.appended(
-            self.handle.generation, state.extents(), basis=dict(basis), compact=compact,
-            V0=None if rows is None else rows[0], replaced=replaced, history=history,
-            inner=inner_data,
-        )
-        flat, layout = small.pack()
-        attrs = {
-            **attrs, "source_offset": int(source_offset), "updates": len(history),
-            "small_layout": layout, "basis": basis_attrs,
-            "rows_capacity": None if state.rows is None else list(state.rows.capacity),
-            "rows_dead": None if state.rows is None else intervals_add(
-                np.zeros((0, 2)), _planned_dead(state.rows.dead, plan)).tolist(),
-        }
+        # the basis's own writes (a tall mode's zarr copies of its panels) count as the
+        # commit's time
         with self.schedule.timed(0 if plan is None else basis_bytes(state, plan)):
+            if plan is None:
+                basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
+                rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
+                compact = replaced = False
+                small = _Small(state.coords, state.gram, state.R, None if rows is None else rows[1],
+                               state.bound, source_offset, state.m, state.wasted_flops)
+            else:
+                stage_plan(state, plan)
+                w = plan.writes
+                basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
+                rows = _planned_rows(state, plan)
+                compact, replaced = w.compacted, w.rows_replaced is not None
+                small = _Small(plan.coords, plan.gram, plan.R, None if rows is None else rows[1],
+                               plan.bound, source_offset, plan.m, plan.wasted_flops)
+            # only what changed since the previous commit is written (streamsvd.commits)
+            appended = self.tracker.appended(
+                self.handle.generation, state.extents(), basis=dict(basis), compact=compact,
+                V0=None if rows is None else rows[0], replaced=replaced, history=history,
+                inner=inner_data,
+            )
+            flat, layout = small.pack()
+            attrs = {
+                **attrs, "source_offset": int(source_offset), "updates": len(history),
+                "small_layout": layout, "basis": basis_attrs,
+                "rows_capacity": None if state.rows is None else list(state.rows.capacity),
+                "rows_dead": None if state.rows is None else intervals_add(
+                    np.zeros((0, 2)), _planned_dead(state.rows.dead, plan)).tolist(),
+            }
             k = self.handle.commit({"small": flat}, attrs=attrs, appended=appended)
         self.tracker.committed(k)
         self.uncommitted = 0

@@ -597,10 +597,10 @@ def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
 
 
 @pytest.mark.parametrize("workdir", [False, True])
-def test_tall_panels_are_raw_files_in_a_work_directory_and_saved_as_zarr(rng, tmp_path,
-                                                                          workdir):
-    """Without a store the panels are raw files (no commit refers to them); `save` copies
-    them into the store as zarr, whose reopened compressor is the saved one exactly."""
+def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path, workdir):
+    """Local panels are raw files; without a store no commit refers to them, and `save`
+    copies them into the store, whose commit lists zarr copies of them: the reopened
+    compressor is the saved one exactly."""
     from streamsvd.panels import _RawArray
 
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
@@ -611,17 +611,40 @@ def test_tall_panels_are_raw_files_in_a_work_directory_and_saved_as_zarr(rng, tm
     tc.finalize()
     want = tc.expansion
     tc.save(tmp_path / "s.zarr")
-    panels = tc._state.basis.panels
-    assert all(zarr.open_array(str(tmp_path / "s.zarr" / "panels" / p)).shape == (500, 8)
-               for p in panels)
+    saved = tc._state.basis
+    assert [zarr.open_array(str(tmp_path / "s.zarr" / "panels" / p)).shape
+            for p in saved.panels] == [(500, 8)]
     tc.close()
     with TallCompressor.open(tmp_path / "s.zarr") as back:
         got = back.expansion
     assert np.array_equal(got.U, want.U) and np.array_equal(got.amplitudes, want.amplitudes)
-    with tall_compress(A, block=10, max_rank=8, chunk_rows=100,
-                       store=tmp_path / "t.zarr") as stored:
-        assert all(not isinstance(stored._state.basis._panel(p), _RawArray)
-                   for p in stored._state.basis.panels)
+
+
+def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
+    """In a store the passes use raw panels; every panel a commit lists has a zarr copy
+    (checksummed) equal to the raw file, and a panel no commit lists has none."""
+    from streamsvd.panels import _RawArray
+
+    A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
+    store = tmp_path / "s.zarr"
+    with TallCompressor(500, store=store, chunk_rows=100, max_rank=8,
+                        commit_every=2) as tc:
+        for j in range(0, 60, 10):
+            tc.absorb(A[:, j:j + 10])
+            basis = tc._state.basis
+            listed = set(tc._persistence.recent[0]["panels"])
+            for name in basis.panels:
+                raw = basis._panel(name)
+                assert isinstance(raw, _RawArray)
+                copy = store / "panels" / name / "zarr.json"
+                assert copy.exists() == (name in listed)
+                if name in listed:
+                    assert np.array_equal(zarr.open_array(str(store / "panels" / name))[:],
+                                          raw[0:500])
+        tc.finalize()
+        want = tc.expansion
+    with TallCompressor.open(store) as back:
+        assert np.array_equal(back.expansion.U, want.U)
 
 
 def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):

@@ -53,7 +53,7 @@ modes:
                                     independently on dask, merged pairwise; STORE is
                                     written once, at the end
   tall        --tall [--scheduler S]
-                                    U kept out of core in zarr panels of --chunk-rows
+                                    U kept out of core in panels of --chunk-rows
                                     rows, every product run by dask over row chunks;
                                     committed as --commit-every says
   --leaf-columns is for the tree mode only, --chunk-rows for the tall mode only and
@@ -347,7 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="worker processes of --scheduler local (default: the number of "
                      "CPUs)")
     ing.add_argument("--tall", action="store_true",
-                     help="tall mode: keep U out of core in zarr panels, for snapshots too "
+                     help="tall mode: keep U out of core in panels on disk, for snapshots too "
                      "long for memory; on --scheduler, threads by default (default: off)")
     ing.add_argument("--leaf-columns", metavar="L", type=_positive_int,
                      help="columns per leaf, tree mode only (default: 10 blocks)")
