@@ -312,7 +312,7 @@ class PanelBasis:
             raise
         total = np.asarray(done)
         if lazy:
-            self._staged_block = (name, self._read_scratch(name, scratch))
+            self._staged_block = (name, self._read(name).astype(np.float64))
         else:
             self._staged_block = ("", Xd)
         S = total[:b]
@@ -344,25 +344,9 @@ class PanelBasis:
         return 0.5 * (H + H.T)
 
     def _new_scratch(self, cols: int, dtype: Any) -> tuple[str, Any]:
-        """Create the block's scratch copy (``n x cols``); return its name and array."""
-        if isinstance(self.root, LocalStorage):
-            name = f"p{uuid.uuid4().hex}"
-            return name, _RawArray(self.root.root / "panels" / name, (self.n, cols), dtype,
-                                   chunk_rows=self.chunk_rows)
+        """Create the block's scratch copy, a panel (``n x cols``); return its name and target."""
         name, z = self._new_panel(cols, dtype)
-        return name, Region(z)
-
-    def _read_scratch(self, name: str, scratch: Any) -> Any:
-        """Return the scratch copy as a float64 dask array of the basis's row chunks."""
-        import dask.array as da
-
-        if isinstance(scratch, _RawArray):
-            data = da.from_array(scratch, chunks=scratch.chunks,
-                                 name=f"streamsvd-scratch-{name}",
-                                 meta=np.empty((0, 0), scratch.dtype), asarray=False)
-        else:
-            data = self._read(name)
-        return data.astype(np.float64)
+        return name, _target(z)
 
     def _parts(self) -> list[Any]:
         """Return the stored panels as dask arrays of their row chunks (not concatenated)."""
