@@ -7,10 +7,13 @@ Usage::
 
 Two measurements, each route in its own process, interleaved, medians of ``--repeat``:
 
-* ``tall_compress(source, block=100, max_rank=60)`` and ``finalize()`` on a zarr array
-  (default: the 200000 x 1000 float64 array of ``bench/outofcore_benchmark.py``, made
-  there), with :mod:`streamsvd.zarr_io`'s loops and with zarr's own (the module's store
-  check patched to refuse every store, in the child only);
+* ``tall_compress(source, block=100, max_rank=60, store=..., commit_every=1)`` and
+  ``finalize()`` on a zarr array (default: the 200000 x 1000 float64 array of
+  ``bench/outofcore_benchmark.py``, made there), with :mod:`streamsvd.zarr_io`'s loops and
+  with zarr's own (the module's store check patched to refuse every store, in the child
+  only). The passes use raw panels; each commit writes the zarr copy of the new panel,
+  which is what the routes differ in (before raw panels, the passes read and wrote zarr
+  panels, and this ran without a store);
 * reads and writes alone: ``--ops`` row chunks of ``--rows`` x 100 float64 (``bytes`` +
   ``crc32c``, the tall mode's panels) from 1 and 2 threads that do nothing else, in ms
   per chunk (wall time over chunks).
@@ -56,11 +59,13 @@ def child_tall(source: str, route: str) -> dict[str, float]:
     _route(route)
     from streamsvd.parallel import tall_compress
 
-    t0 = time.perf_counter()
-    tc = tall_compress(source, block=100, max_rank=60)
-    tc.finalize()
-    seconds = time.perf_counter() - t0
-    tc.close(finalize=False)
+    with tempfile.TemporaryDirectory() as work:
+        t0 = time.perf_counter()
+        tc = tall_compress(source, block=100, max_rank=60, store=Path(work) / "s.zarr",
+                           commit_every=1)
+        tc.finalize()
+        seconds = time.perf_counter() - t0
+        tc.close(finalize=False)
     return {"seconds": seconds,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
