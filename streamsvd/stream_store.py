@@ -101,6 +101,28 @@ def basis_bytes(state: State, plan: Plan) -> int:
     return 8 * state.basis.n * int(columns)
 
 
+def _committed_parts(state: State, plan: Plan | None, source_offset: int) -> tuple:
+    """Return what a commit of ``state`` (or of the state ``plan`` leads to) writes.
+
+    The basis's arrays and attributes, the rows of ``Y`` (``(V0, Vp)`` or None), whether
+    the basis was compacted and ``Y`` replaced, and the small state. Staging the plan
+    writes its new columns and rows (:func:`streamsvd.update.stage_plan`).
+    """
+    if plan is None:
+        basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
+        rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
+        small = _Small(state.coords, state.gram, state.R, None if rows is None else rows[1],
+                       state.bound, source_offset, state.m, state.wasted_flops)
+        return basis, basis_attrs, rows, False, False, small
+    stage_plan(state, plan)
+    w = plan.writes
+    basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
+    rows = _planned_rows(state, plan)
+    small = _Small(plan.coords, plan.gram, plan.R, None if rows is None else rows[1],
+                   plan.bound, source_offset, plan.m, plan.wasted_flops)
+    return basis, basis_attrs, rows, w.compacted, w.rows_replaced is not None, small
+
+
 class StreamStore:
     """A compressor's store: its handle, what the last commit wrote, what waits for one."""
 
@@ -166,20 +188,8 @@ class StreamStore:
         # the basis's own writes (a tall mode's zarr copies of its panels) count as the
         # commit's time
         with self.schedule.timed(0 if plan is None else basis_bytes(state, plan)):
-            if plan is None:
-                basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
-                rows = None if state.rows is None else (state.rows.V0, state.rows.Vp)
-                compact = replaced = False
-                small = _Small(state.coords, state.gram, state.R, None if rows is None else rows[1],
-                               state.bound, source_offset, state.m, state.wasted_flops)
-            else:
-                stage_plan(state, plan)
-                w = plan.writes
-                basis, basis_attrs = state.basis.commit_arrays(w.columns, compacted=w.compacted)
-                rows = _planned_rows(state, plan)
-                compact, replaced = w.compacted, w.rows_replaced is not None
-                small = _Small(plan.coords, plan.gram, plan.R, None if rows is None else rows[1],
-                               plan.bound, source_offset, plan.m, plan.wasted_flops)
+            basis, basis_attrs, rows, compact, replaced, small = _committed_parts(
+                state, plan, source_offset)
             # only what changed since the previous commit is written (streamsvd.commits)
             appended = self.tracker.appended(
                 self.handle.generation, state.extents(), basis=dict(basis), compact=compact,

@@ -289,12 +289,13 @@ def plan_merge(
     so a term of the merged core whose amplitude is at most ``reject_tol`` times the
     largest amplitude of the smaller of the two expansions is rounding noise of the
     merge as well, and is cut like a term below ``eps`` (its norm counted in the bound).
-    With a target error the merge cuts nothing (:mod:`streamsvd.parallel_tree`): the
-    final optimal cut takes such terms within the budget.
+    With a target error this cut is not made: the target's cut (in this merge, or in the
+    final one when the merge does not spend the target, as in
+    :mod:`streamsvd.parallel_tree`) takes such terms within the budget.
     """
     u_norms, v_norms = safe_m_norms(U_o, opts.inner), safe_column_norms(R_o)
     ref = _energy_reference(u_norms, v_norms)
-    tops = [float(np.max(u_norms * v_norms)) if v_norms.size else 0.0]
+    tops = [_top_energy(u_norms, v_norms)]
     if state.rank:
         tops.append(float(np.max(safe_column_norms(state.R))))
     floor = opts.reject_tol * min(tops)
@@ -501,6 +502,11 @@ def gram_orthogonality(coords: np.ndarray, gram: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
 
 
+def _top_energy(u_norms: np.ndarray, v_norms: np.ndarray) -> float:
+    """Return ``max_i ||u_i|| ||v_i||``, the largest term's energy (0 without a term)."""
+    return float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
+
+
 def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
     """Return reference norms: a term's rejection relative to the largest term's energy.
 
@@ -508,7 +514,7 @@ def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
     ``ref_j = max_i(||u_i|| ||v_i||) / ||v_j||``; a term with ``v_j = 0`` carries nothing
     (reference 0: rejected).
     """
-    top = float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
+    top = _top_energy(u_norms, v_norms)
     with np.errstate(divide="ignore"):
         ref = np.where(v_norms > 0, top / np.where(v_norms > 0, v_norms, 1.0), 0.0)
     return ref
