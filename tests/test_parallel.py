@@ -448,7 +448,12 @@ def test_tall_failing_read_leaves_the_store_at_its_last_commit(rng, tmp_path, cl
         got = tc.expansion
     with tall_compress(A, block=10, chunk_rows=40, max_rank=8) as tc:
         want = tc.expansion
-    np.testing.assert_allclose(got.U, want.U, atol=1e-13)
+    # the same terms sigma_j u_j, to the rounding of the reductions over the panels (the
+    # workers of a cluster may sum them in another order)
+    tol = 100 * np.sqrt(A.shape[0]) * EPS * want.amplitudes[0]
+    np.testing.assert_allclose(got.amplitudes, want.amplitudes, rtol=0, atol=tol)
+    np.testing.assert_allclose(got.U * got.amplitudes, want.U * want.amplitudes, rtol=0,
+                               atol=tol)
 
 
 def test_tall_non_finite_block_changes_nothing(rng):
