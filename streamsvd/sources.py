@@ -42,6 +42,7 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -169,23 +170,33 @@ class Source:
             )
         return self._read_checked(start, stop)
 
-    def _read_checked(self, start: int, stop: int) -> np.ndarray:
+    def _read_checked(self, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Read columns ``start:stop`` (into ``out`` when it fits) and check them."""
         try:
-            out = self._read_slabs(start, stop)
+            out, finite = self._read_slabs(start, stop, out)
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, start, stop, self.description) from exc
-        _check_finite(out, start, 0, self.n, self.description)
+        if not finite:
+            _check_finite(out, start, 0, self.n, self.description)
         return out
 
-    def _read_slabs(self, start: int, stop: int) -> np.ndarray:
-        """Read columns ``start:stop`` into a new column-major array, by slabs of rows.
+    def _read_slabs(
+        self, start: int, stop: int, out: np.ndarray | None = None
+    ) -> tuple[np.ndarray, bool]:
+        """Read columns ``start:stop`` into a column-major array, by slabs of rows.
 
-        A slab is a whole number of the data's row chunks, about 8 MiB, so that a read
-        never holds the block twice in the data's layout (a dask array, or data one chunk
-        tall, is read whole).
+        ``out`` is a block of an earlier read that nobody holds any more (see
+        :func:`read_ahead`), filled again when it has the block's shape, dtype and
+        layout; otherwise a new array is made. A slab is a whole number of the data's row
+        chunks, about 8 MiB, so that a read never holds the block twice in the data's
+        layout (a dask array, or data one chunk tall, is read whole). Each slab is checked
+        for NaN and infinite entries while it is in the cache; returns the block and
+        whether every slab was finite.
         """
         cols = stop - start
-        out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
+        if (out is None or out.shape != (self.n, cols) or out.dtype != self.block_dtype
+                or not out.flags.f_contiguous or not out.flags.writeable):
+            out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
         rows = self.n
         if not self._compute:
             # whole row chunks (all rows when the data is one chunk tall: never recompute
@@ -193,9 +204,12 @@ class Source:
             chunked = getattr(self._data, "chunks", None) is not None
             unit = self.row_chunks or (self.n if chunked else 1)
             rows = max(unit, _READ_BYTES // max(1, cols * self.dtype.itemsize) // unit * unit)
+        finite = True
         for r0 in range(0, self.n, rows):
-            _fill(out[r0:r0 + rows], self._data, r0, start, stop, compute=self._compute)
-        return out
+            slab = out[r0:r0 + rows]
+            _fill(slab, self._data, r0, start, stop, compute=self._compute)
+            finite = finite and bool(np.isfinite(slab).all())
+        return out, finite
 
     def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
         """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
@@ -317,16 +331,29 @@ class Source:
         return f"Source({self.description}, n={self.n}, m={self.m}, dtype={self.dtype})"
 
 
+# sys.getrefcount of a block that only the generator's own name refers to (the count
+# includes the call's argument)
+_UNREFERENCED = 2
+
+
 def read_ahead(
-    read: Callable[[int, int], np.ndarray], ranges: list[tuple[int, int]], depth: int
+    read: Callable[[int, int, np.ndarray | None], np.ndarray],
+    ranges: list[tuple[int, int]],
+    depth: int,
 ) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(a, read(a, b))`` for each range, read by a background thread.
+    """Yield ``(a, read(a, b, spare))`` for each range, read by a background thread.
 
     The thread reads at most ``depth`` ranges ahead of the one the caller holds (a
     semaphore of ``depth + 1`` permits, one given back each time the caller asks for the
     next block); an exception of ``read`` is raised to the caller when it asks for that
     range, after every range before it was yielded. Closing the generator stops the
     thread (after the read in progress) and waits for it.
+
+    A block that nobody refers to any more when the caller asks for the next one (the
+    caller dropped it, as :func:`streamsvd.ingest.ingest` does) is handed to a later
+    read as ``spare``, to be filled again (``None`` when there is none): the memory of a
+    new block is zeroed by the kernel as it is first written. A block the caller still
+    holds, or any view of it, is never reused (its reference count says so).
     """
     if not ranges:
         return
@@ -334,6 +361,7 @@ def read_ahead(
         queue.SimpleQueue())
     permits = threading.Semaphore(depth + 1)
     stopping = threading.Event()
+    spares: queue.SimpleQueue[np.ndarray] = queue.SimpleQueue()
 
     def reader() -> None:
         for a, b in ranges:
@@ -341,7 +369,8 @@ def read_ahead(
             if stopping.is_set():
                 return
             try:
-                done.put((a, read(a, b), None))
+                # the spare is not named here: a name would keep it referenced
+                done.put((a, read(a, b, None if spares.empty() else spares.get()), None))
             except BaseException as exc:  # handed to the caller, at this block
                 done.put((a, None, exc))
                 return
@@ -354,6 +383,8 @@ def read_ahead(
             if exc is not None:
                 raise exc
             yield a, cast(np.ndarray, X)
+            if sys.getrefcount(X) == _UNREFERENCED:
+                spares.put(X)
             del X
             permits.release()
     finally:

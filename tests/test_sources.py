@@ -206,6 +206,60 @@ def test_dask_blocks_are_computed_one_at_a_time(A):
     assert sorted(computed) == [0, 1, 2, 3, 4]  # each chunk once: never the whole array
 
 
+def test_read_ahead_fills_a_dropped_block_again_and_never_one_still_held():
+    """A block the caller dropped is handed to a later read to be filled again; a block
+    the caller still holds (in a list, as a view, or as its loop variable) never is."""
+    from streamsvd.sources import read_ahead
+
+    spares = []
+
+    def read(a, b, spare):
+        spares.append(spare is not None)
+        out = np.empty((4, 2), order="F") if spare is None else spare
+        out[:] = a
+        return out
+
+    ranges = [(a, a + 2) for a in range(0, 16, 2)]
+    kept = [X for _, X in read_ahead(read, ranges, 1)]
+    assert not any(spares) and [X[0, 0] for X in kept] == [a for a, _ in ranges]
+    spares.clear()
+    views = []
+    for _, X in read_ahead(read, ranges, 1):
+        views.append(X[:, :1])
+    assert not any(spares) and [v[0, 0] for v in views] == [a for a, _ in ranges]
+    spares.clear()
+    blocks = read_ahead(read, ranges, 1)
+    while (item := next(blocks, None)) is not None:
+        a, X = item
+        assert np.all(X == a)
+        del X, item
+    assert spares == [False] * 2 + [True] * (len(ranges) - 2)  # all but depth + 1 blocks
+
+
+def test_blocks_filled_again_are_the_array_and_name_the_first_bad_entry(rng, tmp_path,
+                                                                        monkeypatch):
+    """Blocks read into dropped ones, slab by slab, are the array; a non-finite entry is
+    named by the first in column order, even when an earlier slab holds a later one."""
+    import streamsvd.sources as sources
+
+    monkeypatch.setattr(sources, "_READ_BYTES", 2 * 10 * 4 * 8)  # two row chunks
+    A = rng.standard_normal((95, 24))
+    z = zarr.create_array(tmp_path / "t.zarr", shape=A.shape, chunks=(10, 4), dtype="f8")
+    z[...] = A
+    with open_source(tmp_path / "t.zarr") as src:
+        blocks = src.blocks(4)
+        while (item := next(blocks, None)) is not None:
+            offset, X = item
+            assert np.array_equal(X, A[:, offset:offset + 4])
+            del X, item
+    z[3, 22] = np.inf  # first slab, last column
+    z[81, 21] = np.nan  # a later slab, an earlier column
+    with open_source(tmp_path / "t.zarr") as src, pytest.raises(
+            NonFiniteError, match="column 21, row 81 .*2 NaN or infinite entries"):
+        for _ in src.blocks(4, start=20):
+            pass
+
+
 class FlakyColumns:
     """A 2-D array-like whose columns from `bad` on cannot be read."""
 
