@@ -35,6 +35,7 @@ from typing import Any, cast
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from ._malloc import keep_freed_memory
 from ._validation import check_positive_int
 from .basis import MemoryBackend
 from .errors import BrokenStateError, InputError, ShapeMismatchError, StoreError
@@ -346,9 +347,13 @@ def tree_compress(
     (``n x p``: the leaves and merges write their compactions over it, see
     :class:`~streamsvd.basis.MemoryBasis`) plus its block, and the merge of two ``n x p``
     factors; the returned compressor compacts aside again.
+
+    Memory. As :func:`~streamsvd.parallel.tall_compress`, this process's allocator keeps
+    freed memory for the next arrays from the first call on (glibc).
     """
     client = check_client(client)
     block = cast(int, check_positive_int(block, "block"))
+    keep_freed_memory()
     if leaf_columns is not None:
         leaf_columns = cast(int, check_positive_int(leaf_columns, "leaf_columns"))
     spec = SourceSpec.of(source, dataset=dataset)

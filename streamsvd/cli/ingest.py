@@ -39,7 +39,10 @@ def run(args: Any) -> int:
     """Run ``streamsvd ingest``; print the JSON summary unless ``--quiet``."""
     mode = _mode(args)
     _check_mode_options(args, mode)
+    from .._malloc import keep_freed_memory
     from ..policy import removed_on_failure, resuming
+
+    keep_freed_memory()
 
     store = args.store  # a storage (see parsing.locate)
     resume = resuming(store, resume=args.resume)
