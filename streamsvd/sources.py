@@ -258,7 +258,8 @@ class Source:
             End of the range, ``start <= stop <= m`` (default ``m``).
         prefetch : bool
             Read ahead in a background thread while the caller works on the current
-            block.
+            block; a block that the caller no longer refers to when it asks for the next
+            one is filled again by a later read (:func:`read_ahead`).
         depth : int
             Blocks read ahead with ``prefetch`` (>= 1): at most ``depth + 1`` blocks are
             in memory, the caller's included.
