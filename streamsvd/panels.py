@@ -32,6 +32,7 @@ last commit readable.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import uuid
@@ -91,6 +92,7 @@ class PanelBasis:
         self._staged_new: tuple[str, int] | None = None
         self._staged_compact: tuple[str, int] | None = None
         self._staged_block: tuple[str, Any] | None = None  # (scratch name or "", dask)
+        self._spare_scratch: _RawArray | None = None  # the last block's, to write over
         self._zarrs: dict[str, Any] = {}
         self._retired: list[str] = []  # panels a compaction replaced, not yet deleted
         self.compactions = 0
@@ -283,12 +285,11 @@ class PanelBasis:
         read once, chunk by chunk, each chunk written to a scratch copy (in the
         source's dtype: float32 stays float32) by the task that uses it in float64, so
         the ``n x b`` block is never in memory; an in-memory block is used where it is.
-        The scratch copy is one raw file in a local directory (it lives for one update
-        and no commit refers to it: no chunks, codec or checksum; 15% faster than a zarr
-        panel for the whole tall mode, ``bench/README.md``), a zarr panel in an object
-        store. A failed read raises the block's
-        :class:`~streamsvd.errors.SourceError`; the scratch copy goes with
-        :meth:`discard_planned`.
+        The scratch copy is one raw file in a local directory (it serves one update and
+        no commit refers to it: no chunks, codec or checksum; 15% faster than a zarr
+        panel for the whole tall mode, ``bench/README.md``; the next block writes over
+        it, :meth:`_new_scratch`), a zarr panel in an object store. A failed read raises
+        the block's :class:`~streamsvd.errors.SourceError`.
         """
         from .errors import StreamSVDError
         from .sources import LazyBlock
@@ -344,7 +345,21 @@ class PanelBasis:
         return 0.5 * (H + H.T)
 
     def _new_scratch(self, cols: int, dtype: Any) -> tuple[str, Any]:
-        """Create the block's scratch copy, a panel (``n x cols``); return its name and target."""
+        """Create the block's scratch copy, a panel (``n x cols``); return its name and target.
+
+        A raw copy that the last block left (:meth:`_drop_block`) is written over, under a
+        new name, when it has this shape and dtype: writing a file of the page cache again
+        took a third of the CPU time of writing a new one (``bench/README.md``).
+        """
+        spare, self._spare_scratch = self._spare_scratch, None
+        if spare is not None:
+            if spare.shape == (self.n, cols) and spare.dtype == np.dtype(dtype):
+                name = f"p{uuid.uuid4().hex}"
+                raw = spare.moved_to(cast(LocalStorage, self.root).root / "panels" / name)
+                if raw is not None:
+                    self._zarrs[name] = raw
+                    return name, raw
+            self.root.delete(f"panels/{spare.path.parent.name}")
         name, z = self._new_panel(cols, dtype)
         return name, _target(z)
 
@@ -393,9 +408,18 @@ class PanelBasis:
         self._drop_block()
 
     def _drop_block(self) -> None:
-        """Forget the staged block; remove its scratch copy (no commit refers to it)."""
+        """Forget the staged block; keep its raw scratch copy for the next block, or remove it.
+
+        No commit refers to a scratch copy, and no array handed out reads it.
+        """
         if self._staged_block is not None and self._staged_block[0]:
-            self._delete(self._staged_block[0])
+            name = self._staged_block[0]
+            raw = self._zarrs.get(name)
+            if isinstance(raw, _RawArray) and self._spare_scratch is None:
+                self._zarrs.pop(name)
+                self._spare_scratch = raw
+            else:
+                self._delete(name)
         self._staged_block = None
 
     def _delete(self, name: str) -> None:
@@ -474,11 +498,16 @@ class PanelBasis:
         self._retired = keep
 
     def drop_scratch(self) -> None:
-        """Nothing to free: the block's scratch copy goes when its update ends."""
+        """Remove the scratch copy kept for the next block (made again when needed)."""
+        spare, self._spare_scratch = self._spare_scratch, None
+        if spare is not None:
+            self.root.delete(f"panels/{spare.path.parent.name}")
 
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
+        if self._spare_scratch is not None:
+            live.add(self._spare_scratch.path.parent.name)
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
@@ -531,8 +560,9 @@ def _target(z: Any) -> Any:
 class _RawArray:
     """An ``n x c`` array in a local directory, read by no reopened store: one row-major file.
 
-    The block's scratch copy (it lives for one update: written by the first pass, read by
-    the second, deleted with the update) and the panels as the passes use them (they live
+    The block's scratch copy (it serves one update: written by the first pass, read by
+    the second, then kept for the next block to write over, removed at close) and the
+    panels as the passes use them (they live
     while the compressor does; a commit lists only panels with a zarr copy beside the
     file). A leftover is removed when the store or work directory is next opened for
     writing, like a panel: its directory is named as one. It is read by the process that
@@ -551,6 +581,22 @@ class _RawArray:
         self._row_bytes = shape[1] * self.dtype.itemsize
         with open(self.path, "wb") as f:
             f.truncate(shape[0] * self._row_bytes)
+
+    def moved_to(self, directory: Any) -> _RawArray | None:
+        """Rename the file's directory to ``directory``; return the array there.
+
+        Its rows are as they were. None when the file is gone or has another size (it was
+        removed meanwhile).
+        """
+        try:
+            if os.path.getsize(self.path) != self.shape[0] * self._row_bytes:
+                return None
+            os.rename(self.path.parent, directory)
+        except OSError:
+            return None
+        out = copy.copy(self)
+        out.path = directory / self.path.name
+        return out
 
     def __setitem__(self, key: slice | tuple[slice, ...], value: np.ndarray) -> None:
         r0 = (key[0] if isinstance(key, tuple) else key).indices(self.shape[0])[0]

@@ -198,6 +198,7 @@ class StoreLifecycle:
                 self.flush()
             p.close()
             self._persistence = None
+        self._state.basis.drop_scratch()
         self._backend.close()
 
     def __enter__(self) -> Any:

@@ -581,6 +581,52 @@ def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, mo
     assert got.rank == want.rank and rel_diff(got.U[:, :8], want.U[:, :8]) < 1e-10
 
 
+def test_tall_writes_each_block_over_the_last_ones_scratch_copy(rng, tmp_path, monkeypatch):
+    """The scratch copy of a block read from its source is written over by the next
+    block (one file made for the stream, renamed at each update); the result is the
+    in-memory one, and closing removes the copy kept."""
+    from streamsvd.panels import PanelBasis, _RawArray
+
+    A = low_rank(rng, n=600, m=60, rank=15, noise=1e-9)
+    path = _zarr_source(tmp_path, A, 100, 10)
+    made, scratches = [], []
+    init, new_scratch = _RawArray.__init__, PanelBasis._new_scratch
+
+    def counted(self, directory, shape, dtype, *, chunk_rows):
+        made.append(shape)
+        init(self, directory, shape, dtype, chunk_rows=chunk_rows)
+
+    def spy(self, cols, dtype):
+        before = len(made)
+        name, scratch = new_scratch(self, cols, dtype)
+        scratches.append((name, len(made) - before))  # files made for this scratch copy
+        return name, scratch
+
+    monkeypatch.setattr(_RawArray, "__init__", counted)
+    monkeypatch.setattr(PanelBasis, "_new_scratch", spy)
+    work = tmp_path / "work"
+    tc = tall_compress(path, block=10, max_rank=8, workdir=work)
+    basis = tc._state.basis
+    kept = basis._spare_scratch
+    assert len(scratches) >= 3 and [made for _, made in scratches] == [1] + [0] * (
+        len(scratches) - 1)
+    assert len({name for name, _ in scratches}) == len(scratches)  # renamed every time
+    assert kept is not None and kept.shape == (600, 10)
+    assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(
+        [*basis.panels, kept.path.parent.name])
+    tc.finalize()
+    got = tc.expansion
+    tc.close()
+    assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(basis.panels)
+    reference = stream(A, 10, max_rank=8)
+    reference.finalize()
+    want = reference.expansion
+    tol = 100 * np.sqrt(A.shape[0]) * EPS * want.amplitudes[0]
+    np.testing.assert_allclose(got.amplitudes, want.amplitudes, rtol=0, atol=tol)
+    np.testing.assert_allclose(got.U * got.amplitudes, want.U * want.amplitudes, rtol=0,
+                               atol=tol)
+
+
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
     """Row ranges written by separate calls (any memory order) read back exactly, by any
