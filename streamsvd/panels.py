@@ -359,7 +359,7 @@ class PanelBasis:
                 if raw is not None:
                     self._zarrs[name] = raw
                     return name, raw
-            self.root.delete(f"panels/{spare.path.parent.name}")
+            self._delete(spare.name)
         name, z = self._new_panel(cols, dtype)
         return name, _target(z)
 
@@ -501,13 +501,13 @@ class PanelBasis:
         """Remove the scratch copy kept for the next block (made again when needed)."""
         spare, self._spare_scratch = self._spare_scratch, None
         if spare is not None:
-            self.root.delete(f"panels/{spare.path.parent.name}")
+            self._delete(spare.name)
 
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
         if self._spare_scratch is not None:
-            live.add(self._spare_scratch.path.parent.name)
+            live.add(self._spare_scratch.name)
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
@@ -581,6 +581,11 @@ class _RawArray:
         self._row_bytes = shape[1] * self.dtype.itemsize
         with open(self.path, "wb") as f:
             f.truncate(shape[0] * self._row_bytes)
+
+    @property
+    def name(self) -> str:
+        """The panel's name: its directory's."""
+        return str(self.path.parent.name)
 
     def moved_to(self, directory: Any) -> _RawArray | None:
         """Rename the file's directory to ``directory``; return the array there.

@@ -613,7 +613,7 @@ def test_tall_writes_each_block_over_the_last_ones_scratch_copy(rng, tmp_path, m
     assert len({name for name, _ in scratches}) == len(scratches)  # renamed every time
     assert kept is not None and kept.shape == (600, 10)
     assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(
-        [*basis.panels, kept.path.parent.name])
+        [*basis.panels, kept.name])
     tc.finalize()
     got = tc.expansion
     tc.close()
