@@ -560,16 +560,15 @@ def _target(z: Any) -> Any:
 class _RawArray:
     """An ``n x c`` array in a local directory, read by no reopened store: one row-major file.
 
-    The block's scratch copy (it serves one update: written by the first pass, read by
-    the second, then kept for the next block to write over, removed at close) and the
-    panels as the passes use them (they live
-    while the compressor does; a commit lists only panels with a zarr copy beside the
-    file). A leftover is removed when the store or work directory is next opened for
-    writing, like a panel: its directory is named as one. It is read by the process that
-    wrote it or by workers sharing its directory; so no codec or checksum (a zarr write
-    of a 10000 x 100 float64 chunk took 17.7 ms in the tall mode, the raw write about
-    4 ms: ``bench/README.md``). Each task opens the file for its rows, so a worker reads
-    what the others wrote once their tasks have ended.
+    The block's scratch copy (it serves one update: written by the first pass, read by the
+    second, then kept for the next block to write over, removed at close) and the panels as
+    the passes use them (they live while the compressor does; a commit lists only panels
+    with a zarr copy beside the file). A leftover is removed when the store or work
+    directory is next opened for writing, like a panel: its directory is named as one. It is
+    read by the process that wrote it or by workers sharing its directory; so no codec or
+    checksum (a zarr write of a 10000 x 100 float64 chunk took 17.7 ms in the tall mode, the
+    raw write about 4 ms: ``bench/README.md``). Each task opens the file for its rows, so a
+    worker reads what the others wrote once their tasks have ended.
     """
 
     def __init__(self, directory: Any, shape: tuple[int, int], dtype: Any, *,
