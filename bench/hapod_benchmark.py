@@ -40,6 +40,10 @@ with ``pod(modes=60)`` at every step (``hapod(inc_hapod_tree(steps), ...)`` with
 ``pod_method``: the HAPOD functions take no rank cap themselves), ``BrandSVD`` and
 ``TunedBrandSVD`` (``bench/brand.py``). Reported: time, ``sv_err = max_i<60
 |s_i - s_i(LAPACK)| / s_i``, and ``err/opt = ||A - Q Q^T A||_F / ||A - A_60||_F``.
+``--variants`` adds contenders that keep ``K`` more terms (``NAME_oK``): streamsvd with
+``oversampling=K`` (10 by default), the HAPOD tree with ``pod(modes=60 + K)`` at every
+step and the root's first 60 modes returned; each contender's variants are drawn as one
+line of time against error, so that the two are compared at equal accuracy.
 
 The ``threads`` row: streamsvd on ``burgers`` at ``--threads-target`` with the default
 BLAS threads against one thread.
@@ -86,6 +90,8 @@ def run_streamsvd(blocks: Any, opts: dict[str, Any]) -> tuple[np.ndarray, float]
 
     kw: dict[str, Any] = {"inner": opts.get("inner"), "rule": "jacobi", "sweeps": None,
                           "right_vectors": False}
+    if opts.get("oversampling") is not None:
+        kw["oversampling"] = opts["oversampling"]
     target = opts.get("target")
     if target is None:
         sc = ss.StreamCompressor(opts["n"], max_rank=opts["max_rank"], **kw)
@@ -199,6 +205,7 @@ def _init_worker(threads: int | None, contender: str) -> None:
     rng = np.random.default_rng(1)
     X = rng.standard_normal((50, 12)) @ np.diag(np.logspace(0, -6, 12))
     M = sp.identity(50, format="csr")
+    contender = _variant(contender)[0]
     if contender in ("streamsvd", "streamsvd_tree"):
         for opts in ({"n": 50, "m": 12, "inner": M, "target": 1e-3},
                      {"n": 50, "max_rank": 4}):
@@ -305,6 +312,18 @@ def task_target(names: dict[str, str], contender: str, target: float,
     return out
 
 
+# terms kept beyond the cap by default: streamsvd's oversampling, none for HAPOD
+_DEFAULT_EXTRA = {"streamsvd": 10, "inc_hapod": 0}
+
+
+def _variant(contender: str) -> tuple[str, int | None]:
+    """Split ``"name_oK"`` into ``("name", K)``: the contender with ``K`` extra terms kept."""
+    name, sep, extra = contender.rpartition("_o")
+    if sep and extra.isdigit():
+        return name, int(extra)
+    return contender, None
+
+
 def _pymor_capped_hapod(blocks: list[Any], cap: int) -> Any:
     """pyMOR's incremental HAPOD tree with ``pod(modes=cap)`` at every step."""
     from pymor.algorithms.hapod import hapod, inc_hapod_tree
@@ -332,16 +351,20 @@ def task_cap(names: dict[str, str], contender: str, block: int, cap: int,
     X, s = d["X"], d["s"]
     n, m = X.shape
     cols = [slice(j, min(j + block, m)) for j in range(0, m, block)]
-    if contender == "streamsvd":
+    base, extra = _variant(contender)
+    if base == "streamsvd":
         Xf = _columns(d)
         t0 = time.perf_counter()
-        Q, _ = run_streamsvd((Xf[:, c] for c in cols), {"n": n, "max_rank": cap})
+        Q, _ = run_streamsvd((Xf[:, c] for c in cols),
+                             {"n": n, "max_rank": cap, "oversampling": extra})
         seconds = time.perf_counter() - t0
-    elif contender == "inc_hapod":
+    elif base == "inc_hapod":
         U, _ = _pymor_space(X, None)
         blocks = [U[c] for c in cols]
         t0 = time.perf_counter()
-        modes = _pymor_capped_hapod(blocks, cap)
+        # with extra terms, every step keeps cap + extra modes and the root's first cap
+        # are returned (the modes come sorted by singular value)
+        modes = _pymor_capped_hapod(blocks, cap + (extra or 0))[:cap]
         seconds = time.perf_counter() - t0
         Q = modes.to_numpy()
     else:
@@ -460,8 +483,8 @@ def run_threads_row(names: dict[str, str], workers: Workers, target: float,
 
 
 def run_cap_case(names: dict[str, str], workers: Workers, blocks: tuple, cap: int,
-                 repeat: int) -> dict[str, Any]:
-    contenders = ("streamsvd", "inc_hapod", "brand", "brand_tuned")
+                 repeat: int, variants: tuple[str, ...] = ()) -> dict[str, Any]:
+    contenders = ("streamsvd", "inc_hapod", "brand", "brand_tuned", *variants)
     runs: dict[str, list] = {f"{c}@{b}": [] for c in contenders for b in blocks}
     workers.start([(c, 1) for c in contenders])
     load0 = os.getloadavg()
@@ -483,18 +506,26 @@ def _plot(out: Path, data: dict[str, Any]) -> Path:
         for key, r in res.items():
             name, arg = key.split("@")
             x = r.get("error")
+            note = ""
             if case == "synthetic":  # the excess over the optimal rank-k error
                 x = r["err_opt"] - 1.0 if r.get("err_opt") is not None else None
-            label = f"{name}, block {arg}" if case == "synthetic" else name
-            series.setdefault(label, []).append((x, r["seconds"]))
+                name, extra = _variant(name)  # a contender's variants on one line
+                if name in ("streamsvd", "inc_hapod"):
+                    note = f"+{extra if extra is not None else _DEFAULT_EXTRA[name]}"
+                name = f"{name}, block {arg}"
+            series.setdefault(name, []).append((x, r["seconds"], note))
         for i, (label, pts) in enumerate(sorted(series.items())):
             pts = sorted(p for p in pts if p[0] is not None and p[0] > 0.0)
             ax.loglog([p[0] for p in pts], [p[1] for p in pts], "os^vD<>p"[i % 8] + "-",
                       label=label, alpha=0.8)
+            for x, y, note in pts:
+                if note and len(pts) > 1:
+                    ax.annotate(note, (x, y), fontsize=6, xytext=(3, 3),
+                                textcoords="offset points")
         if case != "synthetic":
             for t in data["targets"]:
                 ax.axvline(t, color="0.85", lw=0.8, zorder=0)
-        ax.set_xlabel("err/opt - 1 (rank-k error over the optimal, minus 1)"
+        ax.set_xlabel("err/opt - 1 (rank-k error over the optimal; +K: terms kept beyond k)"
                       if case == "synthetic" else "true mean-l2 error (in M)")
         ax.set_ylabel("time (s), median")
         load = data["cases"][case]["load_before"][0]
@@ -553,6 +584,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--threads-target", type=float, default=1e-3)
     ap.add_argument("--no-threads", action="store_true", help="skip the BLAS-threads row")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
+    ap.add_argument("--variants", default="streamsvd_o2,streamsvd_o6,inc_hapod_o10",
+                    help="synthetic case: more contenders, NAME_oK keeping K extra terms "
+                         "(streamsvd's oversampling; for inc_hapod, cap + K modes per step, "
+                         "the first cap returned); empty for none")
     args = ap.parse_args(argv)
     out = out_dir(args.out)
     cache = Path(args.cache)
@@ -576,7 +611,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"{case}: data {shape} ready in {time.perf_counter() - t0:.1f} s", flush=True)
             if case == "synthetic":
                 size = _size(case, args.quick)
-                res = run_cap_case(names, workers, size["blocks"], size["cap"], repeat)
+                variants = tuple(v for v in args.variants.split(",") if v)
+                res = run_cap_case(names, workers, size["blocks"], size["cap"], repeat,
+                                   variants)
             else:
                 res = run_target_case(case, names, workers, TARGETS, repeat)
             res["shape"] = shape
