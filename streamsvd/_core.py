@@ -67,7 +67,10 @@ class UpdateRecord:
     max_cosine : float
         Largest pair cosine met in the last sweep (0 at the SVD).
     orthogonality : float
-        ``||U^T M U - I||_2`` after the update.
+        ``||U^T M U - I||_2`` after the update: from the Gram of the stored basis, or,
+        after the Gram path on an in-memory basis (whose Gram the next update measures),
+        the one the Gram of the basis and the block predicts
+        (:mod:`streamsvd.update_gram`).
     error_bound : float
         The guaranteed bound on ``||A - U V^T||_F`` after the update.
     seconds : float

@@ -17,7 +17,11 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
   ``MQ^T X`` with the block staged as it is (in memory: referenced, not copied; a block
   read by row chunks: written once to a scratch panel as it is read), then
   ``Q <- [Q, X] G`` written aside like ``compact_planned`` (or over ``Q`` itself by a
-  basis made to, below);
+  basis made to, below). A basis that ``defers_gram`` (in memory, compacting aside)
+  leaves the Gram of the columns it writes there to the next update, whose
+  ``joint_products(X)`` copies the block beside ``Q`` and measures the Gram of ``[Q, X]``
+  whole, ``Q^T M Q`` with it, in one product (``measure_gram()`` measures ``Q^T M Q``
+  alone for whoever reads the basis before; :class:`~streamsvd.update.State`);
 * ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``,
   ``release(...)``: what a commit to a store needs, what it may delete afterwards, and
   what an update replaced that no recent commit uses; ``compactions`` counts the swaps,
@@ -104,8 +108,15 @@ class BasisAlgebra(Protocol):
         A backend that reads ``X`` in one pass computes ``MQ^T X`` whatever ``project``.
         """
 
-    def compact_with_block(self, G: np.ndarray) -> np.ndarray:
-        """Write ``[Q, X] G`` aside (``X`` the staged block); return its Gram ``Q'^T M Q'``."""
+    def compact_with_block(self, G: np.ndarray) -> np.ndarray | None:
+        """Write ``[Q, X] G`` aside (``X`` the staged block); return its Gram ``Q'^T M Q'``.
+
+        None when the basis ``defers_gram``: the next update measures it.
+        """
+
+    defers_gram: bool
+    """Whether ``compact_with_block`` leaves the Gram of what it writes to be measured
+    later (by ``joint_products`` or ``measure_gram``, which such a basis provides)."""
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
@@ -279,6 +290,16 @@ class MemoryBasis:
         self._overwritten = False  # the planned basis is in the stored buffers
         self._broken = False  # they were overwritten by an update that did not complete
         self._block: tuple[np.ndarray, np.ndarray] | None = None
+        self._beside = False  # the staged block is in the workspace, after the basis
+
+    @property
+    def defers_gram(self) -> bool:
+        """Whether the Gram path's compactions leave their Gram to the next update.
+
+        Those aside do (the next block is copied beside them, :meth:`joint_products`);
+        those in place measure it at once (their basis may then be broken).
+        """
+        return not self.compact_in_place
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickle and copy the stored columns only (not the workspace, not the scratch).
@@ -289,7 +310,7 @@ class MemoryBasis:
         w = self._w
         Q, MQ = self._bufs
         state["_bufs"] = (Q[:, :w], None if self.inner.is_euclidean else MQ[:, :w])
-        state["_spare"], state["_block"] = None, None
+        state["_spare"], state["_block"], state["_beside"] = None, None, False
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -414,21 +435,50 @@ class MemoryBasis:
         product); ``MQ^T X`` is None unless ``project``.
         """
         MX = X if self.inner.is_euclidean else self.inner.apply(X)
-        self._block = (X, MX)
+        self._block, self._beside = (X, MX), False
         return gram(X, self.inner, MX), self.project(X, None) if project else None
 
-    def compact_with_block(self, G: np.ndarray) -> np.ndarray:
-        """Write ``[Q, X] G`` into the spare buffer (``X`` staged by :meth:`block_products`).
+    def joint_products(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stage ``X`` beside the basis; return ``X^T M X``, ``MQ^T X`` and ``Q^T M Q``.
 
-        As :meth:`compact_planned`, without the block ever copied next to the basis. A
-        basis made with ``compact_in_place=True`` writes it over ``Q`` instead, when it
-        fits.
+        The block is copied into the workspace, after the stored columns, and the Gram
+        of ``[Q, X]`` is one product (a rank-k update when Euclidean): at blocks of 10
+        and 100 columns on a basis of 70 (n = 20000, one thread) it took 3.3 and 12 ms
+        where ``Q^T Q``, ``Q^T X`` and ``X^T X`` apart took 4.7 and 15 ms, the copy 0.14
+        and 1.9 ms (``bench/README.md``); the compaction is then one product as well.
+        """
+        w, b = self._w, X.shape[1]
+        Y, MY = self.workspace(b)
+        Y[...] = X
+        if not self.inner.is_euclidean:
+            MY[...] = self.inner.apply(X)
+        W, MW = self._bufs[0][:, :w + b], self._bufs[1][:, :w + b]
+        K = self._gram_of(W, MW)
+        self._block, self._beside = (Y, MY), True
+        return K[w:, w:], K[:w, w:], K[:w, :w]
+
+    def measure_gram(self) -> np.ndarray:
+        """Return the Gram ``Q^T M Q`` of the stored columns, measured."""
+        return self._gram_of(self.Q, self.MQ)
+
+    def compact_with_block(self, G: np.ndarray) -> np.ndarray | None:
+        """Write ``[Q, X] G`` into the spare buffer; return its Gram, or None.
+
+        ``X`` is staged by :meth:`block_products` or :meth:`joint_products`; None when the
+        basis :attr:`defers_gram`. As :meth:`compact_planned`: one product when the block
+        is beside the basis, else two, the block never copied. A basis made with
+        ``compact_in_place=True`` writes it over ``Q`` instead, when it fits, and measures
+        its Gram.
         """
         assert self._block is not None
-        parts = [(self.Q, self.MQ), self._block]
+        if self._beside:
+            w = self._w + self._block[0].shape[1]
+            parts = [(self._bufs[0][:, :w], self._bufs[1][:, :w])]
+        else:
+            parts = [(self.Q, self.MQ), self._block]
         if self.compact_in_place and G.shape[1] <= self.capacity:
             return self._compact_over(G, parts)
-        return self._compact(G, parts)
+        return self._compact(G, parts, measure=not self.defers_gram)
 
     def _compact_over(
         self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]
@@ -459,11 +509,12 @@ class MemoryBasis:
                 target[rows, :p] = out[0]
         return self._gram_of(self._bufs[0][:, :p], self._bufs[1][:, :p])
 
-    def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]], *,
+                 measure: bool = True) -> np.ndarray | None:
         """Write ``[A_1, A_2, ...] G`` (and its ``M`` image) into the spare buffer.
 
         ``parts`` are the ``(A_i, M A_i)`` whose columns the rows of ``G`` combine, in
-        order. Returns the Gram of the columns written.
+        order. Returns the Gram of the columns written (None unless ``measure``).
         """
         p = G.shape[1]
         if self._spare is None or self._spare[0].shape[1] < max(self.capacity, p):
@@ -487,6 +538,8 @@ class MemoryBasis:
                 res = blas.dgemm(1.0, source, Gi, beta=1.0, c=target, overwrite_c=1)
                 if not np.shares_memory(res, target):
                     target[...] = res
+        if not measure:
+            return None
         return self._gram_of(self._spare[0][:, :p], self._spare[1][:, :p])
 
     def _gram_of(self, Q: np.ndarray, MQ: np.ndarray) -> np.ndarray:
@@ -502,7 +555,7 @@ class MemoryBasis:
         A plan that wrote over the stored columns cannot be forgotten: the basis is then
         unusable (:class:`~streamsvd.errors.BrokenStateError` on its next use).
         """
-        self._block = None
+        self._block, self._beside = None, False
         if self._overwritten:
             self._overwritten, self._broken = False, True
 
@@ -524,7 +577,7 @@ class MemoryBasis:
                 self._spare = None
         self._overwritten = False
         self._w = p
-        self._block = None
+        self._block, self._beside = None, False
         self.compactions += 1
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:

@@ -285,6 +285,7 @@ def plan_remove(
     """
     rows = state.rows
     assert rows is not None
+    state = state.as_settled()
     phys = physical_rows(rows.dead, positions)
     dd = downdate(rows.V0[phys] @ rows.Vp, state.R)
     dead = np.union1d(rows.dead, phys)

@@ -419,8 +419,9 @@ class StreamingSVD(FittedPCA):
         g = opts.forget ** np.arange(m - 1, -1, -1, dtype=np.float64)
         state = sc._state
         assert state.rows is not None
+        coords, _, R = state.settled()
         found = _pca_math.weighted_components(
-            state.basis.lincomb(state.coords), state.R, state.rows.value(), g,
+            state.basis.lincomb(coords), R, state.rows.value(), g,
             center=opts.center, n_components=opts.n_components, inner=inner,
         )
         self.mean_, self._mu = found.mean, found.mean

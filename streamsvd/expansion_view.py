@@ -60,8 +60,9 @@ class ExpansionView:
         (equal up to rounding).
         """
         s = self._state
-        U = s.basis.lincomb(s.coords)
-        perm = np.argsort(-safe_column_norms(s.R if V is None else V), kind="stable")
+        coords, _, R = s.settled()
+        U = s.basis.lincomb(coords)
+        perm = np.argsort(-safe_column_norms(R if V is None else V), kind="stable")
         U = U[:, perm]
         signs = fix_signs(U, np.zeros((0, U.shape[1])))
         return U, perm, signs
@@ -101,12 +102,13 @@ class ExpansionView:
                 "this StreamCompressor keeps no right vectors (`right_vectors=False`); use "
                 "`left_vectors` and `amplitudes`, or create it with `right_vectors=True`."
             )
-        return rows.value() @ self._state.R if self.rank else np.zeros((self.n_seen, 0))
+        R = self._state.settled()[2]
+        return rows.value() @ R if self.rank else np.zeros((self.n_seen, 0))
 
     @property
     def amplitudes(self) -> np.ndarray:
         """``||v_i||``, computed on the small core (``||v_i|| = ||r_i||``), sorted."""
-        return np.sort(safe_column_norms(self._state.R))[::-1]
+        return np.sort(safe_column_norms(self._state.settled()[2]))[::-1]
 
     @property
     def discarded_energy(self) -> float:

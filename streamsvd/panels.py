@@ -74,6 +74,8 @@ class PanelBasis:
         reopened store reads. In an object store the panels are zarr arrays.
     """
 
+    defers_gram = False  # each compaction's pass measures the Gram of what it writes
+
     def __init__(
         self, n: int, inner: InnerProduct, *, chunk_rows: int, client: Any, root: Any
     ) -> None:

@@ -355,7 +355,7 @@ class TallCompressor(StreamCompressor):
         assert isinstance(basis, PanelBasis)
         V = self.right_factor()
         perm = np.argsort(-safe_column_norms(V), kind="stable")
-        U = basis.lazy(s.coords[:, perm])
+        U = basis.lazy(s.settled()[0][:, perm])
         top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client)
         signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`

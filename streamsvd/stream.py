@@ -451,9 +451,10 @@ def _merge_operand(
                 "compressor does; merge compressors created alike."
             )
         Y_o = o.rows.value() if keep_rows and o.rows is not None else None
+        coords, _, R = o.settled()
         if isinstance(o.basis, MemoryBasis):
-            return _MergeOperand(o.basis.Q, o.coords, o.R, Y_o, o.m, o.bound)
-        return _MergeOperand(o.basis.lincomb(o.coords), None, o.R, Y_o, o.m, o.bound)
+            return _MergeOperand(o.basis.Q, coords, R, Y_o, o.m, o.bound)
+        return _MergeOperand(o.basis.lincomb(coords), None, R, Y_o, o.m, o.bound)
     U_o, V_o = np.array(other.U, order="F"), np.array(other.V)
     if not keep_rows:
         return _MergeOperand(U_o, None, r_factor(V_o), None, V_o.shape[0], Bound())

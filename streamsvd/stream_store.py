@@ -47,7 +47,12 @@ __all__ = [
 # V0 are dead: a version that reads 4 only would take them for live ones)
 LAYOUT = 4
 LAYOUT_WITH_REMOVALS = 5
-READABLE_LAYOUTS = (LAYOUT, LAYOUT_WITH_REMOVALS)
+# added to either when the small state's Gram is pending (streamsvd.update.State: its
+# coords the identity, its Gram not stored): a version that reads 4 and 5 only would take
+# the basis for orthonormal, where it is so only to about eps lambda_1 / lambda_k
+PENDING_GRAM = 2
+READABLE_LAYOUTS = (LAYOUT, LAYOUT_WITH_REMOVALS, LAYOUT + PENDING_GRAM,
+                    LAYOUT_WITH_REMOVALS + PENDING_GRAM)
 
 
 @dataclass(frozen=True)
@@ -55,7 +60,7 @@ class _Small:
     """The small state, as one commit writes it."""
 
     coords: np.ndarray
-    gram: np.ndarray
+    gram: np.ndarray | None  # None: pending, stored as an empty piece
     R: np.ndarray
     Vp: np.ndarray | None
     bound: Bound
@@ -70,14 +75,15 @@ class _Small:
         norms = np.where(np.isinf(self.bound.to_array()), -1.0, self.bound.to_array())
         scalars = np.concatenate([norms, [float(self.source_offset), float(self.m),
                                           self.wasted_flops]])
-        pieces = [self.coords, self.gram, self.R, scalars]
+        gram = np.zeros((0, 0)) if self.gram is None else self.gram
+        pieces = [self.coords, gram, self.R, scalars]
         if self.Vp is not None:
             pieces.insert(3, self.Vp)
         return (np.concatenate([a.ravel() for a in pieces]),
                 [list(a.shape) for a in pieces])
 
     @classmethod
-    def unpack(cls, flat: np.ndarray, layout: list[list[int]]) -> _Small:
+    def unpack(cls, flat: np.ndarray, layout: list[list[int]], *, pending: bool) -> _Small:
         """Read the pieces back (``Vp`` is there when the layout has five pieces)."""
         pieces, start = [], 0
         for shape in layout:
@@ -86,7 +92,7 @@ class _Small:
             start += size
         scalars = pieces[-1]
         return cls(
-            coords=pieces[0], gram=pieces[1], R=pieces[2],
+            coords=pieces[0], gram=None if pending else pieces[1], R=pieces[2],
             Vp=pieces[3] if len(pieces) == 5 else None,
             bound=Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3])),
             source_offset=int(scalars[3]), m=int(scalars[4]),
@@ -97,7 +103,7 @@ class _Small:
 def basis_bytes(state: State, plan: Plan) -> int:
     """Return the bytes of ``Q`` a commit of ``plan`` writes (all, or the appended columns)."""
     w = plan.writes
-    columns = plan.gram.shape[0] if w.compacted else w.columns
+    columns = plan.coords.shape[0] if w.compacted else w.columns
     return 8 * state.basis.n * int(columns)
 
 
@@ -199,6 +205,8 @@ class StreamStore:
             flat, layout = small.pack()
             attrs = {
                 **attrs, "source_offset": int(source_offset), "updates": len(history),
+                "layout": attrs.get("layout", LAYOUT) + (PENDING_GRAM if small.gram is None
+                                                         else 0),
                 "small_layout": layout, "basis": basis_attrs,
                 "rows_capacity": None if state.rows is None else list(state.rows.capacity),
                 "rows_dead": None if state.rows is None else intervals_add(
@@ -274,7 +282,9 @@ def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
             raise StoreFormatError(
                 f"`path` {path!s} holds a StreamCompressor of layout "
                 f"{attrs.get('layout', 1)!r}, written by another version of streamsvd; "
-                f"this version reads layouts {LAYOUT} and {LAYOUT_WITH_REMOVALS}. Ingest the "
+                f"this version reads layouts {min(READABLE_LAYOUTS)} to "
+                f"{max(READABLE_LAYOUTS)}. "
+                "Ingest the "
                 "snapshots again into a "
                 "new store."
             )
@@ -325,7 +335,9 @@ def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
         return 0, []
     a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
          if not k.startswith("inner_")}
-    small = _Small.unpack(a["small"], attrs["small_layout"])
+    small = _Small.unpack(a["small"], attrs["small_layout"],
+                          pending=attrs.get("layout", LAYOUT) - PENDING_GRAM in (
+                              LAYOUT, LAYOUT_WITH_REMOVALS))
     state.basis.restore(a, attrs["basis"])
     if state.rows is not None:
         assert small.Vp is not None
@@ -334,4 +346,5 @@ def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
                            dead=np.concatenate(dead + [np.zeros(0, dtype=np.int64)]))
     state.coords, state.gram, state.R = small.coords, small.gram, small.R
     state.bound, state.m, state.wasted_flops = small.bound, small.m, small.wasted_flops
+    state._settled = None
     return small.source_offset, [record_from_row(row) for row in a["history"]]

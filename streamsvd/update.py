@@ -42,11 +42,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg.lapack import dtrtri
 
 from ._core import Truncation, UpdateRecord, core_step, r_factor
 from ._scaling import safe_column_norms, safe_m_norms, safe_norm
 from .basis import BasisBackend
 from .bound import Bound
+from .errors import BrokenStateError
 from .gram_schmidt import BasisExtension, extend_basis
 from .inner import InnerProduct
 from .rows import RightFactor, RowAppend
@@ -87,9 +89,9 @@ class State:
         The n-sized factor ``Q`` and the m-sized factor ``Y`` (None without right vectors).
     coords : ndarray, shape (w, p)
         The coordinates of ``U`` on the stored basis: ``U = Q coords``.
-    gram : ndarray, shape (w, w)
+    gram : ndarray, shape (w, w), or None
         ``Q^T M Q``, measured from the stored columns (orthogonality is
-        ``||coords^T gram coords - I||``).
+        ``||coords^T gram coords - I||``); None while it is pending.
     R : ndarray, shape (k, p)
         The core of the right factor: ``V = Y R``.
     m : int
@@ -99,25 +101,79 @@ class State:
         compaction pays once they reach its own cost).
     bound : Bound
         The error bound's account (:mod:`streamsvd.bound`).
+
+    Notes
+    -----
+    After an update by the Gram path on an in-memory basis
+    (:mod:`streamsvd.update_gram`) the Gram of the basis just written is *pending*:
+    ``gram`` is None, ``coords`` the identity and ``R`` the diagonal of the amplitudes
+    (``U V^T = Q R^T Y^T`` holds; ``Q`` is orthonormal only to about ``eps lambda_1 /
+    lambda_k``). The next update by that path measures it in one product with its block;
+    anything else reads :meth:`settled` (measured once, cached, the state unchanged), and
+    the other updates plan from :meth:`as_settled`. So a state reads the same whether or not
+    it was read between two updates.
     """
 
     basis: BasisBackend
     rows: RightFactor | None
     coords: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    gram: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    gram: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 0)))
     R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     m: int = 0
     wasted_flops: float = 0.0
     bound: Bound = field(default_factory=Bound)
+    _settled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(
+        default=None, repr=False, compare=False)
 
     @property
     def rank(self) -> int:
         """Number of terms ``p``."""
         return int(self.coords.shape[1])
 
+    @property
+    def pending(self) -> bool:
+        """Whether the Gram of the stored basis is not measured yet (class notes)."""
+        return self.gram is None
+
+    def settled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``(coords, gram, R)`` with the Gram measured; the state is unchanged.
+
+        For a pending state the Gram ``H = Q^T M Q`` is measured (one product over the
+        basis, made once and kept until the state changes) and the loss of
+        orthogonality moves into the small factors, as an update by the Gram path does:
+        ``coords = L^(-T)``, ``R <- R L`` with ``H = L L^T``.
+        """
+        if self.gram is not None:
+            return self.coords, self.gram, self.R
+        if self._settled is None or self._settled[0] is not self.R:
+            H = self.basis.measure_gram()
+            try:
+                L = np.linalg.cholesky(H)
+            except np.linalg.LinAlgError as exc:
+                raise BrokenStateError(
+                    "the basis written by the last update lost its orthogonality "
+                    "(its Gram matrix is not positive definite): its rounding exceeded "
+                    "the bound that update checked. Start again, or reopen its store."
+                ) from exc
+            coords = dtrtri(L, lower=1)[0].T  # L^{-T}
+            self._settled = (self.R, coords, H, self.R @ L)
+        return self._settled[1], self._settled[2], self._settled[3]
+
+    def as_settled(self) -> State:
+        """Return this state with its Gram measured (:meth:`settled`).
+
+        Itself, or a copy sharing its basis and rows: every update that does not take the
+        Gram path plans from it, so that a plan that fails leaves the state as it was.
+        """
+        if self.gram is not None:
+            return self
+        coords, gram, R = self.settled()
+        return replace(self, coords=coords, gram=gram, R=R, _settled=None)
+
     def orthogonality(self) -> float:
         """``||U^T M U - I||_2`` from the small Gram matrices."""
-        return gram_orthogonality(self.coords, self.gram)
+        coords, gram, _ = self.settled()
+        return gram_orthogonality(coords, gram)
 
     def extents(self) -> Extents:
         """Return what the stored arrays hold, and the epochs in which they only grow."""
@@ -166,7 +222,7 @@ class Plan:
     """Everything an update computed: the small matrices, and the writes deferred to apply."""
 
     coords: np.ndarray
-    gram: np.ndarray
+    gram: np.ndarray | None  # None: pending (the State's notes)
     R: np.ndarray
     m: int
     wasted_flops: float
@@ -205,6 +261,7 @@ def apply_plan(state: State, plan: Plan) -> None:
                 state.rows.dead = w.dead_rows
     state.coords, state.gram, state.R = plan.coords, plan.gram, plan.R
     state.m, state.wasted_flops, state.bound = plan.m, plan.wasted_flops, plan.bound
+    state._settled = None
 
 
 # ---------------------------------------------------------------------------- planning
@@ -215,6 +272,7 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) ->
     ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
     ``R_new`` its residual's triangular factor).
     """
+    state = state.as_settled()
     ext = extend_basis(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
         basis_gram=state.gram,
@@ -248,6 +306,7 @@ def plan_add(
     and replaced by its Householder QR.
     """
     assert state.rows is not None
+    state = state.as_settled()
     ref = _energy_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
@@ -293,6 +352,7 @@ def plan_merge(
     final one when the merge does not spend the target, as in
     :mod:`streamsvd.parallel_tree`) takes such terms within the budget.
     """
+    state = state.as_settled()
     u_norms, v_norms = safe_m_norms(U_o, opts.inner), safe_column_norms(R_o)
     ref = _energy_reference(u_norms, v_norms)
     tops = [_top_energy(u_norms, v_norms)]
@@ -336,6 +396,7 @@ def plan_finalize(
     orthogonal to what is kept, so the bound grows by the Pythagorean rule).
     ``on_sweep`` is called after every sweep (:func:`streamsvd._core.core_step`).
     """
+    state = state.as_settled()
     p = state.rank
     ext = BasisExtension.empty(p, state.basis.width)
     return _plan(

@@ -361,3 +361,117 @@ def test_a_tree_whose_in_place_updates_break_compresses_them_again_aside(
     s = E.amplitudes
     np.testing.assert_allclose(s, reference.expansion.amplitudes, rtol=0,
                                atol=1e3 * np.sqrt(n) * EPS * s[0])
+
+
+# ------------------------------------------------------- the Gram measured one update later
+def _pending_stream(rng, inner=None, n=300, m=160, block=20):
+    A = with_spectrum(np.logspace(0, -8, 60), n, m, rng)
+    sc = ss.StreamCompressor(n, inner=inner, max_rank=12)
+    return A, sc, [A[:, j : j + block] for j in range(0, m, block)]
+
+
+def _m_gram(U, inner):
+    MU = U if inner is None else (inner[:, np.newaxis] * U if np.ndim(inner) == 1 else inner @ U)
+    return U.T @ MU
+
+
+@pytest.mark.parametrize("inner", [None, "weights"])
+def test_the_gram_path_leaves_the_new_bases_gram_to_the_next_block(rng, inner):
+    """After an update by the Gram path the in-memory basis's Gram is pending; the next
+    one measures it in one product with its block, the Gram of [Q, X]; read before,
+    the factors are orthonormal to working accuracy, measured from U itself."""
+    n = 300
+    ip = None if inner is None else np.linspace(0.5, 2.0, n)
+    A, sc, blocks = _pending_stream(rng, ip, n)
+    for j, X in enumerate(blocks):
+        rec = sc.absorb(X)
+        state = sc._state
+        if j == 0:
+            continue  # the first block: nothing to compact against
+        assert _by_gram(rec) and state.gram is None
+        # its Gram is measured and the small factors carry its loss of orthogonality
+        coords, H, R = state.settled()
+        assert state.gram is None  # reading it changed nothing
+        U = state.basis.Q @ coords
+        G = _m_gram(U, ip)
+        assert np.linalg.norm(G - np.eye(G.shape[0]), 2) <= 20 * n * EPS
+        # the recorded orthogonality is the one the Gram of [Q, X] predicted
+        assert 0.0 <= rec.orthogonality <= 1e-10
+        # the expansion is unchanged by the measurement: Q R^T Y^T either way
+        np.testing.assert_allclose(state.basis.Q @ state.R.T, U @ R.T, rtol=0,
+                                   atol=1e3 * EPS * np.abs(state.R).max())
+    E = sc.expansion
+    assert E.orthogonality_error() <= 20 * n * EPS
+
+
+def test_the_joint_product_gives_the_separate_ones(rng):
+    """MemoryBasis.joint_products: the block's Gram, its projection and the basis's Gram
+    in one product, each within rounding of the separate products."""
+    from streamsvd.basis import MemoryBasis
+    from streamsvd.inner import as_inner
+
+    n, w, b = 500, 12, 7
+    for weights in (None, np.linspace(0.5, 2.0, n)):
+        inner = as_inner(weights, n)
+        basis = MemoryBasis(n, inner, capacity=4)
+        Y, MY = basis.workspace(w)
+        Y[...] = np.linalg.qr(rng.standard_normal((n, w)))[0]
+        MY[...] = inner.apply(Y) if weights is not None else Y
+        basis.accept(w)
+        X = np.asfortranarray(rng.standard_normal((n, b)))
+        S, C, H = basis.joint_products(X)
+        MQ, MX = basis.MQ, inner.apply(X)
+        Q = basis.Q
+        tol = 10 * n * EPS * max(1.0, np.abs(X).max() ** 2)
+        np.testing.assert_allclose(S, X.T @ MX, rtol=0, atol=tol)
+        np.testing.assert_allclose(C, MQ.T @ X, rtol=0, atol=tol)
+        np.testing.assert_allclose(H, Q.T @ MQ, rtol=0, atol=tol)
+        np.testing.assert_array_equal(S, S.T)
+        assert basis.width == w  # the block is staged, not stored
+
+
+def test_reading_between_updates_changes_no_digit(rng):
+    """A compressor read between two updates (left vectors, amplitudes, orthogonality,
+    a copy) continues exactly as one that is not: reading measures the pending Gram
+    aside, the next update measures it with its block."""
+    A, quiet, blocks = _pending_stream(rng)
+    _, read, _ = _pending_stream(rng)
+    for X in blocks:
+        quiet.absorb(X)
+        read.absorb(X)
+        read.expansion, read.amplitudes, read.orthogonality_error(), read.copy()
+    for a, b in ((quiet.expansion.U, read.expansion.U), (quiet.expansion.V, read.expansion.V)):
+        np.testing.assert_array_equal(a, b)
+    assert quiet.history[-1].orthogonality == read.history[-1].orthogonality
+
+
+def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng):
+    """A commit of a pending state writes layout 6 (the small state's Gram not stored),
+    which a version reading 4 and 5 only refuses; reopened, the stream continues as the
+    uninterrupted one, digit for digit."""
+    from streamsvd.store import open_store
+    from streamsvd.stream_store import LAYOUT, PENDING_GRAM
+
+    A, ref, blocks = _pending_stream(rng)
+    for X in blocks:
+        ref.absorb(X)
+    path = tmp_path / "s.zarr"
+    with ss.StreamCompressor(A.shape[0], store=path, max_rank=12) as sc:
+        for X in blocks[:4]:
+            sc.absorb(X)
+        assert sc._state.gram is None
+        sc.close(finalize=False)
+    st = open_store(path, "r")
+    try:
+        assert st.read().attrs["layout"] == LAYOUT + PENDING_GRAM
+    finally:
+        st.close()
+    with ss.StreamCompressor.open(path) as back:
+        assert back._state.gram is None
+        assert back.expansion.orthogonality_error() <= 20 * A.shape[0] * EPS
+        for X in blocks[4:]:
+            back.absorb(X)
+        np.testing.assert_array_equal(back.expansion.U, ref.expansion.U)
+        np.testing.assert_array_equal(back.expansion.V, ref.expansion.V)
+        back.finalize()
+        assert back._state.gram is not None  # the final sweeps measured it
