@@ -69,8 +69,8 @@ class UpdateRecord:
     orthogonality : float
         ``||U^T M U - I||_2`` after the update: from the Gram of the stored basis, or,
         after the Gram path on an in-memory basis (whose Gram the next update measures),
-        the one the Gram of the basis and the block predicts
-        (:mod:`streamsvd.update_gram`).
+        the one the Gram of the basis and the block predicts, bounded by its Frobenius
+        norm (:mod:`streamsvd.update_gram`).
     error_bound : float
         The guaranteed bound on ``||A - U V^T||_F`` after the update.
     seconds : float

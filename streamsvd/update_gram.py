@@ -26,7 +26,8 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   before measures ``H'`` aside (:meth:`~streamsvd.update.State.settled`), so the digits
   of the stream do not depend on it. The update's recorded orthogonality is then the one
   the Gram of ``[Q, X]`` predicts for ``U = Q'``, ``||W_k^T Phi W_k Lambda_k^(-1) - I||``
-  (the compaction's own rounding is measured with the next block).
+  (its Frobenius norm, an upper bound of the 2-norm, when below 1/4; the compaction's
+  own rounding is measured with the next block).
 
 Cost: about ``2 n (w + b) b + 2 n (w + b) k`` flops and one ``M X``: two passes over the
 basis and the block, whatever the conditioning of the block.
@@ -384,7 +385,7 @@ def _plan_by_gram(
         # predicts it (its actual Gram, with the compaction's rounding, is measured with
         # the next block): U = Q' until then, of this orthogonality
         predicted = Wk.T @ Phi @ Wk
-        orth = gram_orthogonality(np.eye(keep), 0.5 * (predicted + predicted.T))
+        orth = _drift(0.5 * (predicted + predicted.T))
         if orth > _MAX_DRIFT:
             return _declined(basis)
         basis.compact_with_block(G)
