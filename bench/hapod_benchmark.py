@@ -525,7 +525,7 @@ def _plot(out: Path, data: dict[str, Any]) -> Path:
         if case != "synthetic":
             for t in data["targets"]:
                 ax.axvline(t, color="0.85", lw=0.8, zorder=0)
-        ax.set_xlabel("err/opt - 1 (rank-k error over the optimal; +K: terms kept beyond k)"
+        ax.set_xlabel("err/opt - 1 (error over the optimal; +K: K more terms kept)"
                       if case == "synthetic" else "true mean-l2 error (in M)")
         ax.set_ylabel("time (s), median")
         load = data["cases"][case]["load_before"][0]
