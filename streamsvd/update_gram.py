@@ -19,10 +19,12 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   (orthonormal) with the core ``R = Lambda_k^(1/2) L``.
 * an in-memory basis (:attr:`~streamsvd.basis.MemoryBasis.defers_gram`) measures ``H'``
   one update later instead: the state keeps ``coords = I``, ``R = Lambda_k^(1/2)`` and a
-  pending Gram (:class:`~streamsvd.update.State`); the next block is copied beside
-  ``Q'`` and the Gram of ``[Q', X]``, ``H'`` with it, is one product, the compaction one
-  more (on the synthetic stream of ``bench/hapod_benchmark.py``: 14 to 17% less time at
-  blocks of 10, 5 to 7% at blocks of 100, the same digits). Whatever reads the state
+  pending Gram (:class:`~streamsvd.update.State`); a next block at most half as wide as
+  the basis is copied beside ``Q'`` and the Gram of ``[Q', X]``, ``H'`` with it, is one
+  product, the compaction one more (on the synthetic stream of
+  ``bench/hapod_benchmark.py``: 14 to 17% less time at blocks of 10, the same digits); a
+  wider one is staged as it is and ``H'`` measured alone (:func:`_products`). Whatever
+  reads the state
   before measures ``H'`` aside (:meth:`~streamsvd.update.State.settled`), so the digits
   of the stream do not depend on it. The update's recorded orthogonality is then the one
   the Gram of ``[Q, X]`` predicts for ``U = Q'``, ``||W_k^T Phi W_k Lambda_k^(-1) - I||``
@@ -91,6 +93,7 @@ _SMALLEST_KEPT = 64.0  # kept eigenvalues above this many times their rounding
 _MAX_DRIFT = 0.25  # largest ||H' - I|| of the new basis
 _MAX_SPREAD = 900  # largest spread of the block's binary exponents
 _COMPACTION_RATIO = 4.0  # largest compaction flops over the exact path's products
+_JOINT_MAX_SHARE = 0.5  # widest block, over the basis's width, copied beside a pending one
 # squared column norms within which the block is used unscaled (no product of its
 # entries can overflow or lose digits to underflow in the Gram)
 _SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
@@ -304,14 +307,21 @@ def _products(state: State, Y: Any, *, project: bool
               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Stage the block ``Y``; return ``Y^T M Y``, ``MQ^T Y`` and the basis's Gram ``H``.
 
-    A pending Gram (:class:`~streamsvd.update.State`) is measured here, in one product
-    with the block (:meth:`~streamsvd.basis.MemoryBasis.joint_products`); otherwise it
-    is the state's, and ``MQ^T Y`` is None unless ``project``.
+    A pending Gram (:class:`~streamsvd.update.State`) is measured here: for a block at
+    most half as wide as the basis in one product with it
+    (:meth:`~streamsvd.basis.MemoryBasis.joint_products`), which holds the block beside
+    the basis in both of its buffers (``2 n b`` more numbers: 32 MB for 10 columns at
+    n = 200000); a wider block, where the product gains less (5 to 7% at 100 columns on
+    a basis of 70, against 14 to 17% at 10) for more memory (320 MB at n = 200000), is
+    staged as it is and the Gram measured alone. Otherwise the Gram is the state's, and
+    ``MQ^T Y`` is None unless ``project``.
     """
-    if state.gram is None:
-        return state.basis.joint_products(Y)
-    S, C = state.basis.block_products(Y, project=project)
-    return S, C, state.gram
+    basis = state.basis
+    if state.gram is None and Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
+        return basis.joint_products(Y)
+    H = basis.measure_gram() if state.gram is None else state.gram
+    S, C = basis.block_products(Y, project=project)
+    return S, C, H
 
 
 def _plan_by_gram(

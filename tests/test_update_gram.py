@@ -375,19 +375,23 @@ def _m_gram(U, inner):
     return U.T @ MU
 
 
+@pytest.mark.parametrize("block", [5, 20])
 @pytest.mark.parametrize("inner", [None, "weights"])
-def test_the_gram_path_leaves_the_new_bases_gram_to_the_next_block(rng, inner):
+def test_the_gram_path_leaves_the_new_bases_gram_to_the_next_block(rng, inner, block):
     """After an update by the Gram path the in-memory basis's Gram is pending; the next
-    one measures it in one product with its block, the Gram of [Q, X]; read before,
-    the factors are orthonormal to working accuracy, measured from U itself."""
+    one measures it (in one product with its block, the Gram of [Q, X], when the block
+    is at most half the basis's width: 5 of 22 columns, not 20); read before, the
+    factors are orthonormal to working accuracy, measured from U itself."""
     n = 300
     ip = None if inner is None else np.linspace(0.5, 2.0, n)
-    A, sc, blocks = _pending_stream(rng, ip, n)
-    for j, X in enumerate(blocks):
+    A, sc, blocks = _pending_stream(rng, ip, n, block=block)
+    joint = []
+    sc._state.basis.joint_products = _counted(sc._state.basis.joint_products, joint)
+    for X in blocks:
         rec = sc.absorb(X)
         state = sc._state
-        if j == 0:
-            continue  # the first block: nothing to compact against
+        if sc.n_seen <= 22:
+            continue  # nothing cut yet: the exact path
         assert _by_gram(rec) and state.gram is None
         # its Gram is measured and the small factors carry its loss of orthogonality
         coords, H, R = state.settled()
@@ -405,6 +409,16 @@ def test_the_gram_path_leaves_the_new_bases_gram_to_the_next_block(rng, inner):
                                    atol=1e3 * EPS * np.abs(state.R).max())
     E = sc.expansion
     assert E.orthogonality_error() <= 20 * n * EPS
+    # every update after one by the Gram path measures its Gram with the block, when
+    # the block is narrow
+    assert len(joint) == (sum(_by_gram(r) for r in sc.history[:-1]) if block == 5 else 0)
+
+
+def _counted(method, calls):
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return method(*args, **kwargs)
+    return counted
 
 
 def test_the_joint_product_gives_the_separate_ones(rng):
@@ -433,12 +447,13 @@ def test_the_joint_product_gives_the_separate_ones(rng):
         assert basis.width == w  # the block is staged, not stored
 
 
-def test_reading_between_updates_changes_no_digit(rng):
+@pytest.mark.parametrize("block", [5, 20])
+def test_reading_between_updates_changes_no_digit(rng, block):
     """A compressor read between two updates (left vectors, amplitudes, orthogonality,
     a copy) continues exactly as one that is not: reading measures the pending Gram
-    aside, the next update measures it with its block."""
-    A, quiet, blocks = _pending_stream(rng)
-    _, read, _ = _pending_stream(rng)
+    aside, the next update measures it with its block or alone."""
+    A, quiet, blocks = _pending_stream(rng, block=block)
+    _, read, _ = _pending_stream(rng, block=block)
     for X in blocks:
         quiet.absorb(X)
         read.absorb(X)
@@ -448,19 +463,21 @@ def test_reading_between_updates_changes_no_digit(rng):
     assert quiet.history[-1].orthogonality == read.history[-1].orthogonality
 
 
-def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng):
+@pytest.mark.parametrize("block", [5, 20])
+def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng, block):
     """A commit of a pending state writes layout 6 (the small state's Gram not stored),
     which a version reading 4 and 5 only refuses; reopened, the stream continues as the
     uninterrupted one, digit for digit."""
     from streamsvd.store import open_store
     from streamsvd.stream_store import LAYOUT, PENDING_GRAM
 
-    A, ref, blocks = _pending_stream(rng)
+    A, ref, blocks = _pending_stream(rng, block=block)
     for X in blocks:
         ref.absorb(X)
     path = tmp_path / "s.zarr"
+    half = len(blocks) // 2
     with ss.StreamCompressor(A.shape[0], store=path, max_rank=12) as sc:
-        for X in blocks[:4]:
+        for X in blocks[:half]:
             sc.absorb(X)
         assert sc._state.gram is None
         sc.close(finalize=False)
@@ -472,7 +489,7 @@ def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng):
     with ss.StreamCompressor.open(path) as back:
         assert back._state.gram is None
         assert back.expansion.orthogonality_error() <= 20 * A.shape[0] * EPS
-        for X in blocks[4:]:
+        for X in blocks[half:]:
             back.absorb(X)
         np.testing.assert_array_equal(back.expansion.U, ref.expansion.U)
         np.testing.assert_array_equal(back.expansion.V, ref.expansion.V)
