@@ -69,10 +69,16 @@ def compressor_figure(sc: Any, *, name: str) -> Any:
         ax[1].legend(loc="best", fontsize="small")
     updates = np.arange(1, len(hist) + 1)
     orth = [max(h.orthogonality, 1e-18) for h in hist]
-    ax[2].semilogy(updates, orth, "r.-", ms=8, label="after each update")
+    # an update by the Gram path in memory records its basis before the Gram is measured
+    # (corrected when read, UpdateRecord): the U read now is drawn beside the history
+    ax[2].semilogy(updates, orth, "r.-", ms=8, label="recorded after each update")
     reorth = sc.reorth_tol
     if reorth:
         ax[2].axhline(reorth, color="0.5", ls="--", lw=1, label="re-orthonormalisation threshold")
+    if hist:
+        now = sc.orthogonality_error()
+        ax[2].axhline(max(now, 1e-18), color="g", ls=":", lw=1.5,
+                      label=f"U as read now ({now:.1e})")
     ax[2].set(xlabel="update", ylabel="||U^T M U - I||_2 (dimensionless)",
               title="orthogonality of U")
     if hist:

@@ -824,6 +824,7 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     with StreamCompressor.open(store, mode="r") as sc:
         fig = compressor_figure(sc, name="tree.zarr")
         rank, amps, orth = sc.rank, sc.amplitudes, sc.history[0].orthogonality
+        now_orth = sc.orthogonality_error()
         relative = sc.error_in_measure  # no target: the relative measure
     assert fig._suptitle.get_text().startswith(f"tree.zarr: n = 80, rank {rank}, 60 snapshots")
     amp_ax, bound_ax, orth_ax = fig.axes
@@ -838,10 +839,13 @@ def test_plot_of_a_tree_store_draws_every_panel(tmp_path, npy, capsys):
     assert bound_ax.get_xlabel() == "terms kept k"
     assert "||A - U_k V_k^T||_F / ||A||_F" in bound_ax.get_ylabel()
     assert orth_ax.get_xlabel() == "update" and "||U^T M U - I||_2" in orth_ax.get_ylabel()
-    (line,) = [ln for ln in orth_ax.lines if ln.get_label() == "after each update"]
+    (line,) = [ln for ln in orth_ax.lines if ln.get_label() == "recorded after each update"]
     assert line.get_marker() not in ("", "None", None)  # one point is visible as a marker
     np.testing.assert_array_equal(line.get_xdata(), [1])
     np.testing.assert_allclose(line.get_ydata(), [max(orth, 1e-18)])
+    # beside the history, the orthogonality of U as the store gives it now
+    (now,) = [ln for ln in orth_ax.lines if ln.get_label().startswith("U as read now")]
+    np.testing.assert_allclose(now.get_ydata(), max(now_orth, 1e-18))
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     canvas = FigureCanvasAgg(fig)
