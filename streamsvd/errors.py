@@ -58,7 +58,9 @@ class BrokenStateError(StreamSVDError, RuntimeError):
     """A compressor was left unusable by an update that wrote in place and did not complete.
 
     Only a compressor whose basis compacts in place (the leaves and merges of a tree) can
-    be left so; a store it writes keeps its last commit.
+    be left so; a store it writes keeps its last commit. Raised as well when a basis whose
+    Gram was left to measure (:class:`streamsvd.update.State`) is found not positive
+    definite, its rounding beyond what its update checked (never observed).
     """
 
 

@@ -143,7 +143,7 @@ class State:
         orthogonality moves into the small factors, as an update by the Gram path does:
         ``coords = L^(-T)``, ``R <- R L`` with ``H = L L^T``.
         """
-        if self.gram is not None:
+        if not self.pending:
             return self.coords, self.gram, self.R
         if self._settled is None or self._settled[0] is not self.R:
             H = self.basis.measure_gram()
@@ -165,7 +165,7 @@ class State:
         Itself, or a copy sharing its basis and rows: every update that does not take the
         Gram path plans from it, so that a plan that fails leaves the state as it was.
         """
-        if self.gram is not None:
+        if not self.pending:
             return self
         coords, gram, R = self.settled()
         return replace(self, coords=coords, gram=gram, R=R, _settled=None)

@@ -317,9 +317,12 @@ def _products(state: State, Y: Any, *, project: bool
     ``MQ^T Y`` is None unless ``project``.
     """
     basis = state.basis
-    if state.gram is None and Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
+    if not state.pending:
+        S, C = basis.block_products(Y, project=project)
+        return S, C, state.gram
+    if Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
         return basis.joint_products(Y)
-    H = basis.measure_gram() if state.gram is None else state.gram
+    H = basis.measure_gram()
     S, C = basis.block_products(Y, project=project)
     return S, C, H
 

@@ -495,3 +495,19 @@ def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng, b
         np.testing.assert_array_equal(back.expansion.V, ref.expansion.V)
         back.finalize()
         assert back._state.gram is not None  # the final sweeps measured it
+
+
+def test_a_pending_basis_that_lost_its_orthogonality_is_refused_by_name(rng):
+    """Should the basis whose Gram is pending turn out singular when measured (its
+    rounding beyond what the update checked: never observed; here a column zeroed by
+    hand), reading it raises BrokenStateError, and the state is left as it was."""
+    A, sc, blocks = _pending_stream(rng)
+    for X in blocks:
+        sc.absorb(X)
+    state = sc._state
+    assert state.gram is None
+    state.basis.Q[:, 3] = 0.0
+    R = state.R.copy()
+    with pytest.raises(ss.BrokenStateError, match="lost its orthogonality"):
+        sc.orthogonality_error()
+    assert state.gram is None and np.array_equal(state.R, R)
