@@ -67,8 +67,8 @@ from .errors import BrokenStateError
 from .inner import InnerProduct
 
 __all__ = [
-    "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "MEMORY_KIND", "MemoryBackend",
-    "MemoryBasis",
+    "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "DeferredGram", "MEMORY_KIND",
+    "MemoryBackend", "MemoryBasis",
 ]
 
 MEMORY_KIND = "streamsvd.StreamCompressor"
@@ -114,9 +114,12 @@ class BasisAlgebra(Protocol):
         None when the basis ``defers_gram``: the next update measures it.
         """
 
-    defers_gram: bool
-    """Whether ``compact_with_block`` leaves the Gram of what it writes to be measured
-    later (by ``joint_products`` or ``measure_gram``, which such a basis provides)."""
+    @property
+    def defers_gram(self) -> bool:
+        """Whether ``compact_with_block`` leaves its Gram to be measured later.
+
+        Such a basis is a :class:`DeferredGram` as well.
+        """
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new array."""
@@ -157,6 +160,16 @@ class BasisStaging(Protocol):
 
 class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
     """What an update needs from the n-sized factor: its algebra and its staging."""
+
+
+class DeferredGram(BasisBackend, Protocol):
+    """A basis whose compactions leave their Gram to be measured later (``defers_gram``)."""
+
+    def joint_products(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stage ``X`` beside the basis; return ``X^T M X``, ``MQ^T X`` and ``Q^T M Q``."""
+
+    def measure_gram(self) -> np.ndarray:
+        """Return the Gram ``Q^T M Q`` of the stored columns, measured."""
 
 
 class Backend(Protocol):
@@ -424,7 +437,9 @@ class MemoryBasis:
         :meth:`swap`.
         """
         w = self._w + r
-        return self._compact(G, [(self._bufs[0][:, :w], self._bufs[1][:, :w])])
+        H = self._compact(G, [(self._bufs[0][:, :w], self._bufs[1][:, :w])])
+        assert H is not None
+        return H
 
     def block_products(
         self, X: np.ndarray, *, project: bool

@@ -39,6 +39,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 import numpy as np
 import scipy.linalg
@@ -46,7 +47,7 @@ from scipy.linalg.lapack import dtrtri
 
 from ._core import Truncation, UpdateRecord, core_step, r_factor
 from ._scaling import safe_column_norms, safe_m_norms, safe_norm
-from .basis import BasisBackend
+from .basis import BasisBackend, DeferredGram
 from .bound import Bound
 from .errors import BrokenStateError
 from .gram_schmidt import BasisExtension, extend_basis
@@ -143,10 +144,10 @@ class State:
         orthogonality moves into the small factors, as an update by the Gram path does:
         ``coords = L^(-T)``, ``R <- R L`` with ``H = L L^T``.
         """
-        if not self.pending:
+        if self.gram is not None:
             return self.coords, self.gram, self.R
         if self._settled is None or self._settled[0] is not self.R:
-            H = self.basis.measure_gram()
+            H = cast(DeferredGram, self.basis).measure_gram()
             try:
                 L = np.linalg.cholesky(H)
             except np.linalg.LinAlgError as exc:
@@ -305,8 +306,8 @@ def plan_add(
     The increment spans every row, so the right factor is formed whole (``O(m p^2)``)
     and replaced by its Householder QR.
     """
-    assert state.rows is not None
     state = state.as_settled()
+    assert state.rows is not None
     ref = _energy_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,

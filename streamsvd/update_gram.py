@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from scipy.linalg.lapack import dtrtri
@@ -78,7 +78,7 @@ from scipy.linalg.lapack import dtrtri
 from ._blocks import scale_into
 from ._core import Truncation, UpdateRecord
 from ._scaling import pow2_exponent
-from .basis import BasisBackend
+from .basis import BasisBackend, DeferredGram
 from .bound import Bound
 from .gram_schmidt import default_reject_tol
 from .update import Plan, State, StepOptions, Writes, gram_orthogonality, plan_rows
@@ -316,10 +316,10 @@ def _products(state: State, Y: Any, *, project: bool
     staged as it is and the Gram measured alone. Otherwise the Gram is the state's, and
     ``MQ^T Y`` is None unless ``project``.
     """
-    basis = state.basis
-    if not state.pending:
-        S, C = basis.block_products(Y, project=project)
+    if state.gram is not None:
+        S, C = state.basis.block_products(Y, project=project)
         return S, C, state.gram
+    basis = cast(DeferredGram, state.basis)
     if Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
         return basis.joint_products(Y)
     H = basis.measure_gram()
@@ -396,18 +396,19 @@ def _plan_by_gram(
     if basis.defers_gram:
         # the Gram of the new basis, G^T B G = Wk^T Phi Wk, as the Gram B of [Q, Y]
         # predicts it (its actual Gram, with the compaction's rounding, is measured with
-        # the next block): U = Q' until then, of this orthogonality
+        # the next block): U = Q' until then, of this orthogonality; written once checked
         predicted = Wk.T @ Phi @ Wk
-        orth = _drift(0.5 * (predicted + predicted.T))
-        if orth > _MAX_DRIFT:
-            return _declined(basis)
-        basis.compact_with_block(G)
-        coords, H_new, R = np.eye(keep), None, np.diag(amps[:keep])
+        H_new, drift = None, _drift(0.5 * (predicted + predicted.T))
     else:
         H_new = basis.compact_with_block(G)
         assert H_new is not None
-        if _drift(H_new) > _MAX_DRIFT:
-            return _declined(basis)
+        drift = _drift(H_new)
+    if drift > _MAX_DRIFT:
+        return _declined(basis)
+    if H_new is None:
+        basis.compact_with_block(G)
+        coords, R, orth = np.eye(keep), np.diag(amps[:keep]), drift
+    else:
         L = np.linalg.cholesky(H_new)
         coords = dtrtri(L, lower=1)[0].T  # L^{-T}
         R = amps[:keep, np.newaxis] * L
