@@ -423,5 +423,4 @@ def _plan_by_gram(
         passes=2,
     )
     return Plan(coords=coords, gram=H_new, R=R, m=m, wasted_flops=0.0, bound=bound,
-                record=record,
-                writes=Writes(compacted=True, rows=rows))
+                record=record, writes=Writes(compacted=True, rows=rows))
