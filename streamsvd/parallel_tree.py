@@ -45,7 +45,7 @@ from .options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 from .options import CompressorOptions
 from .provenance import SourceRecord
 from .rotations import load_kernels_in_background
-from .scheduling import blas_threads_per_task, check_client, execute
+from .scheduling import blas_threads_per_task, check_client, execute, local_get
 from .sources import Source, open_source, open_zarr_url
 from .storage import is_url, open_storage
 from .stream import StreamCompressor
@@ -91,7 +91,7 @@ class _Window:
             )
         part = self.data[rows, lo:hi]
         if self.is_dask:
-            return np.asarray(part.compute(scheduler="sync"), dtype=np.float64)
+            return np.asarray(part.compute(scheduler=local_get("sync")), dtype=np.float64)
         return np.array(part, dtype=np.float64, copy=True)
 
 

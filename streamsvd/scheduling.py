@@ -11,13 +11,15 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from collections.abc import Iterator
-from typing import Any
+from collections.abc import Callable, Iterator
+from typing import Any, cast
 
 from ._threads import blas_threads
 from .errors import InputError
 
-__all__ = ["LOCAL_SCHEDULERS", "blas_threads_per_task", "check_client", "execute"]
+__all__ = [
+    "LOCAL_SCHEDULERS", "blas_threads_per_task", "check_client", "execute", "local_get",
+]
 
 LOCAL_SCHEDULERS = (
     "sync", "synchronous", "single-threaded", "threads", "threading", "processes",
@@ -79,7 +81,7 @@ def execute(collections: list[Any], *, client: Any = None, progress: bool = Fals
         # cores are oversubscribed (tasks that limit themselves keep their own limit)
         limit = 1 if scheduler in ("threads", "threading") else None
         with blas_threads(limit), _progress_bar(progress):
-            return list(dask.compute(*collections, scheduler=scheduler))
+            return list(dask.compute(*collections, scheduler=local_get(scheduler)))
     futures = client.compute(list(collections))
     try:
         if progress:
@@ -89,6 +91,26 @@ def execute(collections: list[Any], *, client: Any = None, progress: bool = Fals
         return list(client.gather(futures))
     finally:
         client.cancel(futures)
+
+
+def local_get(scheduler: str) -> Callable[..., Any]:
+    """Return the function that runs a graph on the local scheduler named ``scheduler``.
+
+    ``scheduler`` is one of :data:`LOCAL_SCHEDULERS`. dask given the name looks for a
+    default client first, which imports :mod:`distributed` (0.5 s of CPU per process,
+    ``bench/README.md``); given the function, it runs the graph at once, as it would.
+    """
+    if scheduler in ("threads", "threading"):
+        from dask import threaded
+
+        return cast(Callable[..., Any], threaded.get)
+    if scheduler in ("processes", "multiprocessing"):
+        from dask import multiprocessing
+
+        return cast(Callable[..., Any], multiprocessing.get)
+    from dask import local
+
+    return cast(Callable[..., Any], local.get_sync)
 
 
 def blas_threads_per_task(client: Any) -> int:

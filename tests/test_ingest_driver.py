@@ -235,6 +235,29 @@ def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
     np.testing.assert_allclose(got.amplitudes, want.expansion.amplitudes, rtol=1e-12)
 
 
+def test_local_modes_never_import_distributed(tmp_path):
+    # without a client no default client can be in use: the threaded scheduler is
+    # handed to dask as a function, which spares the import of distributed
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, numpy as np, zarr\n"
+        "from streamsvd.parallel import tall_compress, tree_compress\n"
+        f"p = {str(tmp_path / 'A.zarr')!r}\n"
+        "z = zarr.create_array(p, shape=(400, 60), chunks=(100, 20), dtype='f8')\n"
+        "z[:] = np.random.default_rng(0).standard_normal((400, 60))\n"
+        "for run in (lambda: tall_compress(p, block=20, max_rank=5, chunk_rows=100),\n"
+        "            lambda: tree_compress(p, block=20, max_rank=5, leaf_columns=30)):\n"
+        "    with run() as c:\n"
+        "        c.finalize()\n"
+        "print('distributed' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          check=True)
+    assert done.stdout.strip() == "False", done.stderr
+
+
 def test_a_dask_chunk_is_computed_once_per_block_read(rng, monkeypatch):
     # a tree leaf reads its window of a dask source by slabs of whole dask chunks, even
     # when a slab of the reader's size holds fewer rows than a chunk
