@@ -25,9 +25,9 @@ sweeps, truncation and bound), so both backends give the same basis to rounding.
 
 Crash safety. A plan writes its new panel (or the compacted basis) before any commit
 refers to it, and a commit lists a panel only once its zarr copy is written; a panel is
-deleted only when neither the state nor the last two commits refer to it
-(:meth:`PanelBasis.collect`), so a process or worker killed at any instant leaves the
-last commit readable.
+deleted, or its raw file renamed and written over, only when neither the state nor the
+last two commits refer to it (:meth:`PanelBasis.release`, :meth:`PanelBasis.collect`),
+so a process or worker killed at any instant leaves the last commit readable.
 """
 
 from __future__ import annotations
@@ -50,6 +50,9 @@ from .zarr_io import Region
 __all__ = ["PanelBasis"]
 
 logger = logging.getLogger(__name__)
+
+_SPARES = 2
+"""Raw files kept to be written over (:meth:`PanelBasis._keep_spare`)."""
 
 
 class PanelBasis:
@@ -94,7 +97,8 @@ class PanelBasis:
         self._staged_new: tuple[str, int] | None = None
         self._staged_compact: tuple[str, int] | None = None
         self._staged_block: tuple[str, Any] | None = None  # (scratch name or "", dask)
-        self._spare_scratch: _RawArray | None = None  # the last block's, to write over
+        # raw files that nothing refers to any more, kept to be written over
+        self._spares: list[_RawArray] = []
         self._zarrs: dict[str, Any] = {}
         self._retired: list[str] = []  # panels a compaction replaced, not yet deleted
         self.compactions = 0
@@ -135,14 +139,48 @@ class PanelBasis:
         return z
 
     def _new_panel(self, cols: int, dtype: Any = np.float64) -> tuple[str, Any]:
-        """Create an empty ``n x cols`` panel; return its name and array (zarr or raw)."""
+        """Create an ``n x cols`` panel; return its name and array (zarr or raw).
+
+        Every caller writes all its rows. A raw file kept for reuse (:meth:`_keep_spare`)
+        of this shape and dtype is renamed and written over: writing a file of the page
+        cache again took a third of the CPU time of writing a new one
+        (``bench/README.md``), and an array that still names the old file finds it gone,
+        as if it had been deleted.
+        """
         name = f"p{uuid.uuid4().hex}"
-        if self.raw:
-            raw = _RawArray(cast(LocalStorage, self.root).root / "panels" / name,
-                            (self.n, cols), dtype, chunk_rows=self.chunk_rows)
-            self._zarrs[name] = raw
-            return name, raw
-        return name, self._new_zarr(name, cols, dtype)
+        if not self.raw:
+            return name, self._new_zarr(name, cols, dtype)
+        directory = cast(LocalStorage, self.root).root / "panels" / name
+        fits = [s for s in self._spares if s.shape == (self.n, cols) and s.dtype == dtype]
+        spare = fits[0] if fits else None
+        if spare is not None:
+            self._spares.remove(spare)
+        raw = None if spare is None else spare.moved_to(directory)
+        if spare is not None and raw is None:  # removed meanwhile
+            self._delete(spare.name)
+        if raw is None:
+            raw = _RawArray(directory, (self.n, cols), dtype, chunk_rows=self.chunk_rows)
+        self._zarrs[name] = raw
+        return name, raw
+
+    def _keep_spare(self, name: str) -> None:
+        """Forget panel ``name``, keeping its raw file to write over, or delete it.
+
+        Only a raw file without a zarr copy is kept (no commit ever listed it), and at
+        most :data:`_SPARES` (an update by the Gram path lets go of the block's scratch
+        copy and of the basis it replaced): beyond, the oldest of a shape kept twice
+        goes, else the oldest.
+        """
+        raw = self._zarrs.get(name)
+        if not isinstance(raw, _RawArray) or name in self._sealed:
+            self._delete(name)
+            return
+        self._zarrs.pop(name)
+        self._spares.append(raw)
+        if len(self._spares) > _SPARES:
+            shapes = [(s.shape, s.dtype) for s in self._spares]
+            twice = [i for i, shape in enumerate(shapes) if shapes.count(shape) > 1]
+            self._delete(self._spares.pop(twice[0] if twice else 0).name)
 
     def _new_zarr(self, name: str, cols: int, dtype: Any = np.float64) -> Any:
         """Create the zarr array of panel ``name`` (``n x cols``, checksummed chunks)."""
@@ -290,7 +328,7 @@ class PanelBasis:
         The scratch copy is one raw file in a local directory (it serves one update and
         no commit refers to it: no chunks, codec or checksum; 15% faster than a zarr
         panel for the whole tall mode, ``bench/README.md``; the next block writes over
-        it, :meth:`_new_scratch`), a zarr panel in an object store. A failed read raises
+        it, :meth:`_new_panel`), a zarr panel in an object store. A failed read raises
         the block's :class:`~streamsvd.errors.SourceError`.
         """
         from .errors import StreamSVDError
@@ -349,19 +387,9 @@ class PanelBasis:
     def _new_scratch(self, cols: int, dtype: Any) -> tuple[str, Any]:
         """Create the block's scratch copy, a panel (``n x cols``); return its name and target.
 
-        A raw copy that the last block left (:meth:`_drop_block`) is written over, under a
-        new name, when it has this shape and dtype: writing a file of the page cache again
-        took a third of the CPU time of writing a new one (``bench/README.md``).
+        The copy that the last block left (:meth:`_drop_block`) is written over when it
+        has this shape and dtype (:meth:`_new_panel`).
         """
-        spare, self._spare_scratch = self._spare_scratch, None
-        if spare is not None:
-            if spare.shape == (self.n, cols) and spare.dtype == np.dtype(dtype):
-                name = f"p{uuid.uuid4().hex}"
-                raw = spare.moved_to(cast(LocalStorage, self.root).root / "panels" / name)
-                if raw is not None:
-                    self._zarrs[name] = raw
-                    return name, raw
-            self._delete(spare.name)
         name, z = self._new_panel(cols, dtype)
         return name, _target(z)
 
@@ -415,13 +443,7 @@ class PanelBasis:
         No commit refers to a scratch copy, and no array handed out reads it.
         """
         if self._staged_block is not None and self._staged_block[0]:
-            name = self._staged_block[0]
-            raw = self._zarrs.get(name)
-            if isinstance(raw, _RawArray) and self._spare_scratch is None:
-                self._zarrs.pop(name)
-                self._spare_scratch = raw
-            else:
-                self._delete(name)
+            self._keep_spare(self._staged_block[0])
         self._staged_block = None
 
     def _delete(self, name: str) -> None:
@@ -487,29 +509,30 @@ class PanelBasis:
         self.panels, self.widths = [name], [width]
 
     def release(self, committed: Sequence[dict]) -> None:
-        """Delete the panels a compaction replaced that none of these commits refers to.
+        """Let go of the panels a compaction replaced that none of these commits refers to.
 
-        Only panels this basis wrote and replaced are deleted, so a work directory
-        shared with other data is safe; without a store the replaced basis goes at once.
+        Only panels this basis wrote and replaced go, so a work directory shared with
+        other data is safe; without a store the replaced basis goes at once. A raw file
+        that no commit ever listed is kept for the next compaction to write over
+        (:meth:`_keep_spare`), the others are deleted.
         """
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
         keep = [name for name in self._retired if name in live]
         for name in self._retired:
             if name not in live:
-                self._delete(name)
+                self._keep_spare(name)
         self._retired = keep
 
     def drop_scratch(self) -> None:
-        """Remove the scratch copy kept for the next block (made again when needed)."""
-        spare, self._spare_scratch = self._spare_scratch, None
-        if spare is not None:
+        """Remove the raw files kept to be written over (made again when needed)."""
+        spares, self._spares = self._spares, []
+        for spare in spares:
             self._delete(spare.name)
 
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
-        if self._spare_scratch is not None:
-            live.add(self._spare_scratch.name)
+        live.update(spare.name for spare in self._spares)
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)

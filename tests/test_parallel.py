@@ -581,13 +581,14 @@ def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, mo
     assert got.rank == want.rank and rel_diff(got.U[:, :8], want.U[:, :8]) < 1e-10
 
 
-def test_tall_writes_each_block_over_the_last_ones_scratch_copy(rng, tmp_path, monkeypatch):
-    """The scratch copy of a block read from its source is written over by the next
-    block (one file made for the stream, renamed at each update); the result is the
-    in-memory one, and closing removes the copy kept."""
+def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatch):
+    """The block's scratch copy and the replaced basis's raw panel are kept and written
+    over by the next update (renamed: an array handed out before finds its file gone),
+    so once the basis is at its cap an update makes no new file; the result is the
+    in-memory one, and closing removes the files kept."""
     from streamsvd.panels import PanelBasis, _RawArray
 
-    A = low_rank(rng, n=600, m=60, rank=15, noise=1e-9)
+    A = low_rank(rng, n=600, m=120, rank=15, noise=1e-9)
     path = _zarr_source(tmp_path, A, 100, 10)
     made, scratches = [], []
     init, new_scratch = _RawArray.__init__, PanelBasis._new_scratch
@@ -597,28 +598,34 @@ def test_tall_writes_each_block_over_the_last_ones_scratch_copy(rng, tmp_path, m
         init(self, directory, shape, dtype, chunk_rows=chunk_rows)
 
     def spy(self, cols, dtype):
-        before = len(made)
+        before = len(made)  # files made by the updates before this one
         name, scratch = new_scratch(self, cols, dtype)
-        scratches.append((name, len(made) - before))  # files made for this scratch copy
+        scratches.append((name, before))
         return name, scratch
 
     monkeypatch.setattr(_RawArray, "__init__", counted)
     monkeypatch.setattr(PanelBasis, "_new_scratch", spy)
     work = tmp_path / "work"
-    tc = tall_compress(path, block=10, max_rank=8, workdir=work)
+    tc = tall_compress(path, block=20, max_rank=8, workdir=work)
     basis = tc._state.basis
-    kept = basis._spare_scratch
-    assert len(scratches) >= 3 and [made for _, made in scratches] == [1] + [0] * (
-        len(scratches) - 1)
+    assert len(scratches) == 6
     assert len({name for name, _ in scratches}) == len(scratches)  # renamed every time
-    assert kept is not None and kept.shape == (600, 10)
+    assert len(made) == scratches[3][1]  # no file made from the fourth update on
+    assert basis.compactions >= 4
     assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(
-        [*basis.panels, kept.name])
+        [*basis.panels, *(spare.name for spare in basis._spares)])
+    U, _ = tc.factors()
+    before = U.compute()
+    tc.absorb(A[:, :20])  # lets go of the panel that U reads, kept as it was
+    np.testing.assert_array_equal(U.compute(), before)
+    tc.absorb(A[:, 20:40])  # writes over it, renamed: U finds its file gone
+    with pytest.raises(FileNotFoundError):
+        U.compute()
     tc.finalize()
     got = tc.expansion
     tc.close()
     assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(basis.panels)
-    reference = stream(A, 10, max_rank=8)
+    reference = stream(np.hstack([A, A[:, :40]]), 20, max_rank=8)
     reference.finalize()
     want = reference.expansion
     tol = 100 * np.sqrt(A.shape[0]) * EPS * want.amplitudes[0]
@@ -730,7 +737,7 @@ def test_tall_lazy_source_names_a_non_finite_entry_in_source_coordinates(rng, tm
 def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
     """A compaction's old basis and every scratch panel go once nothing refers to them:
     at once without a store, after the next commits with one (readers may be on the
-    last two)."""
+    last two); at most two raw files that no commit listed stay, to be written over."""
     A = low_rank(rng, n=500, m=200, noise=1e-6)
     store = tmp_path / "s.zarr" if with_store else None
     opts = dict(commit_every=3) if with_store else {}
@@ -739,11 +746,14 @@ def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
             tc.absorb(A[:, j:j + 20])
             on_disk = {p for p in tc._state.basis.root.list("panels") if p.startswith("p")}
             live = set(tc._state.basis.panels)
+            spares = {spare.name for spare in tc._state.basis._spares}
+            assert len(spares) <= 2 and not spares & live
             if with_store:
                 recent = set().union(*(a["panels"] for a in tc._persistence.recent))
-                assert live <= on_disk <= live | recent
+                assert not spares & recent
+                assert live <= on_disk <= live | recent | spares
             else:
-                assert on_disk == live
+                assert on_disk == live | spares
         assert tc._state.basis.compactions == 10
 
 
