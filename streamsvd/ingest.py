@@ -95,7 +95,9 @@ def ingest(
     rows : int, optional
         Hand each block to the compressor unread, as a
         :class:`~streamsvd.sources.LazyBlock` of chunks of this many rows (the tall mode,
-        whose update reads it chunk by chunk); ``depth`` then does not apply.
+        whose update reads it chunk by chunk); ``depth`` then does not apply, and a
+        compressor with an ``expect`` method is given each block one update ahead
+        (:meth:`TallCompressor.expect <streamsvd.parallel.TallCompressor.expect>`).
     progress : bool
         Show a progress bar over the columns (tqdm, on stderr) with the rank and the
         error bound.
@@ -130,10 +132,17 @@ def ingest(
                            rows=rows, prefetch=prefetch)
     if preload_sweeps:  # the final sweeps' kernels, while the first block is read
         load_kernels_in_background()
+    # unread blocks are named one update ahead to a compressor that reads them sooner
+    expect = getattr(compressor, "expect", None) if rows is not None else None
+    following = None
     try:
         while True:
             t = time.perf_counter()
-            item = next(blocks, None)
+            item = following if following is not None else next(blocks, None)
+            if item is not None and expect is not None:
+                following = next(blocks, None)
+                if following is not None:
+                    expect(following[1])
             waiting += time.perf_counter() - t
             if item is None:
                 break

@@ -18,6 +18,9 @@ row chunk each (``map_blocks``): the task reads the chunk's rows of every panel 
 the block, writes what the pass writes (the scratch chunk, the new basis's chunk) and
 returns its share of the small products, which a reduction sums. A thread then holds
 one chunk of each input, and no chunk waits in the scheduler for its other consumers.
+When the next block is known (:meth:`PanelBasis.expect`), the second pass also reads
+it and forms its products with the new basis, which are the next update's first pass:
+a stream then makes one pass over the panels per update.
 A panel's zarr copy is written on :mod:`streamsvd.zarr_io`'s event loops.
 
 The update step is the in-memory one (:mod:`streamsvd.update`, the same Gram-Schmidt,
@@ -97,6 +100,8 @@ class PanelBasis:
         self._staged_new: tuple[str, int] | None = None
         self._staged_compact: tuple[str, int] | None = None
         self._staged_block: tuple[str, Any] | None = None  # (scratch name or "", dask)
+        self._expected: Any = None  # the next update's block, read by this compaction
+        self._read_ahead: _ReadAhead | None = None  # what that compaction read of it
         # raw files that nothing refers to any more, kept to be written over
         self._spares: list[_RawArray] = []
         self._zarrs: dict[str, Any] = {}
@@ -334,6 +339,13 @@ class PanelBasis:
         from .errors import StreamSVDError
         from .sources import LazyBlock
 
+        ahead, self._read_ahead = self._read_ahead, None
+        if ahead is not None:
+            if (ahead.block is X and [ahead.panel] == self.panels and ahead.S is not None
+                    and ahead.C is not None):
+                self._staged_block = (ahead.scratch, self._read(ahead.scratch).astype(np.float64))
+                return ahead.S, ahead.C
+            self._keep_spare(ahead.scratch)
         b = int(X.shape[1])
         lazy = isinstance(X, LazyBlock)
         Xd = (X.data.rechunk({0: self._row_chunks(), 1: -1}) if lazy else self._block(X))
@@ -359,10 +371,63 @@ class PanelBasis:
         S = total[:b]
         return 0.5 * (S + S.T), total[b:]
 
+    def expect(self, X: Any) -> None:
+        """Name ``X``, the next update's block, for :meth:`compact_with_block` to read.
+
+        Only a :class:`~streamsvd.sources.LazyBlock` of ``n`` rows is read ahead (its
+        source is read once either way); anything else is ignored.
+        """
+        from .sources import LazyBlock
+
+        self._expected = X if isinstance(X, LazyBlock) and X.shape[0] == self.n else None
+
     def compact_with_block(self, G: np.ndarray) -> np.ndarray:
-        """Write ``[Q, X] G`` as one new panel (``X`` staged by :meth:`block_products`)."""
+        """Write ``[Q, X] G`` as one new panel (``X`` staged by :meth:`block_products`).
+
+        With a next block named by :meth:`expect`, the same pass reads it (one task per
+        row chunk, :func:`_chunk_compaction_and_products`): it writes its scratch copy
+        and returns its products with the new basis, which the next
+        :meth:`block_products` of that block on that basis takes instead of a pass of its
+        own (the same numbers: each chunk's products are the ones that pass would form).
+        Should the pass fail, it runs again without the next block, whose update then
+        reads it and reports what failed.
+        """
         assert self._staged_block is not None and self._staged_block[1] is not None
+        parts = [*self._parts(), self._staged_block[1]]
+        following, self._expected = self._expected, None
+        if following is not None and G.shape[1]:
+            try:
+                return self._compact_and_read(G, parts, following)
+            except Exception as exc:  # noqa: BLE001 - the next update reports it
+                logger.debug("reading the next block ahead failed (%s: %s); its update "
+                             "reads it", type(exc).__name__, exc)
+                self._drop_read_ahead()
+                staged, self._staged_compact = self._staged_compact, None
+                if staged is not None:
+                    self._keep_spare(staged[0])
         return self._compact(G, [self._staged_block[1]])
+
+    def _compact_and_read(self, G: np.ndarray, parts: list[Any], following: Any) -> np.ndarray:
+        """Write ``[Q, X] G`` as a new panel and read the next block; return the Gram."""
+        p, b = G.shape[1], int(following.shape[1])
+        name, z = self._new_panel(p)
+        self._staged_compact = (name, p)
+        Xd = following.data.rechunk({0: self._row_chunks(), 1: -1})
+        scratch, target = self._new_scratch(b, Xd.dtype)
+        self._read_ahead = _ReadAhead(following, name, scratch)
+        shares = self._pass(_chunk_compaction_and_products, [*parts, Xd], p + b, p + b,
+                            target=_target(z), next_target=target, G=G)
+        (done,) = execute([shares], client=self.client)
+        total = np.asarray(done)
+        H, S = total[:p, :p], total[p:, p:]
+        self._read_ahead.S, self._read_ahead.C = 0.5 * (S + S.T), total[:p, p:]
+        return 0.5 * (H + H.T)
+
+    def _drop_read_ahead(self) -> None:
+        """Forget the next block read ahead, keeping its scratch copy to write over."""
+        ahead, self._read_ahead = self._read_ahead, None
+        if ahead is not None:
+            self._keep_spare(ahead.scratch)
 
     def _compact(self, G: np.ndarray, extra: list[Any]) -> np.ndarray:
         """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram.
@@ -430,7 +495,9 @@ class PanelBasis:
         logger.info("compacted the basis to one panel of width %d", p)
 
     def discard_planned(self) -> None:
-        """Remove the panels an abandoned plan wrote."""
+        """Remove the panels an abandoned plan wrote (and the next block it read ahead)."""
+        self._expected = None
+        self._drop_read_ahead()
         for staged in (self._staged_new, self._staged_compact):
             if staged is not None and staged[0]:
                 self._delete(staged[0])
@@ -525,6 +592,7 @@ class PanelBasis:
 
     def drop_scratch(self) -> None:
         """Remove the raw files kept to be written over (made again when needed)."""
+        self._drop_read_ahead()
         spares, self._spares = self._spares, []
         for spare in spares:
             self._delete(spare.name)
@@ -533,6 +601,8 @@ class PanelBasis:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
         live.update(spare.name for spare in self._spares)
+        if self._read_ahead is not None:
+            live.add(self._read_ahead.scratch)
         for entry in self.root.list("panels"):
             if entry.startswith("p") and entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
@@ -567,19 +637,64 @@ def _chunk_compaction(*parts: np.ndarray, weighted: bool, target: Any, G: np.nda
                       block_info: dict | None = None) -> np.ndarray:
     """Write one row chunk of ``[Q_1, ..., X] G`` to ``target``; return its ``P^T M P``."""
     assert block_info is not None
-    first, *others = parts[:-1] if weighted else parts
+    P = _combined(parts[:-1] if weighted else parts, G)
+    target[slice(*block_info[0]["array-location"][0])] = P
+    return (P * parts[-1]).T @ P if weighted else P.T @ P
+
+
+def _chunk_compaction_and_products(*parts: np.ndarray, weighted: bool, target: Any,
+                                   next_target: Any, G: np.ndarray,
+                                   block_info: dict | None = None) -> np.ndarray:
+    """One row chunk of :func:`_chunk_compaction` and of the next block's :func:`_chunk_products`.
+
+    ``parts`` are the chunks of ``Q_1, ..., X``, then the next block's ``x`` (then the
+    weights' when ``weighted``). Writes ``P = [Q_1, ..., X] G`` to ``target`` and ``x``
+    to ``next_target``; returns ``[[P^T M P, P^T M x], [0, x^T M x]]``, each block
+    formed as those two tasks form it.
+    """
+    assert block_info is not None
+    *old, x = parts[:-1] if weighted else parts
+    P = _combined(old, G)
+    rows = slice(*block_info[0]["array-location"][0])
+    target[rows] = P
+    next_target[rows] = x
+    x64 = np.asarray(x, dtype=np.float64)
+    mx = x64 * parts[-1] if weighted else x64
+    p = P.shape[1]
+    out = np.zeros((p + x.shape[1], p + x.shape[1]))
+    out[:p, :p] = (P * parts[-1]).T @ P if weighted else P.T @ P
+    out[:p, p:] = P.T @ mx
+    out[p:, p:] = mx.T @ x64
+    return out
+
+
+def _combined(parts: Sequence[np.ndarray], G: np.ndarray) -> np.ndarray:
+    """Return ``[A_1, A_2, ...] G`` of row chunks, a product per part (none concatenated)."""
+    first, *others = parts
     row = first.shape[1]
     P = np.asarray(first, dtype=np.float64) @ G[:row]
     for part in others:
         P += np.asarray(part, dtype=np.float64) @ G[row:row + part.shape[1]]
         row += part.shape[1]
-    target[slice(*block_info[0]["array-location"][0])] = P
-    return (P * parts[-1]).T @ P if weighted else P.T @ P
+    return P
 
 
 def _target(z: Any) -> Any:
     """Return what dask reads and writes a panel through (zarr via :mod:`.zarr_io`)."""
     return z if isinstance(z, _RawArray) else Region(z)
+
+
+class _ReadAhead:
+    """The next update's block as a compaction read it (:meth:`PanelBasis.expect`).
+
+    ``block`` was read into the scratch copy ``scratch`` by the pass that wrote panel
+    ``panel``; ``S = x^T M x`` and ``C = P^T M x`` are set once that pass is done.
+    """
+
+    def __init__(self, block: Any, panel: str, scratch: str) -> None:
+        self.block, self.panel, self.scratch = block, panel, scratch
+        self.S: np.ndarray | None = None
+        self.C: np.ndarray | None = None
 
 
 class _RawArray:

@@ -336,6 +336,19 @@ class TallCompressor(StreamCompressor):
         assert isinstance(backend, PanelBackend)
         return backend
 
+    def expect(self, columns: Any) -> None:
+        """Name the block that will follow the one the coming :meth:`absorb` is given.
+
+        A block read from its source (a :class:`~streamsvd.sources.LazyBlock`, as
+        :func:`~streamsvd.ingest.ingest` hands them out) is then read by the coming
+        update's last pass over the panels, which writes its scratch copy and forms its
+        products with the new basis: its own update then makes one pass over the panels
+        instead of two (``bench/README.md``). The results are the same to the last bit
+        (tested); should the call after the coming one get another block, or the coming
+        update take another path, the block is read as usual.
+        """
+        cast(PanelBasis, self._state.basis).expect(columns)
+
     @property
     def stored_width(self) -> int:
         """Number of stored columns of the basis (all panels)."""

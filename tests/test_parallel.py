@@ -532,8 +532,10 @@ def test_tall_block_is_read_by_row_chunks_and_never_whole(rng, tmp_path, monkeyp
 
 
 def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
-    """Each of the Gram path's two passes runs one task per row chunk, which reads its
-    rows of every input and writes its rows of the output."""
+    """Each pass of the Gram path runs one task per row chunk, which reads its rows of
+    every input and writes its rows of the output; driven by ``ingest``, each update's
+    compaction also reads the next block, so the stream makes one pass per update and
+    one more."""
     import functools
 
     from streamsvd import panels
@@ -541,7 +543,8 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
     n, rows, b = 4000, 250, 20
     A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
     path = _zarr_source(tmp_path, A, rows, b)
-    calls = {"_chunk_products": [], "_chunk_compaction": []}
+    calls = {"_chunk_products": [], "_chunk_compaction": [],
+             "_chunk_compaction_and_products": []}
     for name, seen in calls.items():
         task = getattr(panels, name)
 
@@ -552,10 +555,12 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
         monkeypatch.setattr(panels, name, functools.wraps(task)(counted))
     with tall_compress(path, block=b, max_rank=12, oversampling=0) as tc:
         updates = sum(r.kind == "absorb" for r in tc.history)
+    assert updates == 3
     every_chunk = sorted((i, i + rows) for i in range(0, n, rows))
-    for seen in calls.values():
-        assert len(seen) == updates * n // rows
-        assert sorted(seen) == sorted(every_chunk * updates)
+    passes = {"_chunk_products": 1, "_chunk_compaction": 1,
+              "_chunk_compaction_and_products": updates - 1}
+    for name, seen in calls.items():
+        assert sorted(seen) == sorted(every_chunk * passes[name])
 
 
 def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, monkeypatch):
@@ -720,6 +725,80 @@ def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
     with TallCompressor.open(store):
         pass
     assert not stray.path.parent.exists()
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_tall_reading_the_next_block_ahead_changes_no_digit(rng, tmp_path, monkeypatch,
+                                                             weighted, dtype):
+    """A compaction that also reads the next block (ingest names it, ``expect``) gives
+    the stream of the two passes per update bit for bit, and the expansion of the
+    in-memory stream to rounding."""
+    from streamsvd import panels
+    from streamsvd.panels import PanelBasis
+
+    A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)
+    path = _zarr_source(tmp_path, A, 250, 20, dtype=dtype)
+    w = rng.uniform(0.5, 2.0, 2000) if weighted else None
+    import functools
+
+    fused_tasks = []
+    task = panels._chunk_compaction_and_products
+
+    @functools.wraps(task)  # dask passes block_info to what names it
+    def counted(*args, **kw):
+        fused_tasks.append(kw["block_info"][0]["array-location"][0])
+        return task(*args, **kw)
+
+    monkeypatch.setattr(panels, "_chunk_compaction_and_products", counted)
+
+    def run():
+        fused_tasks.clear()
+        with tall_compress(path, block=20, max_rank=12, oversampling=0, inner=w) as tc:
+            tc.finalize()
+            return tc.expansion, [r.error_bound for r in tc.history], len(fused_tasks)
+
+    fused, fused_bounds, tasks = run()
+    assert tasks == 3 * 8  # the compactions of the first three updates, 8 row chunks each
+    monkeypatch.setattr(PanelBasis, "expect", lambda self, X: None)
+    plain, plain_bounds, tasks = run()
+    assert tasks == 0
+    assert fused_bounds == plain_bounds
+    np.testing.assert_array_equal(fused.amplitudes, plain.amplitudes)
+    np.testing.assert_array_equal(fused.U, plain.U)
+    np.testing.assert_array_equal(fused.V, plain.V)
+    want = stream(A.astype(dtype).astype(np.float64), 20, max_rank=12, oversampling=0,
+                  inner=w)
+    want.finalize()
+    s = want.expansion.amplitudes
+    np.testing.assert_allclose(fused.amplitudes, s, rtol=0,
+                               atol=100 * np.sqrt(2000) * EPS * s[0])
+
+
+def test_tall_next_block_that_fails_is_reported_by_its_own_update(rng, caplog):
+    """A compaction whose read of the next block fails writes the basis alone; the
+    update of that block then reports the failure, the state as after the updates
+    before it, bit for bit."""
+    import logging
+
+    from streamsvd.ingest import ingest as ingest_blocks
+    from streamsvd.sources import open_source
+
+    A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)
+    x = failing(da.from_array(A, chunks=(250, 20)), bad_block=2)
+    with caplog.at_level(logging.DEBUG, logger="streamsvd.panels"):
+        with TallCompressor(2000, max_rank=12, oversampling=0, chunk_rows=250) as tc:
+            with pytest.raises(SourceError, match=r"reading columns 40:60 \(offset 40\)"):
+                ingest_blocks(open_source(x), tc, block=20, rows=250)
+            assert tc.n_seen == 40
+            got = tc.expansion
+    assert "reading the next block ahead failed (OSError: simulated read failure)" in caplog.text
+    with TallCompressor(2000, max_rank=12, oversampling=0, chunk_rows=250) as tc:
+        ingest_blocks(open_source(da.from_array(A[:, :40], chunks=(250, 20))), tc, block=20,
+                      rows=250)
+        want = tc.expansion
+    np.testing.assert_array_equal(got.U, want.U)
+    np.testing.assert_array_equal(got.amplitudes, want.amplitudes)
 
 
 def test_tall_lazy_source_names_a_non_finite_entry_in_source_coordinates(rng, tmp_path):
