@@ -35,17 +35,17 @@ so a process or worker killed at any instant leaves the last commit readable.
 
 from __future__ import annotations
 
-import copy
 import logging
-import os
 import uuid
 from collections.abc import Sequence
 from typing import Any, cast
 
 import numpy as np
 
+from . import panel_tasks
 from .errors import StoreError, StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
+from .raw_array import RawArray, RowView
 from .scheduling import execute
 from .storage import LocalStorage, ObjectStorage
 from .zarr_io import Region
@@ -74,7 +74,7 @@ class PanelBasis:
         Where the graphs run (the threaded scheduler when None).
     root : LocalStorage or ObjectStorage
         Where ``panels/`` is (the store's root, or a work directory). In a local
-        directory every panel is written as a raw row-major file (:class:`_RawArray`),
+        directory every panel is written as a raw row-major file (:class:`RawArray`),
         which the passes read and write; a commit that lists a panel first writes a zarr
         copy of it beside the file, with checksums (:meth:`commit_arrays`), which a
         reopened store reads. In an object store the panels are zarr arrays.
@@ -103,7 +103,7 @@ class PanelBasis:
         self._expected: Any = None  # the next update's block, read by this compaction
         self._read_ahead: _ReadAhead | None = None  # what that compaction read of it
         # raw files that nothing refers to any more, kept to be written over
-        self._spares: list[_RawArray] = []
+        self._spares: list[RawArray] = []
         self._zarrs: dict[str, Any] = {}
         self._retired: list[str] = []  # panels a compaction replaced, not yet deleted
         self.compactions = 0
@@ -164,7 +164,7 @@ class PanelBasis:
         if spare is not None and raw is None:  # removed meanwhile
             self._delete(spare.name)
         if raw is None:
-            raw = _RawArray(directory, (self.n, cols), dtype, chunk_rows=self.chunk_rows)
+            raw = RawArray(directory, (self.n, cols), dtype, chunk_rows=self.chunk_rows)
         self._zarrs[name] = raw
         return name, raw
 
@@ -177,7 +177,7 @@ class PanelBasis:
         goes, else the oldest.
         """
         raw = self._zarrs.get(name)
-        if not isinstance(raw, _RawArray) or name in self._sealed:
+        if not isinstance(raw, RawArray) or name in self._sealed:
             self._delete(name)
             return
         self._zarrs.pop(name)
@@ -209,7 +209,7 @@ class PanelBasis:
         import dask.array as da
 
         todo = [name for name in names
-                if name not in self._sealed and isinstance(self._zarrs.get(name), _RawArray)]
+                if name not in self._sealed and isinstance(self._zarrs.get(name), RawArray)]
         if not todo:
             return
         stores = [
@@ -259,7 +259,7 @@ class PanelBasis:
         """
         import dask.array as da
 
-        return da.from_array(_Rows(X), chunks=(self._row_chunks(), (X.shape[1],)),
+        return da.from_array(RowView(X), chunks=(self._row_chunks(), (X.shape[1],)),
                              name=f"streamsvd-block-{uuid.uuid4().hex}", meta=X[:0, :0])
 
     def _weighted(self, Y: Any) -> Any:
@@ -326,10 +326,11 @@ class PanelBasis:
         """Stage ``X`` for :meth:`compact_with_block`; return ``X^T M X`` and ``MQ^T X``.
 
         One pass over the row chunks computes both (``project`` is not needed), one task
-        per chunk (:func:`_chunk_products`). A :class:`~streamsvd.sources.LazyBlock` is
-        read once, chunk by chunk, each chunk written to a scratch copy (in the
-        source's dtype: float32 stays float32) by the task that uses it in float64, so
-        the ``n x b`` block is never in memory; an in-memory block is used where it is.
+        per chunk (:func:`~streamsvd.panel_tasks.chunk_products`). A
+        :class:`~streamsvd.sources.LazyBlock` is read once, chunk by chunk, each chunk
+        written to a scratch copy (in the source's dtype: float32 stays float32) by the
+        task that uses it in float64, so the ``n x b`` block is never in memory; an
+        in-memory block is used where it is.
         The scratch copy is one raw file in a local directory (it serves one update and
         no commit refers to it: no chunks, codec or checksum; 15% faster than a zarr
         panel for the whole tall mode, ``bench/README.md``; the next block writes over
@@ -354,7 +355,8 @@ class PanelBasis:
             name, scratch = self._new_scratch(b, Xd.dtype)
             self._staged_block = (name, None)
         rows = b + self.width
-        shares = self._pass(_chunk_products, [Xd, *self._parts()], rows, b, target=scratch)
+        shares = self._pass(panel_tasks.chunk_products, [Xd, *self._parts()], rows, b,
+                            target=scratch)
         try:
             (done,) = execute([shares], client=self.client)
         except StreamSVDError:
@@ -385,8 +387,8 @@ class PanelBasis:
         """Write ``[Q, X] G`` as one new panel (``X`` staged by :meth:`block_products`).
 
         With a next block named by :meth:`expect`, the same pass reads it (one task per
-        row chunk, :func:`_chunk_compaction_and_products`): it writes its scratch copy
-        and returns its products with the new basis, which the next
+        row chunk, :func:`~streamsvd.panel_tasks.chunk_compaction_and_products`): it
+        writes its scratch copy and returns its products with the new basis, which the next
         :meth:`block_products` of that block on that basis takes instead of a pass of its
         own (the same numbers: each chunk's products are the ones that pass would form).
         Should the pass fail, it runs again without the next block, whose update then
@@ -415,7 +417,7 @@ class PanelBasis:
         Xd = following.data.rechunk({0: self._row_chunks(), 1: -1})
         scratch, target = self._new_scratch(b, Xd.dtype)
         self._read_ahead = _ReadAhead(following, name, scratch)
-        shares = self._pass(_chunk_compaction_and_products, [*parts, Xd], p + b, p + b,
+        shares = self._pass(panel_tasks.chunk_compaction_and_products, [*parts, Xd], p + b, p + b,
                             target=_target(z), next_target=target, G=G)
         (done,) = execute([shares], client=self.client)
         total = np.asarray(done)
@@ -433,9 +435,9 @@ class PanelBasis:
         """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram.
 
         ``Q G_q + X G_x``, a product per part summed in each row chunk's task
-        (:func:`_chunk_compaction`, as the in-memory basis does), so no row chunk of
-        ``[Q, X]`` is ever concatenated; the task writes its rows of the new panel and
-        returns their share of its Gram.
+        (:func:`~streamsvd.panel_tasks.chunk_compaction`, as the in-memory basis does), so
+        no row chunk of ``[Q, X]`` is ever concatenated; the task writes its rows of the
+        new panel and returns their share of its Gram.
         """
         parts = self._parts() + extra
         p = G.shape[1]
@@ -444,7 +446,7 @@ class PanelBasis:
             return np.zeros((p, p))
         name, z = self._new_panel(p)
         self._staged_compact = (name, p)
-        shares = self._pass(_chunk_compaction, parts, p, p, target=_target(z), G=G)
+        shares = self._pass(panel_tasks.chunk_compaction, parts, p, p, target=_target(z), G=G)
         (done,) = execute([shares], client=self.client)
         H = np.asarray(done)
         return 0.5 * (H + H.T)
@@ -609,79 +611,9 @@ class PanelBasis:
                 self._delete(entry)
 
 
-def _chunk_products(x: np.ndarray, *rest: np.ndarray, weighted: bool, target: Any,
-                    block_info: dict | None = None) -> np.ndarray:
-    """Return ``[X^T M X; MQ_1^T X; ...]`` of one row chunk; write the chunk to ``target``.
-
-    ``x`` is the block's chunk, ``rest`` the panels' chunks (then the weights' when
-    ``weighted``); ``target`` is the scratch copy of a block read from its source, or
-    None.
-    """
-    if target is not None:
-        assert block_info is not None
-        target[slice(*block_info[0]["array-location"][0])] = x
-    panels = rest[:-1] if weighted else rest
-    x64 = np.asarray(x, dtype=np.float64)
-    mx = x64 * rest[-1] if weighted else x64
-    b = x.shape[1]
-    out = np.empty((b + sum(q.shape[1] for q in panels), b))
-    out[:b] = mx.T @ x64  # a rank-k update (syrk) when Euclidean
-    row = b
-    for q in panels:
-        out[row:row + q.shape[1]] = q.T @ mx
-        row += q.shape[1]
-    return out
-
-
-def _chunk_compaction(*parts: np.ndarray, weighted: bool, target: Any, G: np.ndarray,
-                      block_info: dict | None = None) -> np.ndarray:
-    """Write one row chunk of ``[Q_1, ..., X] G`` to ``target``; return its ``P^T M P``."""
-    assert block_info is not None
-    P = _combined(parts[:-1] if weighted else parts, G)
-    target[slice(*block_info[0]["array-location"][0])] = P
-    return (P * parts[-1]).T @ P if weighted else P.T @ P
-
-
-def _chunk_compaction_and_products(*parts: np.ndarray, weighted: bool, target: Any,
-                                   next_target: Any, G: np.ndarray,
-                                   block_info: dict | None = None) -> np.ndarray:
-    """One row chunk of :func:`_chunk_compaction` and of the next block's :func:`_chunk_products`.
-
-    ``parts`` are the chunks of ``Q_1, ..., X``, then the next block's ``x`` (then the
-    weights' when ``weighted``). Writes ``P = [Q_1, ..., X] G`` to ``target`` and ``x``
-    to ``next_target``; returns ``[[P^T M P, P^T M x], [0, x^T M x]]``, each block
-    formed as those two tasks form it.
-    """
-    assert block_info is not None
-    *old, x = parts[:-1] if weighted else parts
-    P = _combined(old, G)
-    rows = slice(*block_info[0]["array-location"][0])
-    target[rows] = P
-    next_target[rows] = x
-    x64 = np.asarray(x, dtype=np.float64)
-    mx = x64 * parts[-1] if weighted else x64
-    p = P.shape[1]
-    out = np.zeros((p + x.shape[1], p + x.shape[1]))
-    out[:p, :p] = (P * parts[-1]).T @ P if weighted else P.T @ P
-    out[:p, p:] = P.T @ mx
-    out[p:, p:] = mx.T @ x64
-    return out
-
-
-def _combined(parts: Sequence[np.ndarray], G: np.ndarray) -> np.ndarray:
-    """Return ``[A_1, A_2, ...] G`` of row chunks, a product per part (none concatenated)."""
-    first, *others = parts
-    row = first.shape[1]
-    P = np.asarray(first, dtype=np.float64) @ G[:row]
-    for part in others:
-        P += np.asarray(part, dtype=np.float64) @ G[row:row + part.shape[1]]
-        row += part.shape[1]
-    return P
-
-
 def _target(z: Any) -> Any:
     """Return what dask reads and writes a panel through (zarr via :mod:`.zarr_io`)."""
-    return z if isinstance(z, _RawArray) else Region(z)
+    return z if isinstance(z, RawArray) else Region(z)
 
 
 class _ReadAhead:
@@ -695,94 +627,3 @@ class _ReadAhead:
         self.block, self.panel, self.scratch = block, panel, scratch
         self.S: np.ndarray | None = None
         self.C: np.ndarray | None = None
-
-
-class _RawArray:
-    """An ``n x c`` array in a local directory, read by no reopened store: one row-major file.
-
-    The block's scratch copy (it serves one update: written by the first pass, read by the
-    second, then kept for the next block to write over, removed at close) and the panels as
-    the passes use them (they live while the compressor does; a commit lists only panels
-    with a zarr copy beside the file). A leftover is removed when the store or work
-    directory is next opened for writing, like a panel: its directory is named as one. It is
-    read by the process that wrote it or by workers sharing its directory; so no codec or
-    checksum (a zarr write of a 10000 x 100 float64 chunk took 17.7 ms in the tall mode, the
-    raw write about 4 ms: ``bench/README.md``). Each task opens the file for its rows, so a
-    worker reads what the others wrote once their tasks have ended.
-    """
-
-    def __init__(self, directory: Any, shape: tuple[int, int], dtype: Any, *,
-                 chunk_rows: int) -> None:
-        directory.mkdir(parents=True, exist_ok=True)
-        self.path = directory / "block"
-        self.shape, self.dtype, self.ndim = shape, np.dtype(dtype), 2
-        self.chunks = (chunk_rows, max(shape[1], 1))
-        self._row_bytes = shape[1] * self.dtype.itemsize
-        with open(self.path, "wb") as f:
-            f.truncate(shape[0] * self._row_bytes)
-
-    @property
-    def name(self) -> str:
-        """The panel's name: its directory's."""
-        return str(self.path.parent.name)
-
-    def moved_to(self, directory: Any) -> _RawArray | None:
-        """Rename the file's directory to ``directory``; return the array there.
-
-        Its rows are as they were. None when the file is gone or has another size (it was
-        removed meanwhile).
-        """
-        try:
-            if os.path.getsize(self.path) != self.shape[0] * self._row_bytes:
-                return None
-            os.rename(self.path.parent, directory)
-        except OSError:
-            return None
-        out = copy.copy(self)
-        out.path = directory / self.path.name
-        return out
-
-    def __setitem__(self, key: slice | tuple[slice, ...], value: np.ndarray) -> None:
-        r0 = (key[0] if isinstance(key, tuple) else key).indices(self.shape[0])[0]
-        data = np.ascontiguousarray(value, dtype=self.dtype)
-        assert data.shape[1] == self.shape[1], "rows are written whole"
-        fd = os.open(self.path, os.O_WRONLY)
-        try:
-            view = memoryview(data).cast("B")
-            done = 0
-            while done < len(view):
-                done += os.pwrite(fd, view[done:], r0 * self._row_bytes + done)
-        finally:
-            os.close(fd)
-
-    def __getitem__(self, key: slice | tuple[slice, ...]) -> np.ndarray:
-        key = key if isinstance(key, tuple) else (key,)
-        r0, r1, _ = key[0].indices(self.shape[0])
-        out = np.empty((r1 - r0, self.shape[1]), dtype=self.dtype)
-        with open(self.path, "rb") as f:
-            f.seek(r0 * self._row_bytes)
-            read = f.readinto(memoryview(out).cast("B"))
-        if read != out.nbytes:
-            raise StoreError(
-                f"{self.path} holds {r0 * self._row_bytes + read} bytes "
-                f"up to row {r1}, expected {r1 * self._row_bytes}: it was truncated "
-                "while in use (a full disk, or another process). Resume from the last "
-                "commit, or start again without one."
-            )
-        return out[(slice(None), *key[1:])]
-
-
-class _Rows:
-    """An in-memory block seen by dask through row slices (views).
-
-    ``dask.array.from_array`` copies a numpy array whole before slicing it (a copy of the
-    ``n x b`` block per product); this wrapper has no ``copy``, so each task takes a view
-    of its rows.
-    """
-
-    def __init__(self, X: np.ndarray) -> None:
-        self.X = X
-        self.shape, self.dtype, self.ndim = X.shape, X.dtype, X.ndim
-
-    def __getitem__(self, key: Any) -> np.ndarray:
-        return self.X[key]

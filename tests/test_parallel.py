@@ -538,33 +538,34 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
     one more."""
     import functools
 
-    from streamsvd import panels
+    from streamsvd import panel_tasks
 
     n, rows, b = 4000, 250, 20
     A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
     path = _zarr_source(tmp_path, A, rows, b)
-    calls = {"_chunk_products": [], "_chunk_compaction": [],
-             "_chunk_compaction_and_products": []}
+    calls = {"chunk_products": [], "chunk_compaction": [],
+             "chunk_compaction_and_products": []}
     for name, seen in calls.items():
-        task = getattr(panels, name)
+        task = getattr(panel_tasks, name)
 
         def counted(*args, _task=task, _seen=seen, **kw):
             _seen.append(kw["block_info"][0]["array-location"][0])
             return _task(*args, **kw)
 
-        monkeypatch.setattr(panels, name, functools.wraps(task)(counted))
+        monkeypatch.setattr(panel_tasks, name, functools.wraps(task)(counted))
     with tall_compress(path, block=b, max_rank=12, oversampling=0) as tc:
         updates = sum(r.kind == "absorb" for r in tc.history)
     assert updates == 3
     every_chunk = sorted((i, i + rows) for i in range(0, n, rows))
-    passes = {"_chunk_products": 1, "_chunk_compaction": 1,
-              "_chunk_compaction_and_products": updates - 1}
+    passes = {"chunk_products": 1, "chunk_compaction": 1,
+              "chunk_compaction_and_products": updates - 1}
     for name, seen in calls.items():
         assert sorted(seen) == sorted(every_chunk * passes[name])
 
 
 def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, monkeypatch):
-    from streamsvd.panels import PanelBasis, _RawArray
+    from streamsvd.panels import PanelBasis
+    from streamsvd.raw_array import RawArray
 
     A = low_rank(rng, n=600, m=40, rank=15, noise=1e-6)
     path = _zarr_source(tmp_path, A, 100, 10, dtype="float32")
@@ -573,7 +574,7 @@ def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, mo
 
     def spy(self, cols, dtype):
         name, scratch = new_scratch(self, cols, dtype)
-        assert isinstance(scratch, _RawArray)  # a local store: one raw file
+        assert isinstance(scratch, RawArray)  # a local store: one raw file
         sizes.append((scratch.dtype, scratch.path.stat().st_size))
         return name, scratch
 
@@ -591,12 +592,13 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
     over by the next update (renamed: an array handed out before finds its file gone),
     so once the basis is at its cap an update makes no new file; the result is the
     in-memory one, and closing removes the files kept."""
-    from streamsvd.panels import PanelBasis, _RawArray
+    from streamsvd.panels import PanelBasis
+    from streamsvd.raw_array import RawArray
 
     A = low_rank(rng, n=600, m=120, rank=15, noise=1e-9)
     path = _zarr_source(tmp_path, A, 100, 10)
     made, scratches = [], []
-    init, new_scratch = _RawArray.__init__, PanelBasis._new_scratch
+    init, new_scratch = RawArray.__init__, PanelBasis._new_scratch
 
     def counted(self, directory, shape, dtype, *, chunk_rows):
         made.append(shape)
@@ -608,7 +610,7 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
         scratches.append((name, before))
         return name, scratch
 
-    monkeypatch.setattr(_RawArray, "__init__", counted)
+    monkeypatch.setattr(RawArray, "__init__", counted)
     monkeypatch.setattr(PanelBasis, "_new_scratch", spy)
     work = tmp_path / "work"
     tc = tall_compress(path, block=20, max_rank=8, workdir=work)
@@ -643,10 +645,10 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
 def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
     """Row ranges written by separate calls (any memory order) read back exactly, by any
     row range and column slice."""
-    from streamsvd.panels import _RawArray
+    from streamsvd.raw_array import RawArray
 
     A = rng.standard_normal((1003, 7)).astype(dtype)
-    scratch = _RawArray(tmp_path / "pabc", A.shape, dtype, chunk_rows=250)
+    scratch = RawArray(tmp_path / "pabc", A.shape, dtype, chunk_rows=250)
     assert scratch.path.stat().st_size == A.nbytes
     for r0 in range(0, 1003, 250):
         scratch[r0:r0 + 250] = np.asfortranarray(A[r0:r0 + 250])
@@ -664,13 +666,13 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
     """Local panels are raw files; without a store no commit refers to them, and `save`
     copies them into the store, whose commit lists zarr copies of them: the reopened
     compressor is the saved one exactly."""
-    from streamsvd.panels import _RawArray
+    from streamsvd.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
     kw = {"workdir": tmp_path / "work"} if workdir else {}
     tc = tall_compress(A, block=10, max_rank=8, chunk_rows=100, **kw)
     basis = tc._state.basis
-    assert basis.panels and all(isinstance(basis._panel(p), _RawArray) for p in basis.panels)
+    assert basis.panels and all(isinstance(basis._panel(p), RawArray) for p in basis.panels)
     tc.finalize()
     want = tc.expansion
     tc.save(tmp_path / "s.zarr")
@@ -686,7 +688,7 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
 def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
     """In a store the passes use raw panels; every panel a commit lists has a zarr copy
     (checksummed) equal to the raw file, and a panel no commit lists has none."""
-    from streamsvd.panels import _RawArray
+    from streamsvd.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
     store = tmp_path / "s.zarr"
@@ -698,7 +700,7 @@ def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
             listed = set(tc._persistence.recent[0]["panels"])
             for name in basis.panels:
                 raw = basis._panel(name)
-                assert isinstance(raw, _RawArray)
+                assert isinstance(raw, RawArray)
                 copy = store / "panels" / name / "zarr.json"
                 assert copy.exists() == (name in listed)
                 if name in listed:
@@ -713,13 +715,13 @@ def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
 def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
     """A scratch copy left by a killed process (named as a panel, referred to by no
     commit) goes when the store is next opened for writing."""
-    from streamsvd.panels import _RawArray
+    from streamsvd.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=40, rank=10, noise=1e-8)
     store = tmp_path / "s.zarr"
     with tall_compress(A, block=10, max_rank=6, store=store, chunk_rows=100):
         pass
-    stray = _RawArray(store / "panels" / "p0123456789abcdef", (500, 10), "float64",
+    stray = RawArray(store / "panels" / "p0123456789abcdef", (500, 10), "float64",
                       chunk_rows=100)
     assert stray.path.exists()
     with TallCompressor.open(store):
@@ -734,7 +736,7 @@ def test_tall_reading_the_next_block_ahead_changes_no_digit(rng, tmp_path, monke
     """A compaction that also reads the next block (ingest names it, ``expect``) gives
     the stream of the two passes per update bit for bit, and the expansion of the
     in-memory stream to rounding."""
-    from streamsvd import panels
+    from streamsvd import panel_tasks
     from streamsvd.panels import PanelBasis
 
     A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)
@@ -743,14 +745,14 @@ def test_tall_reading_the_next_block_ahead_changes_no_digit(rng, tmp_path, monke
     import functools
 
     fused_tasks = []
-    task = panels._chunk_compaction_and_products
+    task = panel_tasks.chunk_compaction_and_products
 
     @functools.wraps(task)  # dask passes block_info to what names it
     def counted(*args, **kw):
         fused_tasks.append(kw["block_info"][0]["array-location"][0])
         return task(*args, **kw)
 
-    monkeypatch.setattr(panels, "_chunk_compaction_and_products", counted)
+    monkeypatch.setattr(panel_tasks, "chunk_compaction_and_products", counted)
 
     def run():
         fused_tasks.clear()
