@@ -395,11 +395,10 @@ class PanelBasis:
         reads it and reports what failed.
         """
         assert self._staged_block is not None and self._staged_block[1] is not None
-        parts = [*self._parts(), self._staged_block[1]]
         following, self._expected = self._expected, None
         if following is not None and G.shape[1]:
             try:
-                return self._compact_and_read(G, parts, following)
+                return self._compact_and_read(G, following)
             except Exception as exc:  # noqa: BLE001 - the next update reports it
                 logger.debug("reading the next block ahead failed (%s: %s); its update "
                              "reads it", type(exc).__name__, exc)
@@ -409,8 +408,10 @@ class PanelBasis:
                     self._keep_spare(staged[0])
         return self._compact(G, [self._staged_block[1]])
 
-    def _compact_and_read(self, G: np.ndarray, parts: list[Any], following: Any) -> np.ndarray:
+    def _compact_and_read(self, G: np.ndarray, following: Any) -> np.ndarray:
         """Write ``[Q, X] G`` as a new panel and read the next block; return the Gram."""
+        assert self._staged_block is not None
+        parts = [*self._parts(), self._staged_block[1]]
         p, b = G.shape[1], int(following.shape[1])
         name, z = self._new_panel(p)
         self._staged_compact = (name, p)
