@@ -217,7 +217,7 @@ class PanelBasis:
                      lock=False, compute=False)
             for name in todo
         ]
-        execute(stores, client=self.client)
+        self._execute(stores)
         self._sealed.update(todo)
 
     def _write(self, data: Any) -> tuple[str, int]:
@@ -229,9 +229,12 @@ class PanelBasis:
         if isinstance(data, np.ndarray):
             z[:] = data
         else:
-            execute([da.store(data, _target(z), lock=False, compute=False)],
-                    client=self.client)
+            self._execute([da.store(data, _target(z), lock=False, compute=False)])
         return name, cols
+
+    def _execute(self, collections: list[Any]) -> list[Any]:
+        """Compute a pass: its tasks read and write panels, so they overlap their waits."""
+        return execute(collections, client=self.client, overlap_io=True)
 
     def _q(self, panels: list[str] | None = None) -> Any:
         """Return the stored columns as one dask array (``n x w``), or None if there are none."""
@@ -277,7 +280,7 @@ class PanelBasis:
         Q = self._q()
         if Q is None:
             return np.zeros((0 if G is None else G.shape[1], X.shape[1]))
-        (C,) = execute([self._weighted(Q).T @ self._block(X)], client=self.client)
+        (C,) = self._execute([self._weighted(Q).T @ self._block(X)])
         C = np.asarray(C)
         return C if G is None else G.T @ C
 
@@ -287,7 +290,7 @@ class PanelBasis:
         if Q is None:
             return
         K = C if G is None else G @ C
-        (D,) = execute([Q @ K], client=self.client)
+        (D,) = self._execute([Q @ K])
         X -= np.asarray(D)
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +361,7 @@ class PanelBasis:
         shares = self._pass(panel_tasks.chunk_products, [Xd, *self._parts()], rows, b,
                             target=scratch)
         try:
-            (done,) = execute([shares], client=self.client)
+            (done,) = self._execute([shares])
         except StreamSVDError:
             raise
         except Exception as exc:
@@ -420,7 +423,7 @@ class PanelBasis:
         self._read_ahead = _ReadAhead(following, name, scratch)
         shares = self._pass(panel_tasks.chunk_compaction_and_products, [*parts, Xd], p + b, p + b,
                             target=_target(z), next_target=target, G=G)
-        (done,) = execute([shares], client=self.client)
+        (done,) = self._execute([shares])
         total = np.asarray(done)
         H, S = total[:p, :p], total[p:, p:]
         self._read_ahead.S, self._read_ahead.C = 0.5 * (S + S.T), total[:p, p:]
@@ -448,7 +451,7 @@ class PanelBasis:
         name, z = self._new_panel(p)
         self._staged_compact = (name, p)
         shares = self._pass(panel_tasks.chunk_compaction, parts, p, p, target=_target(z), G=G)
-        (done,) = execute([shares], client=self.client)
+        (done,) = self._execute([shares])
         H = np.asarray(done)
         return 0.5 * (H + H.T)
 
@@ -525,7 +528,7 @@ class PanelBasis:
         Q = self._q()
         if Q is None:
             return np.zeros((self.n, G.shape[1]))
-        (U,) = execute([Q @ G], client=self.client)
+        (U,) = self._execute([Q @ G])
         return np.asarray(U)
 
     def lazy(self, G: np.ndarray) -> Any:

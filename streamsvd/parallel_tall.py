@@ -205,7 +205,8 @@ class PanelBackend:
             check_finite(block, "columns")
             return cast(np.ndarray, block)
         try:
-            (out,) = execute([block.data.astype(np.float64)], client=self.client)
+            (out,) = execute([block.data.astype(np.float64)], client=self.client,
+                             overlap_io=True)
         except StreamSVDError:
             raise
         except Exception as exc:
@@ -369,7 +370,8 @@ class TallCompressor(StreamCompressor):
         V = self.right_factor()
         perm = np.argsort(-safe_column_norms(V), kind="stable")
         U = basis.lazy(s.settled()[0][:, perm])
-        top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client)
+        top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client,
+                              overlap_io=True)
         signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
         self._exposure = (self._version, perm, signs)  # the coordinates of `add`
         return U * signs, V[:, perm] * signs

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 import dask
@@ -220,9 +221,9 @@ def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
     seen: set[str] = set()
     real = panels.execute
 
-    def spy(collections, *, client=None, progress=False):
+    def spy(collections, *, client=None, progress=False, overlap_io=False):
         seen.add(dask.config.get("scheduler", None))
-        return real(collections, client=client, progress=progress)
+        return real(collections, client=client, progress=progress, overlap_io=overlap_io)
 
     monkeypatch.setattr(panels, "execute", spy)
     A = rng.standard_normal((90, 30))
@@ -233,6 +234,43 @@ def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
     want = StreamCompressor(90, max_rank=5)
     ingest(open_source(A), want, block=10)
     np.testing.assert_allclose(got.amplitudes, want.expansion.amplitudes, rtol=1e-12)
+
+
+def _workers_asked(monkeypatch) -> list:
+    """Record the ``num_workers`` each run of dask's threaded scheduler is given."""
+    from dask import threaded
+
+    asked: list = []
+    real = threaded.get
+
+    def get(dsk, keys, **kwargs):
+        asked.append(kwargs.get("num_workers"))
+        return real(dsk, keys, **kwargs)
+
+    monkeypatch.setattr(threaded, "get", get)
+    return asked
+
+
+def test_tasks_that_wait_on_io_run_one_more_than_the_cores(rng, monkeypatch):
+    asked = _workers_asked(monkeypatch)
+    x = da.from_array(rng.standard_normal((40, 4)), chunks=(5, 4))
+    (got,) = execute([x.sum()], overlap_io=True)
+    execute([x.sum()])
+    with dask.config.set(num_workers=3):  # the user's choice stands
+        execute([x.sum()], overlap_io=True)
+    with dask.config.set(scheduler="synchronous"):
+        execute([x.sum()], overlap_io=True)
+    assert asked == [os.cpu_count() + 1, None, None]
+    np.testing.assert_allclose(got, x.sum().compute(scheduler="sync"))
+
+
+def test_tall_passes_overlap_their_waits(rng, monkeypatch):
+    asked = _workers_asked(monkeypatch)
+    with tall_compress(rng.standard_normal((90, 30)), block=10, max_rank=5,
+                       chunk_rows=30) as tc:
+        tc.finalize()
+        tc.left_vectors  # noqa: B018 - the signs of the exposed vectors are one more pass
+    assert asked and set(asked) == {os.cpu_count() + 1}
 
 
 def test_local_modes_never_import_distributed(tmp_path):

@@ -1,5 +1,6 @@
 """The drivers keep freed memory for reuse (glibc's mmap and trim thresholds)."""
 
+import os
 import platform
 
 import numpy as np
@@ -26,15 +27,16 @@ def fresh(monkeypatch):
     return calls
 
 
-def test_both_thresholds_are_set_once(fresh):
+def test_both_thresholds_and_the_arenas_are_set_once(fresh):
     assert malloc.keep_freed_memory() and malloc.keep_freed_memory()
     assert fresh == [(malloc._M_MMAP_THRESHOLD, malloc.MMAP_THRESHOLD),
-                     (malloc._M_TRIM_THRESHOLD, malloc.TRIM_THRESHOLD)]
+                     (malloc._M_TRIM_THRESHOLD, malloc.TRIM_THRESHOLD),
+                     (malloc._M_ARENA_MAX, os.cpu_count())]
 
 
 @pytest.mark.parametrize("name, value", [
     ("MALLOC_TRIM_THRESHOLD_", "131072"), ("MALLOC_MMAP_THRESHOLD_", "65536"),
-    ("MALLOC_TOP_PAD_", "0"), ("GLIBC_TUNABLES", "glibc.malloc.trim_threshold=131072"),
+    ("MALLOC_TOP_PAD_", "0"), ("MALLOC_ARENA_MAX", "4"), ("GLIBC_TUNABLES", "glibc.malloc.trim_threshold=131072"),
 ])
 def test_a_malloc_tuned_by_the_environment_is_left_alone(fresh, monkeypatch, name, value):
     monkeypatch.setenv(name, value)
@@ -53,11 +55,12 @@ def test_another_c_library_changes_nothing(monkeypatch):
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc only")
-def test_glibc_accepts_the_thresholds():
+def test_glibc_accepts_the_thresholds_and_the_arenas():
     mallopt = malloc._glibc_mallopt()
     assert mallopt is not None
     assert mallopt(malloc._M_MMAP_THRESHOLD, malloc.MMAP_THRESHOLD) == 1
     assert mallopt(malloc._M_TRIM_THRESHOLD, malloc.TRIM_THRESHOLD) == 1
+    assert mallopt(malloc._M_ARENA_MAX, os.cpu_count()) == 1
 
 
 @pytest.mark.parametrize("driver", ["tall", "tree"])
