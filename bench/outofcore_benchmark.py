@@ -305,20 +305,21 @@ def plot(report: dict[str, Any], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5))
     markers = dict(zip(METHODS, "o1^v<>23sDpPX*", strict=True))
-    for case in report["cases"]:
+    for i, case in enumerate(report["cases"]):
         for r in case["medians"]:
             if "error_over_optimum" not in r:
                 continue
             excess = max(r["error_over_optimum"] - 1.0, 1e-16)
-            ax.scatter(r["vs_read"], excess, marker=markers[r["method"]],
-                       color="C0" if r["method"] in STREAMSVD else "C3")
-            ax.annotate(f"{r['method']} {case['n']}x{case['m']}", (r["vs_read"], excess),
-                        fontsize=6, xytext=(3, 3), textcoords="offset points")
+            dask_svd = r["method"] not in STREAMSVD
+            ax.scatter(r["vs_read"], excess, marker=markers[r["method"]], s=45,
+                       color=f"C{i}", label=f"{'dask ' if dask_svd else ''}{r['method']}, "
+                       f"{case['n']} x {case['m']}")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time / time of the raw read (da.from_zarr(A).sum()), adjacent run")
     ax.set_ylabel("error / optimal rank-60 error - 1  (floored at 1e-16)")
-    ax.set_title("Out of core, rank 60: streamsvd (blue) and dask (red)")
+    ax.set_title("Out of core, rank 60: a marker per method, a colour per array")
+    ax.legend(fontsize=7, ncol=2, loc="best")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -16,10 +16,12 @@ at one per core, where glibc makes up to eight per core: each thread that alloca
 (dask's, zarr's, the codecs') would otherwise keep its own free memory. On the same array
 the tall mode peaked at 289 to 293 MB against 338 to 350 MB, in the same time (medians
 of 6 interleaved processes: 5.74 against 5.75 s), and with a task per core more
-(:func:`streamsvd.scheduling.execute`'s ``overlap_io``) at 324 to 334 MB. It changes the process's allocator, so
-only the drivers call it, once; it does nothing when the environment already tunes
-glibc's malloc (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``,
-``MALLOC_TOP_PAD_``, ``MALLOC_ARENA_MAX`` or ``glibc.malloc`` in ``GLIBC_TUNABLES``), or on another C library.
+(:func:`streamsvd.scheduling.execute`'s ``overlap_io``) at 324 to 334 MB.
+
+It changes the process's allocator, so only the drivers call it, once; it does nothing
+when the environment already tunes glibc's malloc (``MALLOC_MMAP_THRESHOLD_``,
+``MALLOC_TRIM_THRESHOLD_``, ``MALLOC_TOP_PAD_``, ``MALLOC_ARENA_MAX`` or ``glibc.malloc``
+in ``GLIBC_TUNABLES``), or on another C library.
 """
 
 from __future__ import annotations
