@@ -68,7 +68,9 @@ def _apply() -> bool:
     mallopt = _glibc_mallopt()
     if mallopt is None:
         return False
-    arenas = os.cpu_count() or 1
+    from dask.system import CPU_COUNT  # the cores this process may use
+
+    arenas = CPU_COUNT
     done = (bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
             and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
             and bool(mallopt(_M_ARENA_MAX, arenas)))

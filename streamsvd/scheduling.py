@@ -92,7 +92,9 @@ def execute(collections: list[Any], *, client: Any = None, progress: bool = Fals
         options: dict[str, Any] = {}
         if overlap_io and threaded and dask.config.get("num_workers", None) is None and (
                 dask.config.get("pool", None) is None):
-            options["num_workers"] = (os.cpu_count() or 1) + 1
+            from dask.system import CPU_COUNT  # the cores this process may use
+
+            options["num_workers"] = CPU_COUNT + 1
         with blas_threads(1 if threaded else None), _progress_bar(progress):
             return list(dask.compute(*collections, scheduler=local_get(scheduler), **options))
     futures = client.compute(list(collections))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import threading
 
 import dask
@@ -10,6 +9,7 @@ import dask.array as da
 import numpy as np
 import pytest
 import zarr
+from dask.system import CPU_COUNT
 
 from streamsvd import StreamCompressor
 from streamsvd.errors import InputError, NonFiniteError, SourceError
@@ -260,7 +260,7 @@ def test_tasks_that_wait_on_io_run_one_more_than_the_cores(rng, monkeypatch):
         execute([x.sum()], overlap_io=True)
     with dask.config.set(scheduler="synchronous"):
         execute([x.sum()], overlap_io=True)
-    assert asked == [os.cpu_count() + 1, None, None]
+    assert asked == [CPU_COUNT + 1, None, None]
     np.testing.assert_allclose(got, x.sum().compute(scheduler="sync"))
 
 
@@ -270,7 +270,7 @@ def test_tall_passes_overlap_their_waits(rng, monkeypatch):
                        chunk_rows=30) as tc:
         tc.finalize()
         tc.left_vectors  # noqa: B018 - the signs of the exposed vectors are one more pass
-    assert asked and set(asked) == {os.cpu_count() + 1}
+    assert asked and set(asked) == {CPU_COUNT + 1}
 
 
 def test_local_modes_never_import_distributed(tmp_path):

@@ -1,10 +1,10 @@
 """The drivers keep freed memory for reuse (glibc's mmap and trim thresholds)."""
 
-import os
 import platform
 
 import numpy as np
 import pytest
+from dask.system import CPU_COUNT
 
 import streamsvd._malloc as malloc
 from streamsvd import parallel, parallel_tree
@@ -31,7 +31,7 @@ def test_both_thresholds_and_the_arenas_are_set_once(fresh):
     assert malloc.keep_freed_memory() and malloc.keep_freed_memory()
     assert fresh == [(malloc._M_MMAP_THRESHOLD, malloc.MMAP_THRESHOLD),
                      (malloc._M_TRIM_THRESHOLD, malloc.TRIM_THRESHOLD),
-                     (malloc._M_ARENA_MAX, os.cpu_count())]
+                     (malloc._M_ARENA_MAX, CPU_COUNT)]
 
 
 @pytest.mark.parametrize("name, value", [
@@ -60,7 +60,7 @@ def test_glibc_accepts_the_thresholds_and_the_arenas():
     assert mallopt is not None
     assert mallopt(malloc._M_MMAP_THRESHOLD, malloc.MMAP_THRESHOLD) == 1
     assert mallopt(malloc._M_TRIM_THRESHOLD, malloc.TRIM_THRESHOLD) == 1
-    assert mallopt(malloc._M_ARENA_MAX, os.cpu_count()) == 1
+    assert mallopt(malloc._M_ARENA_MAX, CPU_COUNT) == 1
 
 
 @pytest.mark.parametrize("driver", ["tall", "tree"])
