@@ -5,7 +5,8 @@ long for the basis ``n x w`` to stay in memory. The stored columns are a list of
 *panels*, written once each (``<root>/panels/<name>``, in a local directory or an object
 store: :mod:`streamsvd.storage`): in a local directory a raw row-major file, which the
 passes use, and, once a commit lists it, a zarr copy with checksums beside it, which a
-reopened store reads; in an object store a zarr array. Every product with them
+reopened store reads; in an object store a zarr array (:mod:`streamsvd.panel_files`
+keeps them). Every product with them
 (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph over the row
 chunks, run on the threaded scheduler or on a ``distributed`` cluster whose workers
 reach the directory or the object store (a panel pickles as its path, or as its zarr
@@ -43,8 +44,9 @@ from typing import Any, cast
 import numpy as np
 
 from . import panel_tasks
-from .errors import StoreError, StoreMismatchError
+from .errors import StoreMismatchError
 from .inner import DiagonalInner, InnerProduct
+from .panel_files import PanelFiles
 from .raw_array import RawArray, RowView
 from .scheduling import execute
 from .storage import LocalStorage, ObjectStorage
@@ -53,10 +55,6 @@ from .zarr_io import Region
 __all__ = ["PanelBasis"]
 
 logger = logging.getLogger(__name__)
-
-_SPARES = 2
-"""Raw files kept to be written over (:meth:`PanelBasis._keep_spare`)."""
-
 
 class PanelBasis:
     """Basis in panels chunked by rows (see the module docstring).
@@ -90,9 +88,7 @@ class PanelBasis:
         self.chunk_rows = int(chunk_rows)
         self.client = client
         self.root: LocalStorage | ObjectStorage = root
-        self.raw = isinstance(root, LocalStorage)
-        self._sealed: set[str] = set()  # raw panels with a zarr copy
-        self._zstore: Any = None
+        self.files = PanelFiles(n, chunk_rows=chunk_rows, root=root)
         self.panels: list[str] = []
         self.widths: list[int] = []
         self._ws: np.ndarray | None = None
@@ -102,9 +98,6 @@ class PanelBasis:
         self._staged_block: tuple[str, Any] | None = None  # (scratch name or "", dask)
         self._expected: Any = None  # the next update's block, read by this compaction
         self._read_ahead: _ReadAhead | None = None  # what that compaction read of it
-        # raw files that nothing refers to any more, kept to be written over
-        self._spares: list[RawArray] = []
-        self._zarrs: dict[str, Any] = {}
         self._retired: list[str] = []  # panels a compaction replaced, not yet deleted
         self.compactions = 0
 
@@ -123,83 +116,6 @@ class PanelBasis:
         full, rest = divmod(self.n, self.chunk_rows)
         return (self.chunk_rows,) * full + ((rest,) if rest else ())
 
-    def _store(self) -> Any:
-        if self._zstore is None:
-            self._zstore = self.root.zarr_store(read_only=False)
-        return self._zstore
-
-    def _panel(self, name: str) -> Any:
-        z = self._zarrs.get(name)
-        if z is None:
-            import zarr
-
-            try:
-                z = zarr.open_array(store=self._store(), path=f"panels/{name}", mode="r")
-            except (OSError, ValueError, KeyError) as exc:
-                raise StoreError(
-                    f"`store` {self.root}: panel {name} of the basis cannot be opened "
-                    f"({type(exc).__name__}: {exc}). Restore the store from a copy."
-                ) from exc
-            self._zarrs[name] = z
-        return z
-
-    def _new_panel(self, cols: int, dtype: Any = np.float64) -> tuple[str, Any]:
-        """Create an ``n x cols`` panel; return its name and array (zarr or raw).
-
-        Every caller writes all its rows. A raw file kept for reuse (:meth:`_keep_spare`)
-        of this shape and dtype is renamed and written over: writing a file of the page
-        cache again took a third of the CPU time of writing a new one
-        (``bench/README.md``), and an array that still names the old file finds it gone,
-        as if it had been deleted.
-        """
-        name = f"p{uuid.uuid4().hex}"
-        if not self.raw:
-            return name, self._new_zarr(name, cols, dtype)
-        directory = cast(LocalStorage, self.root).root / "panels" / name
-        fits = [s for s in self._spares if s.shape == (self.n, cols) and s.dtype == dtype]
-        spare = fits[0] if fits else None
-        if spare is not None:
-            self._spares.remove(spare)
-        raw = None if spare is None else spare.moved_to(directory)
-        if spare is not None and raw is None:  # removed meanwhile
-            self._delete(spare.name)
-        if raw is None:
-            raw = RawArray(directory, (self.n, cols), dtype, chunk_rows=self.chunk_rows)
-        self._zarrs[name] = raw
-        return name, raw
-
-    def _keep_spare(self, name: str) -> None:
-        """Forget panel ``name``, keeping its raw file to write over, or delete it.
-
-        Only a raw file without a zarr copy is kept (no commit ever listed it), and at
-        most :data:`_SPARES` (an update by the Gram path lets go of the block's scratch
-        copy and of the basis it replaced): beyond, the oldest of a shape kept twice
-        goes, else the oldest.
-        """
-        raw = self._zarrs.get(name)
-        if not isinstance(raw, RawArray) or name in self._sealed:
-            self._delete(name)
-            return
-        self._zarrs.pop(name)
-        self._spares.append(raw)
-        if len(self._spares) > _SPARES:
-            shapes = [(s.shape, s.dtype) for s in self._spares]
-            twice = [i for i, shape in enumerate(shapes) if shapes.count(shape) > 1]
-            self._delete(self._spares.pop(twice[0] if twice else 0).name)
-
-    def _new_zarr(self, name: str, cols: int, dtype: Any = np.float64) -> Any:
-        """Create the zarr array of panel ``name`` (``n x cols``, checksummed chunks)."""
-        import zarr
-        from zarr.codecs import Crc32cCodec
-
-        return zarr.create_array(
-            store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
-            chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
-            fill_value=0.0, compressors=[Crc32cCodec()],
-            # every chunk is written (no comparison with the fill value first)
-            config={"write_empty_chunks": True},
-        )
-
     def _seal(self, names: list[str]) -> None:
         """Write a zarr copy of each raw panel of ``names`` that has none (for a commit).
 
@@ -208,24 +124,19 @@ class PanelBasis:
         """
         import dask.array as da
 
-        todo = [name for name in names
-                if name not in self._sealed and isinstance(self._zarrs.get(name), RawArray)]
+        todo = self.files.unsealed(names)
         if not todo:
             return
-        stores = [
-            da.store(self._read(name), Region(self._new_zarr(name, self._zarrs[name].shape[1])),
-                     lock=False, compute=False)
-            for name in todo
-        ]
-        self._execute(stores)
-        self._sealed.update(todo)
+        self._execute([da.store(self._read(name), Region(self.files.zarr_copy(name)),
+                                lock=False, compute=False) for name in todo])
+        self.files.sealed.update(todo)
 
     def _write(self, data: Any) -> tuple[str, int]:
         """Write an ``n x c`` numpy or dask array as a new panel; return its name and width."""
         import dask.array as da
 
         cols = int(data.shape[1])
-        name, z = self._new_panel(cols)
+        name, z = self.files.new(cols)
         if isinstance(data, np.ndarray):
             z[:] = data
         else:
@@ -251,7 +162,7 @@ class PanelBasis:
         """Return panel ``name`` as a dask array of its row chunks."""
         import dask.array as da
 
-        z = self._panel(name)
+        z = self.files.open(name)
         return da.from_array(_target(z), chunks=z.chunks, name=f"streamsvd-panel-{name}",
                              meta=np.empty((0, 0), z.dtype), asarray=False)
 
@@ -337,8 +248,8 @@ class PanelBasis:
         The scratch copy is one raw file in a local directory (it serves one update and
         no commit refers to it: no chunks, codec or checksum; 15% faster than a zarr
         panel for the whole tall mode, ``bench/README.md``; the next block writes over
-        it, :meth:`_new_panel`), a zarr panel in an object store. A failed read raises
-        the block's :class:`~streamsvd.errors.SourceError`.
+        it, :meth:`~streamsvd.panel_files.PanelFiles.new`), a zarr panel in an object
+        store. A failed read raises the block's :class:`~streamsvd.errors.SourceError`.
         """
         from .errors import StreamSVDError
         from .sources import LazyBlock
@@ -349,7 +260,7 @@ class PanelBasis:
                     and ahead.C is not None):
                 self._staged_block = (ahead.scratch, self._read(ahead.scratch).astype(np.float64))
                 return ahead.S, ahead.C
-            self._keep_spare(ahead.scratch)
+            self.files.let_go(ahead.scratch)
         b = int(X.shape[1])
         lazy = isinstance(X, LazyBlock)
         Xd = (X.data.rechunk({0: self._row_chunks(), 1: -1}) if lazy else self._block(X))
@@ -408,7 +319,7 @@ class PanelBasis:
                 self._drop_read_ahead()
                 staged, self._staged_compact = self._staged_compact, None
                 if staged is not None:
-                    self._keep_spare(staged[0])
+                    self.files.let_go(staged[0])
         return self._compact(G, [self._staged_block[1]])
 
     def _compact_and_read(self, G: np.ndarray, following: Any) -> np.ndarray:
@@ -416,7 +327,7 @@ class PanelBasis:
         assert self._staged_block is not None
         parts = [*self._parts(), self._staged_block[1]]
         p, b = G.shape[1], int(following.shape[1])
-        name, z = self._new_panel(p)
+        name, z = self.files.new(p)
         self._staged_compact = (name, p)
         Xd = following.data.rechunk({0: self._row_chunks(), 1: -1})
         scratch, target = self._new_scratch(b, Xd.dtype)
@@ -433,7 +344,7 @@ class PanelBasis:
         """Forget the next block read ahead, keeping its scratch copy to write over."""
         ahead, self._read_ahead = self._read_ahead, None
         if ahead is not None:
-            self._keep_spare(ahead.scratch)
+            self.files.let_go(ahead.scratch)
 
     def _compact(self, G: np.ndarray, extra: list[Any]) -> np.ndarray:
         """Write ``[Q, *extra] G`` as one new panel (``extra``: dask blocks); return its Gram.
@@ -448,7 +359,7 @@ class PanelBasis:
         if not parts or p == 0:
             self._staged_compact = ("", 0)
             return np.zeros((p, p))
-        name, z = self._new_panel(p)
+        name, z = self.files.new(p)
         self._staged_compact = (name, p)
         shares = self._pass(panel_tasks.chunk_compaction, parts, p, p, target=_target(z), G=G)
         (done,) = self._execute([shares])
@@ -459,9 +370,9 @@ class PanelBasis:
         """Create the block's scratch copy, a panel (``n x cols``); return its name and target.
 
         The copy that the last block left (:meth:`_drop_block`) is written over when it
-        has this shape and dtype (:meth:`_new_panel`).
+        has this shape and dtype (:meth:`~streamsvd.panel_files.PanelFiles.new`).
         """
-        name, z = self._new_panel(cols, dtype)
+        name, z = self.files.new(cols, dtype)
         return name, _target(z)
 
     def _parts(self) -> list[Any]:
@@ -506,7 +417,7 @@ class PanelBasis:
         self._drop_read_ahead()
         for staged in (self._staged_new, self._staged_compact):
             if staged is not None and staged[0]:
-                self._delete(staged[0])
+                self.files.delete(staged[0])
         self._staged_new = self._staged_compact = None
         self._drop_block()
 
@@ -516,12 +427,8 @@ class PanelBasis:
         No commit refers to a scratch copy, and no array handed out reads it.
         """
         if self._staged_block is not None and self._staged_block[0]:
-            self._keep_spare(self._staged_block[0])
+            self.files.let_go(self._staged_block[0])
         self._staged_block = None
-
-    def _delete(self, name: str) -> None:
-        self._zarrs.pop(name, None)
-        self.root.delete(f"panels/{name}")
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` in memory (``n x p``)."""
@@ -565,7 +472,7 @@ class PanelBasis:
         self.panels = [str(p) for p in attrs["panels"]]
         self.widths = [int(w) for w in attrs["widths"]]
         for name, width in zip(self.panels, self.widths, strict=True):
-            z = self._panel(name)
+            z = self.files.open(name)
             if z.shape != (self.n, width):
                 raise StoreMismatchError(
                     f"`path` {self.root} is damaged: panel {name} has shape {z.shape}, "
@@ -587,32 +494,30 @@ class PanelBasis:
         Only panels this basis wrote and replaced go, so a work directory shared with
         other data is safe; without a store the replaced basis goes at once. A raw file
         that no commit ever listed is kept for the next compaction to write over
-        (:meth:`_keep_spare`), the others are deleted.
+        (:meth:`~streamsvd.panel_files.PanelFiles.let_go`), the others are deleted.
         """
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
         keep = [name for name in self._retired if name in live]
         for name in self._retired:
             if name not in live:
-                self._keep_spare(name)
+                self.files.let_go(name)
         self._retired = keep
 
     def drop_scratch(self) -> None:
         """Remove the raw files kept to be written over (made again when needed)."""
         self._drop_read_ahead()
-        spares, self._spares = self._spares, []
-        for spare in spares:
-            self._delete(spare.name)
+        self.files.drop_spares()
 
     def collect(self, committed: Sequence[dict]) -> None:
         """Delete the panels that neither the state nor these commits' attributes refer to."""
         live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
-        live.update(spare.name for spare in self._spares)
+        live.update(spare.name for spare in self.files.spares)
         if self._read_ahead is not None:
             live.add(self._read_ahead.scratch)
-        for entry in self.root.list("panels"):
-            if entry.startswith("p") and entry not in live:
+        for entry in self.files.listed():
+            if entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
-                self._delete(entry)
+                self.files.delete(entry)
 
 
 def _target(z: Any) -> Any:

@@ -620,7 +620,7 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
     assert len(made) == scratches[3][1]  # no file made from the fourth update on
     assert basis.compactions >= 4
     assert sorted(p.name for p in (work / "panels").iterdir()) == sorted(
-        [*basis.panels, *(spare.name for spare in basis._spares)])
+        [*basis.panels, *(spare.name for spare in basis.files.spares)])
     U, _ = tc.factors()
     before = U.compute()
     tc.absorb(A[:, :20])  # lets go of the panel that U reads, kept as it was
@@ -672,7 +672,7 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
     kw = {"workdir": tmp_path / "work"} if workdir else {}
     tc = tall_compress(A, block=10, max_rank=8, chunk_rows=100, **kw)
     basis = tc._state.basis
-    assert basis.panels and all(isinstance(basis._panel(p), RawArray) for p in basis.panels)
+    assert basis.panels and all(isinstance(basis.files.open(p), RawArray) for p in basis.panels)
     tc.finalize()
     want = tc.expansion
     tc.save(tmp_path / "s.zarr")
@@ -699,7 +699,7 @@ def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
             basis = tc._state.basis
             listed = set(tc._persistence.recent[0]["panels"])
             for name in basis.panels:
-                raw = basis._panel(name)
+                raw = basis.files.open(name)
                 assert isinstance(raw, RawArray)
                 copy = store / "panels" / name / "zarr.json"
                 assert copy.exists() == (name in listed)
@@ -827,7 +827,7 @@ def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
             tc.absorb(A[:, j:j + 20])
             on_disk = {p for p in tc._state.basis.root.list("panels") if p.startswith("p")}
             live = set(tc._state.basis.panels)
-            spares = {spare.name for spare in tc._state.basis._spares}
+            spares = {spare.name for spare in tc._state.basis.files.spares}
             assert len(spares) <= 2 and not spares & live
             if with_store:
                 recent = set().union(*(a["panels"] for a in tc._persistence.recent))
