@@ -6,12 +6,12 @@ long for the basis ``n x w`` to stay in memory. The stored columns are a list of
 store: :mod:`streamsvd.storage`): in a local directory a raw row-major file, which the
 passes use, and, once a commit lists it, a zarr copy with checksums beside it, which a
 reopened store reads; in an object store a zarr array (:mod:`streamsvd.panel_files`
-keeps them). Every product with them
-(``Q^T M X``, ``X - Q K``, ``[Q, Y] G``, ``Q^T M Y``) is a dask graph over the row
-chunks, run on the threaded scheduler or on a ``distributed`` cluster whose workers
-reach the directory or the object store (a panel pickles as its path, or as its zarr
-store: a URL and its ``storage_options``). The basis is never in memory; a block is read by row
-chunks within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
+keeps them). Every product with them (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``,
+``Q^T M Y``) is a dask graph over the row chunks (:mod:`streamsvd.row_chunks`), run on
+the threaded scheduler or on a ``distributed`` cluster whose workers reach the directory
+or the object store (a panel pickles as its path, or as its zarr store: a URL and its
+``storage_options``). The basis is never in memory; a block is read by row chunks
+within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
 path orthonormalises an in-memory block (``n x b``) in an in-memory workspace.
 
 The Gram path's two passes (the block's products, then the new basis) are one task per
@@ -37,18 +37,16 @@ so a process or worker killed at any instant leaves the last commit readable.
 from __future__ import annotations
 
 import logging
-import uuid
 from collections.abc import Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
 from . import panel_tasks
 from .errors import StoreMismatchError
-from .inner import DiagonalInner, InnerProduct
+from .inner import InnerProduct
 from .panel_files import PanelFiles
-from .raw_array import RawArray, RowView
-from .scheduling import execute
+from .row_chunks import RowChunks, io_target
 from .storage import LocalStorage, ObjectStorage
 from .zarr_io import Region
 
@@ -89,6 +87,8 @@ class PanelBasis:
         self.client = client
         self.root: LocalStorage | ObjectStorage = root
         self.files = PanelFiles(n, chunk_rows=chunk_rows, root=root)
+        self.rows = RowChunks(n, chunk_rows=chunk_rows, inner=inner, client=client,
+                              files=self.files)
         self.panels: list[str] = []
         self.widths: list[int] = []
         self._ws: np.ndarray | None = None
@@ -112,10 +112,6 @@ class PanelBasis:
         """Columns the basis can hold without growing: panels are added, never grown."""
         return np.iinfo(np.int64).max
 
-    def _row_chunks(self) -> tuple[int, ...]:
-        full, rest = divmod(self.n, self.chunk_rows)
-        return (self.chunk_rows,) * full + ((rest,) if rest else ())
-
     def _seal(self, names: list[str]) -> None:
         """Write a zarr copy of each raw panel of ``names`` that has none (for a commit).
 
@@ -127,8 +123,11 @@ class PanelBasis:
         todo = self.files.unsealed(names)
         if not todo:
             return
-        self._execute([da.store(self._read(name), Region(self.files.zarr_copy(name)),
-                                lock=False, compute=False) for name in todo])
+        self.rows.compute([
+            da.store(self.rows.panel(name), Region(self.files.zarr_copy(name)), lock=False,
+                     compute=False)
+            for name in todo
+        ])
         self.files.sealed.update(todo)
 
     def _write(self, data: Any) -> tuple[str, int]:
@@ -140,68 +139,26 @@ class PanelBasis:
         if isinstance(data, np.ndarray):
             z[:] = data
         else:
-            self._execute([da.store(data, _target(z), lock=False, compute=False)])
+            self.rows.compute([da.store(data, io_target(z), lock=False, compute=False)])
         return name, cols
-
-    def _execute(self, collections: list[Any]) -> list[Any]:
-        """Compute a pass: its tasks read and write panels, so they overlap their waits."""
-        return execute(collections, client=self.client, overlap_io=True)
-
-    def _q(self, panels: list[str] | None = None) -> Any:
-        """Return the stored columns as one dask array (``n x w``), or None if there are none."""
-        import dask.array as da
-
-        names = self.panels if panels is None else panels
-        if not names:
-            return None
-        parts = [self._read(p) for p in names]
-        Q = parts[0] if len(parts) == 1 else da.concatenate(parts, axis=1)
-        return Q.rechunk({0: self._row_chunks(), 1: -1})
-
-    def _read(self, name: str) -> Any:
-        """Return panel ``name`` as a dask array of its row chunks."""
-        import dask.array as da
-
-        z = self.files.open(name)
-        return da.from_array(_target(z), chunks=z.chunks, name=f"streamsvd-panel-{name}",
-                             meta=np.empty((0, 0), z.dtype), asarray=False)
-
-    def _block(self, X: np.ndarray) -> Any:
-        """Return an in-memory block as a dask array of its row chunks (views, no copy).
-
-        The graph is computed before the block changes: every caller runs it at once.
-        """
-        import dask.array as da
-
-        return da.from_array(RowView(X), chunks=(self._row_chunks(), (X.shape[1],)),
-                             name=f"streamsvd-block-{uuid.uuid4().hex}", meta=X[:0, :0])
-
-    def _weighted(self, Y: Any) -> Any:
-        """``M Y`` of a dask block (diagonal ``M``)."""
-        if self.inner.is_euclidean:
-            return Y
-        import dask.array as da
-
-        w = cast(DiagonalInner, self.inner).weights.reshape(-1, 1)
-        return Y * da.from_array(w, chunks=(self._row_chunks(), (1,)))
 
     # ------------------------------------------------------------------ products
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
         """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
-        Q = self._q()
+        Q = self.rows.stacked(self.panels)
         if Q is None:
             return np.zeros((0 if G is None else G.shape[1], X.shape[1]))
-        (C,) = self._execute([self._weighted(Q).T @ self._block(X)])
+        (C,) = self.rows.compute([self.rows.weighted(Q).T @ self.rows.block(X)])
         C = np.asarray(C)
         return C if G is None else G.T @ C
 
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
         """``X -= Q (G C)`` in place, row chunk by row chunk."""
-        Q = self._q()
+        Q = self.rows.stacked(self.panels)
         if Q is None:
             return
         K = C if G is None else G @ C
-        (D,) = self._execute([Q @ K])
+        (D,) = self.rows.compute([Q @ K])
         X -= np.asarray(D)
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +191,7 @@ class PanelBasis:
 
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` as one new panel; return its Gram ``Q'^T M Q'``."""
-        return self._compact(G, [self._block(self.planned_new(r)[0])] if r else [])
+        return self._compact(G, [self.rows.block(self.planned_new(r)[0])] if r else [])
 
     def block_products(self, X: Any, *, project: bool) -> tuple[np.ndarray, np.ndarray]:
         """Stage ``X`` for :meth:`compact_with_block`; return ``X^T M X`` and ``MQ^T X``.
@@ -258,21 +215,22 @@ class PanelBasis:
         if ahead is not None:
             if (ahead.block is X and [ahead.panel] == self.panels and ahead.S is not None
                     and ahead.C is not None):
-                self._staged_block = (ahead.scratch, self._read(ahead.scratch).astype(np.float64))
+                self._staged_block = (ahead.scratch,
+                                      self.rows.panel(ahead.scratch).astype(np.float64))
                 return ahead.S, ahead.C
             self.files.let_go(ahead.scratch)
         b = int(X.shape[1])
         lazy = isinstance(X, LazyBlock)
-        Xd = (X.data.rechunk({0: self._row_chunks(), 1: -1}) if lazy else self._block(X))
+        Xd = (self.rows.rows_of(X.data) if lazy else self.rows.block(X))
         scratch: Any = None
         if lazy:
             name, scratch = self._new_scratch(b, Xd.dtype)
             self._staged_block = (name, None)
         rows = b + self.width
-        shares = self._pass(panel_tasks.chunk_products, [Xd, *self._parts()], rows, b,
+        shares = self.rows.run_pass(panel_tasks.chunk_products, [Xd, *self._parts()], rows, b,
                             target=scratch)
         try:
-            (done,) = self._execute([shares])
+            (done,) = self.rows.compute([shares])
         except StreamSVDError:
             raise
         except Exception as exc:
@@ -281,7 +239,7 @@ class PanelBasis:
             raise
         total = np.asarray(done)
         if lazy:
-            self._staged_block = (name, self._read(name).astype(np.float64))
+            self._staged_block = (name, self.rows.panel(name).astype(np.float64))
         else:
             self._staged_block = ("", Xd)
         S = total[:b]
@@ -329,12 +287,13 @@ class PanelBasis:
         p, b = G.shape[1], int(following.shape[1])
         name, z = self.files.new(p)
         self._staged_compact = (name, p)
-        Xd = following.data.rechunk({0: self._row_chunks(), 1: -1})
-        scratch, target = self._new_scratch(b, Xd.dtype)
+        Xd = self.rows.rows_of(following.data)
+        scratch, scratch_target = self._new_scratch(b, Xd.dtype)
         self._read_ahead = _ReadAhead(following, name, scratch)
-        shares = self._pass(panel_tasks.chunk_compaction_and_products, [*parts, Xd], p + b, p + b,
-                            target=_target(z), next_target=target, G=G)
-        (done,) = self._execute([shares])
+        shares = self.rows.run_pass(panel_tasks.chunk_compaction_and_products, [*parts, Xd],
+                                    p + b, p + b, target=io_target(z),
+                                    next_target=scratch_target, G=G)
+        (done,) = self.rows.compute([shares])
         total = np.asarray(done)
         H, S = total[:p, :p], total[p:, p:]
         self._read_ahead.S, self._read_ahead.C = 0.5 * (S + S.T), total[:p, p:]
@@ -361,8 +320,9 @@ class PanelBasis:
             return np.zeros((p, p))
         name, z = self.files.new(p)
         self._staged_compact = (name, p)
-        shares = self._pass(panel_tasks.chunk_compaction, parts, p, p, target=_target(z), G=G)
-        (done,) = self._execute([shares])
+        shares = self.rows.run_pass(panel_tasks.chunk_compaction, parts, p, p,
+                                    target=io_target(z), G=G)
+        (done,) = self.rows.compute([shares])
         H = np.asarray(done)
         return 0.5 * (H + H.T)
 
@@ -373,32 +333,11 @@ class PanelBasis:
         has this shape and dtype (:meth:`~streamsvd.panel_files.PanelFiles.new`).
         """
         name, z = self.files.new(cols, dtype)
-        return name, _target(z)
+        return name, io_target(z)
 
     def _parts(self) -> list[Any]:
         """Return the stored panels as dask arrays of their row chunks (not concatenated)."""
-        return [self._read(name) for name in self.panels]
-
-    def _pass(self, task: Any, arrays: list[Any], rows: int, cols: int, **kwargs: Any) -> Any:
-        """Return the sum of the ``rows x cols`` shares ``task`` computes per row chunk.
-
-        ``arrays`` are chunked by the basis's rows (one column chunk each); with a
-        diagonal inner product the weights' chunk is passed after them, and ``task``
-        gets ``weighted=True``.
-        """
-        import dask.array as da
-
-        if not self.inner.is_euclidean:
-            w = cast(DiagonalInner, self.inner).weights.reshape(-1, 1)
-            arrays = [*arrays, da.from_array(w, chunks=(self._row_chunks(), (1,)))]
-        chunks = arrays[0].rechunk({0: self._row_chunks()}).chunks[0]
-        aligned = [a.rechunk({0: chunks, 1: -1}) for a in arrays]
-        shares = da.map_blocks(
-            task, *aligned, weighted=not self.inner.is_euclidean,
-            chunks=((rows,) * len(chunks), (cols,)), dtype=np.float64,
-            meta=np.empty((0, 0)), name=f"streamsvd-pass-{uuid.uuid4().hex}", **kwargs,
-        )
-        return shares.reshape((len(chunks), rows, cols)).sum(axis=0)
+        return [self.rows.panel(name) for name in self.panels]
 
     def swap(self, p: int) -> None:
         """Make the panel written by :meth:`compact_planned` the stored basis."""
@@ -432,19 +371,19 @@ class PanelBasis:
 
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` in memory (``n x p``)."""
-        Q = self._q()
+        Q = self.rows.stacked(self.panels)
         if Q is None:
             return np.zeros((self.n, G.shape[1]))
-        (U,) = self._execute([Q @ G])
+        (U,) = self.rows.compute([Q @ G])
         return np.asarray(U)
 
     def lazy(self, G: np.ndarray) -> Any:
         """Return ``Q G`` as a dask array (computed chunk by chunk, never whole)."""
         import dask.array as da
 
-        Q = self._q()
+        Q = self.rows.stacked(self.panels)
         if Q is None:
-            return da.zeros((self.n, G.shape[1]), chunks=(self._row_chunks(), (1,)))
+            return da.zeros((self.n, G.shape[1]), chunks=(self.rows.sizes, (1,)))
         return Q @ G
 
     # ------------------------------------------------------------------ persistence
@@ -481,11 +420,11 @@ class PanelBasis:
 
     def adopt(self, other: PanelBasis) -> None:
         """Hold a copy of ``other``'s stored columns, written as one panel of this root."""
-        Q = other._q()
+        Q = other.rows.stacked(other.panels)
         if Q is None:
             self.panels, self.widths = [], []
             return
-        name, width = self._write(Q.rechunk({0: self._row_chunks(), 1: -1}))
+        name, width = self._write(self.rows.rows_of(Q))
         self.panels, self.widths = [name], [width]
 
     def release(self, committed: Sequence[dict]) -> None:
@@ -518,11 +457,6 @@ class PanelBasis:
             if entry not in live:
                 logger.debug("removing unreferenced panel %s of %s", entry, self.root)
                 self.files.delete(entry)
-
-
-def _target(z: Any) -> Any:
-    """Return what dask reads and writes a panel through (zarr via :mod:`.zarr_io`)."""
-    return z if isinstance(z, RawArray) else Region(z)
 
 
 class _ReadAhead:

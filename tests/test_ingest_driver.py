@@ -216,16 +216,16 @@ def test_execute_honours_the_configured_synchronous_scheduler(rng):
 
 
 def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
-    import streamsvd.panels as panels
+    import streamsvd.row_chunks as row_chunks
 
     seen: set[str] = set()
-    real = panels.execute
+    real = row_chunks.execute
 
     def spy(collections, *, client=None, progress=False, overlap_io=False):
         seen.add(dask.config.get("scheduler", None))
         return real(collections, client=client, progress=progress, overlap_io=overlap_io)
 
-    monkeypatch.setattr(panels, "execute", spy)
+    monkeypatch.setattr(row_chunks, "execute", spy)
     A = rng.standard_normal((90, 30))
     with dask.config.set(scheduler="synchronous"):
         with tall_compress(A, block=10, max_rank=5, chunk_rows=30) as tc:
