@@ -84,7 +84,6 @@ class PanelBasis:
         self.n = int(n)
         self.inner = inner
         self.chunk_rows = int(chunk_rows)
-        self.client = client
         self.root: LocalStorage | ObjectStorage = root
         self.files = PanelFiles(n, chunk_rows=chunk_rows, root=root)
         self.rows = RowChunks(n, chunk_rows=chunk_rows, inner=inner, client=client,
