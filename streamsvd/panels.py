@@ -227,7 +227,7 @@ class PanelBasis:
             self._staged_block = (name, None)
         rows = b + self.width
         shares = self.rows.run_pass(panel_tasks.chunk_products, [Xd, *self._parts()], rows, b,
-                            target=scratch)
+                                    target=scratch)
         try:
             (done,) = self.rows.compute([shares])
         except StreamSVDError:
