@@ -21,7 +21,10 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
   leaves the Gram of the columns it writes there to the next update, whose
   ``joint_products(X)`` copies the block beside ``Q`` and measures the Gram of ``[Q, X]``
   whole, ``Q^T M Q`` with it, in one product (``measure_gram()`` measures ``Q^T M Q``
-  alone for whoever reads the basis before; :class:`~streamsvd.update.State`);
+  alone for whoever reads the basis before; :class:`~streamsvd.update.State`); its
+  ``products_beside(X)`` copies a narrow block beside ``Q`` and returns ``X^T M X`` and
+  ``MQ^T X`` in one product, so that the update may keep the block as stored columns
+  (``accept``) instead of compacting;
 * ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``,
   ``release(...)``: what a commit to a store needs, what it may delete afterwards, and
   what an update replaced that no recent commit uses; ``compactions`` counts the swaps,
@@ -170,6 +173,13 @@ class DeferredGram(BasisBackend, Protocol):
 
     def measure_gram(self) -> np.ndarray:
         """Return the Gram ``Q^T M Q`` of the stored columns, measured."""
+
+    def products_beside(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stage ``X`` beside the basis; return ``X^T M X`` and ``MQ^T X`` (one product)."""
+
+    @property
+    def block_beside(self) -> bool:
+        """Whether the staged block is in the workspace, after the stored columns."""
 
 
 class Backend(Protocol):
@@ -415,6 +425,7 @@ class MemoryBasis:
     def accept(self, r: int) -> None:
         """Make the first ``r`` workspace columns stored columns."""
         self._w += int(r)
+        self._block, self._beside = None, False
 
     def stage_new(self, r: int) -> None:
         """Nothing to do: the workspace columns are in memory until :meth:`accept`."""
@@ -462,15 +473,35 @@ class MemoryBasis:
         where ``Q^T Q``, ``Q^T X`` and ``X^T X`` apart took 4.7 and 15 ms, the copy 0.14
         and 1.9 ms (``bench/README.md``); the compaction is then one product as well.
         """
-        w, b = self._w, X.shape[1]
+        w, b = self._w, self._stage_beside(X)
+        K = self._gram_of(self._bufs[0][:, :w + b], self._bufs[1][:, :w + b])
+        return K[w:, w:], K[:w, w:], K[:w, :w]
+
+    def products_beside(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stage ``X`` beside the basis; return ``X^T M X`` and ``MQ^T X``.
+
+        The block is copied into the workspace, after the stored columns, where an update
+        may keep it (:meth:`accept`) instead of compacting; ``[MQ, MX]^T X`` is one
+        product.
+        """
+        w, b = self._w, self._stage_beside(X)
+        K = self._bufs[1][:, :w + b].T @ self._bufs[0][:, w:w + b]
+        return 0.5 * (K[w:] + K[w:].T), K[:w]
+
+    def _stage_beside(self, X: np.ndarray) -> int:
+        """Copy ``X`` (and ``M X``) into the workspace and stage it; return its width."""
+        b = X.shape[1]
         Y, MY = self.workspace(b)
         Y[...] = X
         if not self.inner.is_euclidean:
             MY[...] = self.inner.apply(X)
-        W, MW = self._bufs[0][:, :w + b], self._bufs[1][:, :w + b]
-        K = self._gram_of(W, MW)
         self._block, self._beside = (Y, MY), True
-        return K[w:, w:], K[:w, w:], K[:w, :w]
+        return b
+
+    @property
+    def block_beside(self) -> bool:
+        """Whether the staged block is in the workspace, after the stored columns."""
+        return self._beside
 
     def measure_gram(self) -> np.ndarray:
         """Return the Gram ``Q^T M Q`` of the stored columns, measured."""

@@ -65,7 +65,7 @@ logger = logging.getLogger(__name__)
 # (about 4 flops per extra column, per snapshot, per row) reach its own cost
 # (2 flops per stored column, per kept term, per row).
 _WASTE_PER_COLUMN = 4.0
-_COMPACT_PER_COLUMN = 2.0
+COMPACT_PER_COLUMN = 2.0
 
 
 @dataclass(frozen=True)
@@ -453,7 +453,7 @@ def _plan(
                     + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1))
     capacity, block = state.basis.capacity, ext.accepted.size
     compact = (
-        wasted_flops >= _COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
+        wasted_flops >= COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )

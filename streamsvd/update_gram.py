@@ -30,9 +30,27 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   the Gram of ``[Q, X]`` predicts for ``U = Q'``, ``||W_k^T Phi W_k Lambda_k^(-1) - I||``
   (its Frobenius norm, an upper bound of the 2-norm, when below 1/4; the compaction's
   own rounding is measured with the next block).
+* a narrow block is *kept* beside an in-memory basis instead (:func:`_keeps_block`: at
+  most a quarter as wide as the ``k`` kept terms, the stored width within ``2 k``):
+  copied after the stored columns, its products are one product ``[M Q, M X]^T X``
+  (:meth:`~streamsvd.basis.MemoryBasis.products_beside`), nothing is written, and the
+  state becomes ``U = [Q, X] G L^(-T)`` with the Gram ``B`` of ``[Q, X]`` as the stored
+  basis's Gram (measured: the block's columns are stored as they are) and ``G^T B G =
+  W_k^T Phi W_k Lambda_k^(-1) = L L^T``. Writing ``k`` columns from ``w + b`` costs ``2
+  n (w + b) k`` flops where the block's products cost ``2 n (w + b) b``: at blocks of 10
+  on 70 terms one update in eight compacts instead of every one, for a third of the
+  flops (``bench/README.md``). Kept only while ``U`` can be formed to the exact path's
+  ``reorth_tol`` (:func:`_kept_factors`): forming ``U`` from columns that cancel rounds
+  by about ``eps sum_i ||q_i|| |coords_ik|``, and ``L`` carries the rounding of ``Phi``,
+  about ``eps lambda_1 / lambda_k``, which a compaction's measured Gram would remove;
+  the rounding allowance of ``Phi`` is then relative to ``sum_i B_ii ||Z_i||^2`` where
+  that exceeds ``trace(Phi)`` (:func:`_cancellation_energy`). The next update that
+  compacts (this path's when the width would pass ``2 k``, or the exact path's, which
+  the state's ``wasted_flops`` tells to) writes the kept blocks into the new basis.
 
 Cost: about ``2 n (w + b) b + 2 n (w + b) k`` flops and one ``M X``: two passes over the
-basis and the block, whatever the conditioning of the block.
+basis and the block, whatever the conditioning of the block; one pass, ``2 n (w + b) b``
+flops, for a block kept beside the basis.
 
 A merge (:func:`plan_merge_by_gram`) is the same update with the other expansion's basis
 ``Q_o`` as the block and ``Z_o R_o^T`` as its coefficients (``U_o = Q_o Z_o``, ``V_o = Y_o
@@ -81,7 +99,15 @@ from ._scaling import pow2_exponent
 from .basis import BasisBackend, DeferredGram
 from .bound import Bound
 from .gram_schmidt import default_reject_tol
-from .update import Plan, State, StepOptions, Writes, gram_orthogonality, plan_rows
+from .update import (
+    COMPACT_PER_COLUMN,
+    Plan,
+    State,
+    StepOptions,
+    Writes,
+    gram_orthogonality,
+    plan_rows,
+)
 
 __all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]
 
@@ -94,6 +120,8 @@ _MAX_DRIFT = 0.25  # largest ||H' - I|| of the new basis
 _MAX_SPREAD = 900  # largest spread of the block's binary exponents
 _COMPACTION_RATIO = 4.0  # largest compaction flops over the exact path's products
 _JOINT_MAX_SHARE = 0.5  # widest block, over the basis's width, copied beside a pending one
+_KEEP_MAX_SHARE = 4  # a block kept beside the basis is at most 1/4 as wide as the terms
+_KEEP_MAX_WIDTH = 2  # and the stored width stays within twice the terms
 # squared column norms within which the block is used unscaled (no product of its
 # entries can overflow or lose digits to underflow in the Gram)
 _SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
@@ -145,7 +173,7 @@ def _path_applies(opts: StepOptions, n: int) -> bool:
     return opts.reject_tol <= default_reject_tol(n)
 
 
-def _declined(basis: BasisBackend) -> None:
+def _declined(basis: BasisBackend) -> Plan | None:
     """Drop what the basis staged for this path; None sends the update to the exact path."""
     basis.discard_planned()
     return None
@@ -178,6 +206,58 @@ def _room(
     return float(np.sum(cut))
 
 
+def _keeps_block(w: int, b: int, keep: int) -> bool:
+    """Whether an update may store a block of ``b`` columns instead of compacting.
+
+    For a block at most a quarter as wide as the ``keep`` terms, while the stored width
+    stays within twice ``keep``: writing ``keep`` columns from ``w + b`` then costs more
+    than the wider projections the stored block adds until the next compaction.
+    """
+    return _KEEP_MAX_SHARE * b <= keep and w + b <= _KEEP_MAX_WIDTH * keep
+
+
+def _kept_factors(G: np.ndarray, predicted: np.ndarray, B: np.ndarray, *, tol: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """Return ``(coords, L, B, orthogonality)`` for a block kept beside the basis, or None.
+
+    ``U = [Q, Y] G`` has the Gram ``G^T B G = Wk^T Phi Wk``, ``predicted`` here, ``B``
+    the Gram of ``[Q, Y]`` (measured: the block's columns are stored as they are); with
+    ``predicted = L L^T``, ``U = [Q, Y] coords``, ``coords = G L^(-T)``. Forming ``U``
+    rounds each column ``u_k`` by about ``lambda sqrt(w) eps sum_i ||q_i|| |coords_ik|``
+    (``q_i`` the stored columns, ``w`` of them), more than ``eps`` when the columns
+    cancel, and ``L`` carries the rounding of ``predicted`` (about ``eps lambda_1 /
+    lambda_k``, which a compaction's measured Gram would remove): None when either
+    exceeds ``tol`` (``reorth_tol``), so that ``U`` is orthonormal to the tolerance the
+    exact path keeps.
+    """
+    H_new = 0.5 * (predicted + predicted.T)
+    drift = _drift(H_new)
+    if drift > tol:
+        return None
+    L = np.linalg.cholesky(H_new)
+    coords = G @ dtrtri(L, lower=1)[0].T  # G L^{-T}
+    norms = np.sqrt(np.maximum(np.diag(B), 0.0))
+    rounding = (_ROUNDING_LAMBDA * math.sqrt(B.shape[0]) * _EPS
+                * float(np.max(norms @ np.abs(coords))))
+    orthogonality = drift + 2.0 * rounding
+    if orthogonality > tol:
+        return None
+    return coords, L, B, orthogonality
+
+
+def _cancellation_energy(H: np.ndarray, S: np.ndarray, Zq: np.ndarray,
+                         Zb: np.ndarray) -> float:
+    """Return ``sum_i B_ii ||Z_i||^2``, ``B`` the Gram of ``[Q, Y]``, ``Z_i`` the rows of ``Z``.
+
+    The rounding of ``B`` is relative to its diagonal (``|dB_ij| <~ gamma sqrt(B_ii
+    B_jj)``), so that of ``Phi = Z^T B Z`` is relative to this sum. It is ``trace(Phi)``
+    when ``[Q, Y] Z`` has orthonormal columns ``Q`` and a block of orthogonal columns, and
+    larger when ``Z`` combines stored columns that cancel (blocks kept beside the basis).
+    """
+    zb2 = Zb * Zb if Zb.ndim == 1 else np.sum(Zb * Zb, axis=1)
+    return float(np.diag(H) @ np.sum(Zq * Zq, axis=1) + np.diag(S) @ zb2)
+
+
 def _times(A: np.ndarray, Z: np.ndarray) -> np.ndarray:
     """Return ``A Z``, ``Z`` a matrix or a diagonal given by its entries (1-D)."""
     return A * Z if Z.ndim == 1 else A @ Z
@@ -204,7 +284,8 @@ def plan_absorb_by_gram(
         return None
     basis = state.basis
     k = state.R.shape[0]
-    if not _compaction_pays(basis.width, b, state.rank):
+    if not (_compaction_pays(basis.width, b, state.rank)
+            or basis.defers_gram and _keeps_block(basis.width, b, state.rank)):
         return None
     if _refused_before_block(state, trunc, b, n):
         return None
@@ -316,10 +397,13 @@ def _products(state: State, Y: Any, *, project: bool
     staged as it is and the Gram measured alone. Otherwise the Gram is the state's, and
     ``MQ^T Y`` is None unless ``project``.
     """
-    if state.gram is not None:
-        S, C = state.basis.block_products(Y, project=project)
-        return S, C, state.gram
     basis = cast(DeferredGram, state.basis)
+    if state.gram is not None:
+        if (basis.defers_gram and isinstance(Y, np.ndarray)
+                and _keeps_block(basis.width, Y.shape[1], state.rank)):
+            return (*basis.products_beside(Y), state.gram)
+        S, C = basis.block_products(Y, project=project)
+        return S, C, state.gram
     if Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
         return basis.joint_products(Y)
     H = basis.measure_gram()
@@ -374,45 +458,67 @@ def _plan_by_gram(
     total = float(np.sum(lam))
     if total <= 0.0:
         return _declined(basis)
+    # the rounding of Phi, relative to its trace, or more when U combines stored
+    # columns that cancel (a basis holding blocks, kept beside it by earlier updates)
+    if w > state.rank:
+        total = max(total, _cancellation_energy(H, S, Zq, Zb))
     allowance = _allowance(total, size, n)
     amps = np.ldexp(np.sqrt(lam), top)
     spent = math.hypot(prior.bound, math.ldexp(math.sqrt(allowance), top))
     m = state.m + added
     keep = trunc.keep_count(amps, spent=spent, m=m)
+    keeps = (basis.defers_gram and cast(DeferredGram, basis).block_beside
+             and _keeps_block(w, c, keep))
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one
     perturbation = _ROUNDING_LAMBDA * (math.sqrt(n) + size) * _EPS * total
     if (keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation
             or allowance > _ALLOWANCE_SHARE * _room(trunc, lam[keep:], block_energy, added,
                                                     top)
-            or not _compaction_pays(w, c, keep)):
+            or not (keeps or _compaction_pays(w, c, keep))):
         return _declined(basis)
     Wk = W[:, :keep] / np.sqrt(lam[:keep])
     G = np.empty((w + c, keep))
     G[:w] = Zq @ Wk[:k]
     G[w:] = _times_left(Zb, Wk[k:])
-    # the new basis drifts from orthonormal by about the rounding of Phi over the smallest
-    # kept eigenvalue, below 1/64 by the check above: declining here means the rounding
-    # model failed (never observed); a basis that compacts in place is then broken
-    if basis.defers_gram:
-        # the Gram of the new basis, G^T B G = Wk^T Phi Wk, as the Gram B of [Q, Y]
-        # predicts it (its actual Gram, with the compaction's rounding, is measured with
-        # the next block): U = Q' until then, of this orthogonality; written once checked
-        predicted = Wk.T @ Phi @ Wk
-        H_new, drift = None, _drift(0.5 * (predicted + predicted.T))
-    else:
-        H_new = basis.compact_with_block(G)
-        assert H_new is not None
-        drift = _drift(H_new)
-    if drift > _MAX_DRIFT:
+    # the block stays beside the basis when U = [Q, Y] G L^(-T) can be formed to
+    # working accuracy; else the kept terms are written (a compaction)
+    kept = (_kept_factors(G, Wk.T @ Phi @ Wk, np.block([[H, C], [C.T, S]]),
+                          tol=opts.reorth_tol) if keeps else None)
+    if kept is None and not _compaction_pays(w, c, keep):
         return _declined(basis)
-    if H_new is None:
-        basis.compact_with_block(G)
-        coords, R, orth = np.eye(keep), np.diag(amps[:keep]), drift
-    else:
-        L = np.linalg.cholesky(H_new)
-        coords = dtrtri(L, lower=1)[0].T  # L^{-T}
+    wasted_flops = 0.0
+    gram: np.ndarray | None
+    if kept is not None:
+        coords, L, gram, orth = kept
         R = amps[:keep, np.newaxis] * L
-        orth = gram_orthogonality(coords, H_new)
+        # the next update that does not take this path compacts the stored blocks
+        wasted_flops = COMPACT_PER_COLUMN * (w + c) * keep
+    else:
+        # the new basis drifts from orthonormal by about the rounding of Phi over the
+        # smallest kept eigenvalue, below 1/64 by the check above: declining here means
+        # the rounding model failed (never observed); a basis that compacts in place is
+        # then broken
+        if basis.defers_gram:
+            # the Gram of the new basis, G^T B G = Wk^T Phi Wk, as the Gram B of [Q, Y]
+            # predicts it (its actual Gram, with the compaction's rounding, is measured
+            # with the next block): U = Q' until then, of this orthogonality; written
+            # once checked
+            predicted = Wk.T @ Phi @ Wk
+            gram, drift = None, _drift(0.5 * (predicted + predicted.T))
+        else:
+            gram = basis.compact_with_block(G)
+            assert gram is not None
+            drift = _drift(gram)
+        if drift > _MAX_DRIFT:
+            return _declined(basis)
+        if gram is None:
+            basis.compact_with_block(G)
+            coords, R, orth = np.eye(keep), np.diag(amps[:keep]), drift
+        else:
+            L = np.linalg.cholesky(gram)
+            coords = dtrtri(L, lower=1)[0].T  # L^{-T}
+            R = amps[:keep, np.newaxis] * L
+            orth = gram_orthogonality(coords, gram)
     rows = None if state.rows is None else plan_rows(state, W[:, :keep], Y_appended)
     discarded = math.ldexp(math.sqrt(float(np.sum(lam[keep:])) + allowance), top)
     bound = prior.step(discarded, 0.0, overlapping=False)
@@ -420,7 +526,8 @@ def _plan_by_gram(
         kind=kind, columns=added, rank=keep, new_directions=c, rejected=0,
         cut=size - keep, discarded=discarded, sweeps=0, max_cosine=0.0,
         orthogonality=orth, error_bound=bound.bound, seconds=time.perf_counter() - t0,
-        passes=2,
+        passes=2 if kept is None else 1,
     )
-    return Plan(coords=coords, gram=H_new, R=R, m=m, wasted_flops=0.0, bound=bound,
-                record=record, writes=Writes(compacted=True, rows=rows))
+    writes = Writes(compacted=True, rows=rows) if kept is None else Writes(columns=c, rows=rows)
+    return Plan(coords=coords, gram=gram, R=R, m=m, wasted_flops=wasted_flops, bound=bound,
+                record=record, writes=writes)
