@@ -22,6 +22,12 @@ included on both sides. The error is ``||A - U_k V_k^T||_F`` over the optimum
 float32 array, the optimum of the stored rounded values, from the float64 eigenvalues of
 ``A^T A``: the float64 SVD of the rounded data).
 
+CPU time: ``cpu_seconds`` is the CPU time of the process (all its threads, user and
+system) over the timed part (the whole process for the command line), "cores" that
+over the time, and "floor x read" the least "x read" that this CPU time allows on the
+machine's cores (``cpu_seconds / cores / read time``): a mode whose floor is near a
+target cannot meet it by overlapping better, only by doing less work.
+
 Contenders (block 100, rank 60):
 
 * ``read``: ``da.from_zarr(A).sum()``;
@@ -59,6 +65,10 @@ from typing import Any
 
 import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
+
+# the cores this process may run on (its affinity), which the floor divides by
+CPU_COUNT = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+    os.cpu_count() or 1)
 
 RANK, SIGNAL, BLOCK, CHUNK = 60, 200, 100, (10000, 50)
 METHODS = ("read", "cli", "cli-c1", "cli-c100", "cli-o20", "tall", "tall-o20", "tree",
@@ -128,7 +138,7 @@ def run_child(method: str, path: str, work: str) -> dict[str, Any]:
     import dask.array as da
 
     out: dict[str, Any] = {}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     U = V = None
     if method == "read":
         dask.compute(da.from_zarr(path).sum(), scheduler="threads")
@@ -145,6 +155,7 @@ def run_child(method: str, path: str, work: str) -> dict[str, Any]:
             sc = tree_compress(path, block=BLOCK, max_rank=RANK, leaf_columns=-(-m // 2))
         sc.finalize()
         out["seconds"] = time.perf_counter() - t0
+        out["cpu_seconds"] = time.process_time() - c0
         out["peak_rss_mb"] = _peak_mb()
         e = sc.expansion
         U, V = e.U, e.V
@@ -160,6 +171,7 @@ def run_child(method: str, path: str, work: str) -> dict[str, Any]:
         u, s, v = dask.compute(u[:, :RANK], s[:RANK], v[:RANK], scheduler="threads")
         U, V = u, (s[:, None] * v).T
     out.setdefault("seconds", time.perf_counter() - t0)
+    out.setdefault("cpu_seconds", time.process_time() - c0)
     out.setdefault("peak_rss_mb", _peak_mb())
     if U is not None:
         np.save(Path(work) / "U.npy", U)
@@ -193,7 +205,7 @@ def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[st
     t0 = time.perf_counter()
     with open(work / "stdout.txt", "wb") as out:
         proc = subprocess.Popen(cmd, env=env, stdout=out)
-        _, status, _ = os.wait4(proc.pid, 0)
+        _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
     stdout = (work / "stdout.txt").read_bytes()
@@ -205,12 +217,13 @@ def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[st
         with open_store(work / "S", "r") as st:  # generations: the commits, creation's too
             commits = st.generation
         result = {"seconds": wall, "peak_rss_mb": float((work / "peak.txt").read_text()),
-                  "commits": commits}
+                  "commits": commits, "cpu_seconds": usage.ru_utime + usage.ru_stime}
         if errors:
             _cli_factors(work / "S", work)
     else:
         result = json.loads(stdout.decode().strip().splitlines()[-1])
     result["process_seconds"] = wall
+    result["process_cpu_seconds"] = usage.ru_utime + usage.ru_stime
     if errors and (work / "U.npy").exists():
         result["error"] = residual(path, np.load(work / "U.npy"), np.load(work / "V.npy"))
     return result
@@ -275,6 +288,8 @@ def run_size(n: int, m: int, dtype: str, methods: list[str], data: Path,
                      vs_read=r["seconds"] / read["seconds"],
                      read_process_seconds=read["process_seconds"],
                      vs_read_process=r["process_seconds"] / read["process_seconds"],
+                     cores=r["cpu_seconds"] / r["seconds"],
+                     floor_vs_read=r["cpu_seconds"] / CPU_COUNT / read["seconds"],
                      load_before=load0, load_after=os.getloadavg()[0])
             if "error" in r and optimum is not None:
                 r["error_over_optimum"] = r["error"] / optimum
@@ -289,7 +304,8 @@ def run_size(n: int, m: int, dtype: str, methods: list[str], data: Path,
 
 def medians(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Return, per method, the medians of its runs (the error is the same in each)."""
-    keys = ("seconds", "vs_read", "vs_read_process", "peak_rss_mb", "load_before")
+    keys = ("seconds", "vs_read", "vs_read_process", "peak_rss_mb", "load_before",
+            "cpu_seconds", "cores", "floor_vs_read")
     out = []
     for method in dict.fromkeys(r["method"] for r in runs):
         mine = [r for r in runs if r["method"] == method]
@@ -353,7 +369,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.big:
         plan.append((2_000_000, 2000, "float32", [x for x in methods if x in STREAMSVD]))
     report: dict[str, Any] = {"machine": machine_info(), "rank": RANK, "block": BLOCK,
-                              "chunks": CHUNK, "cases": []}
+                              "chunks": CHUNK, "cores": CPU_COUNT, "cases": []}
     out = out_dir(args.out)
     for n, m, dtype, which in plan:  # the report is written after each array
         report["cases"].append(run_size(n, m, dtype, which, data, args.repeat))
@@ -362,11 +378,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     cases = report["cases"]
     rows = [[f"{c['n']}x{c['m']} {c['dtype']}", r["method"], f"{r['seconds']:.2f}",
              f"{r['vs_read']:.2f}", f"{r['vs_read_process']:.2f}", f"{r['peak_rss_mb']:.0f}",
+             f"{r['cpu_seconds']:.2f}", f"{r['cores']:.2f}", f"{r['floor_vs_read']:.2f}",
              f"{r['error_over_optimum']:.6f}" if "error_over_optimum" in r else "-",
              f"{r['load_before']:.1f}"]
             for c in cases for r in c["medians"]]
     print_table(["array", "method", "s", "x read", "x read (processes)", "peak RSS MB",
-                 "err/opt", "load"], rows,
+                 "CPU s", "cores", "floor x read", "err/opt", "load"], rows,
                 title=f"out of core, rank 60, block 100, medians of {args.repeat}")
     return report
 

@@ -30,6 +30,11 @@ def test_outofcore_benchmark_smoke(monkeypatch, tmp_path, dtype, methods):
     for name in set(methods) & {"cli-c100", "tall", "tree"}:
         r = runs[name]
         assert r["seconds"] > 0 and r["peak_rss_mb"] > 0 and r["vs_read"] > 0
+        # the CPU time of the process over the timed part, and the floor it sets
+        assert r["cpu_seconds"] > 0 and r["process_cpu_seconds"] >= r["cpu_seconds"]
+        assert r["cores"] == pytest.approx(r["cpu_seconds"] / r["seconds"])
+        assert r["floor_vs_read"] == pytest.approx(
+            r["cpu_seconds"] / saved["cores"] / r["read_seconds"])
         # rank 60 of a rank-200 spectrum: streamsvd is within 1e-3 of the optimum
         assert 1.0 - 1e-9 <= r["error_over_optimum"] <= 1.001
     assert report["cases"][0]["optimum"] == pytest.approx(case["optimum"])
