@@ -649,3 +649,32 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
         sc.close(finalize=False)
     with ss.StreamCompressor.open(path) as back:
         assert back.n_seen == j + 2
+
+
+def test_the_products_beside_the_basis_give_the_separate_ones_and_keep_the_block(rng):
+    """MemoryBasis.products_beside: the block's Gram and its projection in one product,
+    each within rounding of the separate products; the block is staged after the stored
+    columns, and accepting it makes it stored columns as they are."""
+    from streamsvd.basis import MemoryBasis
+    from streamsvd.inner import as_inner
+
+    n, w, b = 500, 12, 3
+    for weights in (None, np.linspace(0.5, 2.0, n)):
+        inner = as_inner(weights, n)
+        basis = MemoryBasis(n, inner, capacity=4)
+        Y, MY = basis.workspace(w)
+        Y[...] = np.linalg.qr(rng.standard_normal((n, w)))[0]
+        MY[...] = inner.apply(Y) if weights is not None else Y
+        basis.accept(w)
+        X = np.asfortranarray(rng.standard_normal((n, b)))
+        S, C = basis.products_beside(X)
+        MX = inner.apply(X)
+        tol = 10 * n * EPS * max(1.0, np.abs(X).max() ** 2)
+        np.testing.assert_allclose(S, X.T @ MX, rtol=0, atol=tol)
+        np.testing.assert_allclose(C, basis.MQ.T @ X, rtol=0, atol=tol)
+        np.testing.assert_array_equal(S, S.T)
+        assert basis.width == w and basis.block_beside
+        basis.accept(b)
+        assert basis.width == w + b and not basis.block_beside
+        np.testing.assert_array_equal(basis.Q[:, w:], X)
+        np.testing.assert_array_equal(basis.MQ[:, w:], MX)
