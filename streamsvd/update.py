@@ -55,15 +55,17 @@ from .inner import InnerProduct
 from .rows import RightFactor, RowAppend
 
 __all__ = [
-    "Extents", "Plan", "State", "StepOptions", "apply_plan", "plan_absorb", "plan_add",
-    "plan_finalize", "gram_orthogonality", "plan_merge", "plan_rows", "stage_plan", "Writes",
+    "COMPACT_PER_COLUMN", "Extents", "Plan", "State", "StepOptions", "apply_plan",
+    "plan_absorb", "plan_add", "plan_finalize", "gram_orthogonality", "plan_merge",
+    "plan_rows", "stage_plan", "Writes",
 ]
 
 logger = logging.getLogger(__name__)
 
 # Compaction pays when the projections wasted on the extra width since the last one
 # (about 4 flops per extra column, per snapshot, per row) reach its own cost
-# (2 flops per stored column, per kept term, per row).
+# (2 flops per stored column, per kept term, per row; a Gram-path update that keeps its
+# block beside the basis records that cost as already wasted).
 _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
 

@@ -46,7 +46,8 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   the rounding allowance of ``Phi`` is then relative to ``sum_i B_ii ||Z_i||^2`` where
   that exceeds ``trace(Phi)`` (:func:`_cancellation_energy`). The next update that
   compacts (this path's when the width would pass ``2 k``, or the exact path's, which
-  the state's ``wasted_flops`` tells to) writes the kept blocks into the new basis.
+  counts the compaction's cost as already wasted, ``wasted_flops``) writes the kept
+  blocks into the new basis.
 
 Cost: about ``2 n (w + b) b + 2 n (w + b) k`` flops and one ``M X``: two passes over the
 basis and the block, whatever the conditioning of the block; one pass, ``2 n (w + b) b``
@@ -491,7 +492,7 @@ def _plan_by_gram(
     if kept is not None:
         coords, L, gram, orth = kept
         R = amps[:keep, np.newaxis] * L
-        # the next update that does not take this path compacts the stored blocks
+        # the exact path counts the compaction saved here as wasted (update.py)
         wasted_flops = COMPACT_PER_COLUMN * (w + c) * keep
     else:
         # the new basis drifts from orthonormal by about the rounding of Phi over the
