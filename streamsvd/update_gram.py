@@ -221,9 +221,10 @@ def _kept_factors(G: np.ndarray, predicted: np.ndarray, B: np.ndarray, *, tol: f
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Return ``(coords, L, B, orthogonality)`` for a block kept beside the basis, or None.
 
-    ``U = [Q, Y] G`` has the Gram ``G^T B G = Wk^T Phi Wk``, ``predicted`` here, ``B``
-    the Gram of ``[Q, Y]`` (measured: the block's columns are stored as they are); with
-    ``predicted = L L^T``, ``U = [Q, Y] coords``, ``coords = G L^(-T)``. Forming ``U``
+    ``U = [Q, Y] G`` has the Gram ``G^T B G = Wk^T Phi Wk``, ``predicted`` here
+    (symmetric), ``B`` the Gram of ``[Q, Y]`` (measured: the block's columns are stored
+    as they are); with ``predicted = L L^T``, ``U = [Q, Y] coords``, ``coords = G
+    L^(-T)``. Forming ``U``
     rounds each column ``u_k`` by about ``lambda sqrt(w) eps sum_i ||q_i|| |coords_ik|``
     (``q_i`` the stored columns, ``w`` of them), more than ``eps`` when the columns
     cancel, and ``L`` carries the rounding of ``predicted`` (about ``eps lambda_1 /
@@ -231,11 +232,10 @@ def _kept_factors(G: np.ndarray, predicted: np.ndarray, B: np.ndarray, *, tol: f
     exceeds ``tol`` (``reorth_tol``), so that ``U`` is orthonormal to the tolerance the
     exact path keeps.
     """
-    H_new = 0.5 * (predicted + predicted.T)
-    drift = _drift(H_new)
+    drift = _drift(predicted)
     if drift > tol:
         return None
-    L = np.linalg.cholesky(H_new)
+    L = np.linalg.cholesky(predicted)
     coords = G @ dtrtri(L, lower=1)[0].T  # G L^{-T}
     norms = np.sqrt(np.maximum(np.diag(B), 0.0))
     rounding = (_ROUNDING_LAMBDA * math.sqrt(B.shape[0]) * _EPS
@@ -483,8 +483,11 @@ def _plan_by_gram(
     G[w:] = _times_left(Zb, Wk[k:])
     # the block stays beside the basis when U = [Q, Y] G L^(-T) can be formed to
     # working accuracy; else the kept terms are written (a compaction)
-    kept = (_kept_factors(G, Wk.T @ Phi @ Wk, np.block([[H, C], [C.T, S]]),
-                          tol=opts.reorth_tol) if keeps else None)
+    # the Gram of U = [Q, Y] G as the Gram B of [Q, Y] predicts it: G^T B G = Wk^T Phi Wk
+    predicted = Wk.T @ Phi @ Wk
+    predicted = 0.5 * (predicted + predicted.T)
+    kept = (_kept_factors(G, predicted, np.block([[H, C], [C.T, S]]), tol=opts.reorth_tol)
+            if keeps else None)
     if kept is None and not _compaction_pays(w, c, keep):
         return _declined(basis)
     wasted_flops = 0.0
@@ -500,12 +503,10 @@ def _plan_by_gram(
         # the rounding model failed (never observed); a basis that compacts in place is
         # then broken
         if basis.defers_gram:
-            # the Gram of the new basis, G^T B G = Wk^T Phi Wk, as the Gram B of [Q, Y]
-            # predicts it (its actual Gram, with the compaction's rounding, is measured
-            # with the next block): U = Q' until then, of this orthogonality; written
-            # once checked
-            predicted = Wk.T @ Phi @ Wk
-            gram, drift = None, _drift(0.5 * (predicted + predicted.T))
+            # the new basis's Gram as predicted (its actual Gram, with the compaction's
+            # rounding, is measured with the next block): U = Q' until then, of this
+            # orthogonality; written once checked
+            gram, drift = None, _drift(predicted)
         else:
             gram = basis.compact_with_block(G)
             assert gram is not None
