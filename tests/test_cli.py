@@ -892,6 +892,38 @@ def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch
         assert np.array_equal(ea.U, eb.U) and np.array_equal(ea.V, eb.V)
 
 
+def test_ctrl_c_inside_a_commit_prints_one_line_and_no_warning(tmp_path, npy, capsys,
+                                                                 monkeypatch):
+    """Ctrl-C can land in zarr's sync() between creating a commit's coroutine and running
+    it; the coroutine is then released without its "never awaited" warning, so stderr
+    holds the one line that says what the store holds."""
+    import warnings
+
+    import streamsvd.stream
+
+    plan = streamsvd.stream.plan_absorb
+    calls = []
+
+    async def create_array():
+        pass
+
+    def interrupted_in_a_commit(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            _pending = create_array()  # created, never awaited: as in an interrupted sync()
+            raise KeyboardInterrupt
+        return plan(*args, **kwargs)
+
+    monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupted_in_a_commit)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        status, _, err = run_cli(["ingest", npy, tmp_path / "s.zarr", "--block", "7",
+                                  "--max-rank", "4", "--quiet"], capsys)
+    assert status == 130, err
+    assert not [w for w in caught if "never awaited" in str(w.message)]
+    assert len(err.strip().splitlines()) == 1 and "holds the snapshots" in err
+
+
 def test_ctrl_c_reports_the_last_commit_and_how_to_resume(tmp_path, rng):
     """SIGINT during a long ingestion: exit 130, one line naming the last committed column
     and the command to resume; the store holds exactly that commit, readable."""

@@ -27,6 +27,8 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import traceback
+import warnings
 
 from ..errors import StreamSVDError
 from . import ingest, reading
@@ -67,7 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         locate(args)
         return int(_COMMANDS[args.command](args))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        # an interrupt inside a commit can leave a coroutine of zarr's created but never
+        # run (the store keeps its last commit): released here, without its warning
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
+            traceback.clear_frames(exc.__traceback__)
         print(interrupted(args, argv), file=sys.stderr)
         return 130
     except (StreamSVDError, OSError, ValueError) as err:
