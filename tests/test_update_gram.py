@@ -420,13 +420,12 @@ def _counted(method, calls):
     return counted
 
 
-def test_the_joint_product_gives_the_separate_ones(rng):
-    """MemoryBasis.joint_products: the block's Gram, its projection and the basis's Gram
-    in one product, each within rounding of the separate products."""
+def _bases_and_blocks(rng, n, w, b):
+    """Yield ``(basis, inner, X)``: an orthonormal in-memory basis of ``w`` columns and a
+    Gaussian block of ``b``, for the Euclidean and a weighted inner product."""
     from streamsvd.basis import MemoryBasis
     from streamsvd.inner import as_inner
 
-    n, w, b = 500, 12, 7
     for weights in (None, np.linspace(0.5, 2.0, n)):
         inner = as_inner(weights, n)
         basis = MemoryBasis(n, inner, capacity=4)
@@ -434,7 +433,14 @@ def test_the_joint_product_gives_the_separate_ones(rng):
         Y[...] = np.linalg.qr(rng.standard_normal((n, w)))[0]
         MY[...] = inner.apply(Y) if weights is not None else Y
         basis.accept(w)
-        X = np.asfortranarray(rng.standard_normal((n, b)))
+        yield basis, inner, np.asfortranarray(rng.standard_normal((n, b)))
+
+
+def test_the_joint_product_gives_the_separate_ones(rng):
+    """MemoryBasis.joint_products: the block's Gram, its projection and the basis's Gram
+    in one product, each within rounding of the separate products."""
+    n, w, b = 500, 12, 7
+    for basis, inner, X in _bases_and_blocks(rng, n, w, b):
         S, C, H = basis.joint_products(X)
         MQ, MX = basis.MQ, inner.apply(X)
         Q = basis.Q
@@ -655,18 +661,8 @@ def test_the_products_beside_the_basis_give_the_separate_ones_and_keep_the_block
     """MemoryBasis.products_beside: the block's Gram and its projection in one product,
     each within rounding of the separate products; the block is staged after the stored
     columns, and accepting it makes it stored columns as they are."""
-    from streamsvd.basis import MemoryBasis
-    from streamsvd.inner import as_inner
-
     n, w, b = 500, 12, 3
-    for weights in (None, np.linspace(0.5, 2.0, n)):
-        inner = as_inner(weights, n)
-        basis = MemoryBasis(n, inner, capacity=4)
-        Y, MY = basis.workspace(w)
-        Y[...] = np.linalg.qr(rng.standard_normal((n, w)))[0]
-        MY[...] = inner.apply(Y) if weights is not None else Y
-        basis.accept(w)
-        X = np.asfortranarray(rng.standard_normal((n, b)))
+    for basis, inner, X in _bases_and_blocks(rng, n, w, b):
         S, C = basis.products_beside(X)
         MX = inner.apply(X)
         tol = 10 * n * EPS * max(1.0, np.abs(X).max() ** 2)
