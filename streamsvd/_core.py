@@ -19,10 +19,12 @@ import numpy as np
 import scipy.linalg
 
 from ._scaling import pow2_exponent, safe_column_norms
+from .bound import Bound
 from .rotations import SweepStats, sweep_until
 
 __all__ = [
     "HISTORY_FIELDS",
+    "Before",
     "CoreStep",
     "ERROR_MEASURES",
     "Truncation",
@@ -132,6 +134,34 @@ def r_factor(X: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class Before:
+    """The error-bound account of an update before its cut.
+
+    Attributes
+    ----------
+    prior : Bound
+        The account before the update.
+    decided : float
+        The norm this update discards whatever it cuts (rejected residuals, a rounding
+        allowance), orthogonal to every cut term.
+    overlapping : bool
+        Whether the update touches columns received before (``add``).
+    """
+
+    prior: Bound = Bound()
+    decided: float = 0.0
+    overlapping: bool = False
+
+    def bounds(self, cut_norms: np.ndarray) -> np.ndarray:
+        """Return the bound after the update for each candidate norm of the cut terms."""
+        discarded = np.hypot(self.decided, cut_norms)
+        return self.prior.after(discarded, overlapping=self.overlapping)
+
+
+NOTHING_BEFORE = Before()  # the account of a compressor that discarded nothing yet
+
+
+@dataclass(frozen=True)
 class Truncation:
     """Which terms survive an update, after its sweeps.
 
@@ -139,10 +169,12 @@ class Truncation:
     the ``max_rank`` largest; terms of amplitude exactly zero carry nothing and are dropped.
 
     With a ``target`` error, the fewest terms are kept whose error bound stays within
-    ``share`` of the budget (:func:`error_budget`): the smallest terms are cut while
-    ``hypot(spent, ||cut||)`` fits, ``spent`` being the bound before this cut. The cut is
-    made on the converged core, so its terms are orthogonal to the kept ones and the bound
-    grows by the Pythagorean rule.
+    ``share`` of the budget (:func:`error_budget`): the smallest terms are cut while the
+    bound after the cut fits, as :meth:`streamsvd.bound.Bound.after` gives it from the
+    account before the update (:class:`Before`). The cut is made on the converged core,
+    so its terms are orthogonal to the kept ones; how the bound then grows depends on the
+    cuts before it (the Pythagorean rule when their couplings vanish, the triangle
+    inequality after an ``add`` or a removal), and the cut is sized by the same rule.
     """
 
     eps: float = 0.0
@@ -152,10 +184,12 @@ class Truncation:
     measure: str = "relative"
     share: float = 1.0
 
-    def keep_count(self, amps_sorted: np.ndarray, *, spent: float = 0.0, m: int = 0) -> int:
+    def keep_count(
+        self, amps_sorted: np.ndarray, *, before: Before = NOTHING_BEFORE, m: int = 0
+    ) -> int:
         """Return how many leading terms are kept (amplitudes sorted decreasingly).
 
-        ``spent`` is the error bound before this cut and ``m`` the number of snapshots
+        ``before`` is the bound account before this cut and ``m`` the number of snapshots
         (for a ``target``).
         """
         if amps_sorted.size == 0:
@@ -166,32 +200,31 @@ class Truncation:
         keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
         keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
         if self.target is not None:
-            keep = min(keep, self._within_budget(amps_sorted, spent, m))
+            keep = min(keep, self._within_budget(amps_sorted, before, m))
         if self.max_rank is not None:
             keep = min(keep, self.max_rank)
         return keep
 
-    def _within_budget(self, amps_sorted: np.ndarray, spent: float, m: int) -> int:
+    def _within_budget(self, amps_sorted: np.ndarray, before: Before, m: int) -> int:
         """Return the fewest leading terms whose cut keeps the bound within the share."""
         assert self.target is not None
-        e = pow2_exponent(np.append(amps_sorted, spent))
+        e = pow2_exponent(amps_sorted)
         a = np.ldexp(amps_sorted, -e)
-        b = math.ldexp(spent, -e)
         # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
         tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
-        bound = np.sqrt(b * b + tail)
+        bound = before.bounds(np.ldexp(np.sqrt(tail), e))
         if self.measure == "relative":
             # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
             # bound <= s eps ||A||, whatever the discarded part
             se = self.share * self.target
-            fits = bound * (1.0 + se) <= se * np.sqrt(np.maximum(tail[0] - tail, 0.0))
+            kept = np.ldexp(np.sqrt(np.maximum(tail[0] - tail, 0.0)), e)
+            fits = bound * (1.0 + se) <= se * kept
         else:
-            budget = self.share * math.ldexp(error_budget(self.target, self.measure, m), -e)
-            fits = bound <= budget
+            fits = bound <= self.share * error_budget(self.target, self.measure, m)
         ok = np.flatnonzero(fits)
         return int(ok[0]) if ok.size else amps_sorted.size
 
-    def needs_convergence(self, amps: np.ndarray, *, spent: float, m: int) -> bool:
+    def needs_convergence(self, amps: np.ndarray, *, before: Before, m: int) -> bool:
         """Whether a cut by ``max_rank`` or by the ``target`` would drop terms.
 
         Such a cut is made on the converged core (the optimal cut of the expansion).
@@ -201,7 +234,7 @@ class Truncation:
             return False
         amps_sorted = np.sort(amps)[::-1]
         unbounded = Truncation(self.eps, self.rtol)
-        return self.keep_count(amps_sorted, spent=spent, m=m) < unbounded.keep_count(
+        return self.keep_count(amps_sorted, before=before, m=m) < unbounded.keep_count(
             amps_sorted
         )
 
@@ -284,7 +317,7 @@ def core_step(
     m: int,
     truncation: Truncation,
     kind: str,
-    spent: float = 0.0,
+    before: Before = NOTHING_BEFORE,
     on_sweep: Callable[[int, float], None] | None = None,
 ) -> CoreStep:
     """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
@@ -308,6 +341,8 @@ def core_step(
     truncation : Truncation
     kind : str
         Name of the update, for the log.
+    before : Before
+        The bound account before this update's cut (sizes a ``target`` cut).
     on_sweep : callable, optional
         Called after every sweep with the number of sweeps run and the largest pair
         cosine of the last one (progress of long final sweeps).
@@ -337,7 +372,7 @@ def core_step(
         )
     amps_scaled = safe_column_norms(Rt.T)
     if not converged and truncation.needs_convergence(
-        np.ldexp(amps_scaled, e), spent=spent, m=m
+        np.ldexp(amps_scaled, e), before=before, m=m
     ):
         # a cut by the rank cap is made on the converged core, so that it is the optimal
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
@@ -348,7 +383,7 @@ def core_step(
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
-    keep = truncation.keep_count(amps[order], spent=spent, m=m)
+    keep = truncation.keep_count(amps[order], before=before, m=m)
     kept, cut = order[:keep], order[keep:]
     # norms and the coupling are formed on the scaled core and scaled back as roots, so
     # that amplitudes up to 1e300 neither overflow nor lose the bound

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._scaling import pow2_exponent
+
 __all__ = ["Bound"]
 
 
@@ -96,23 +98,36 @@ class Bound:
         rejection_root : float
             ``sqrt(d_rej ||B||)`` for the residuals this update rejected.
         """
-        b, d = self.bound, float(discarded)
+        d = float(discarded)
         if overlapping:
-            return Bound(b + d, math.inf, _sqrt_sum_sq(self.discarded, d))
+            return Bound(self.bound + d, math.inf, _sqrt_sum_sq(self.discarded, d))
         c = self.coupling_root
-        scale = max(b, d)
-        if scale == 0.0:
-            new = 0.0
-        else:
-            bs, ds = b / scale, d / scale
-            cs = c / scale
-            cs2 = cs * cs  # inf when c is (or overflows): then the Cauchy-Schwarz term
-            new = scale * math.sqrt(bs * bs + ds * ds + 2.0 * min(cs2, ds * bs))
         return Bound(
-            new,
+            float(self.after(np.array([d]), overlapping=False)[0]),
             _sqrt_sum_sq(c, coupling_root, rejection_root),
             _sqrt_sum_sq(self.discarded, d),
         )
+
+    def after(self, discarded: np.ndarray, *, overlapping: bool) -> np.ndarray:
+        """Return ``b_t`` for each candidate discard norm ``d_t`` in ``discarded``.
+
+        The bound that :meth:`step` gives, for many candidates at once: a truncation
+        sizes its cut by it, so that the cut spends the budget by the rule the bound
+        then follows (the triangle inequality after an ``add`` or a removal, whose
+        coupling account is ``inf``; the Pythagorean rule only where the couplings of
+        the cuts before vanish). Computed on a common power-of-two scale, so that
+        amplitudes up to 1e300 give a finite result.
+        """
+        d = np.asarray(discarded, dtype=np.float64)
+        b = self.bound
+        if overlapping:
+            return b + d
+        e = pow2_exponent(np.append(d, b))
+        bs, ds = math.ldexp(b, -e), np.ldexp(d, -e)
+        with np.errstate(over="ignore"):  # c^2 beyond the range: the Cauchy-Schwarz term
+            cs2 = math.inf if math.isinf(self.coupling_root) else (
+                np.ldexp(self.coupling_root, -e) ** 2)
+            return np.ldexp(np.sqrt(bs * bs + ds * ds + 2.0 * np.minimum(cs2, ds * bs)), e)
 
     def to_array(self) -> np.ndarray:
         """Encode as three floats (for a store)."""

@@ -33,9 +33,10 @@ again by a Householder QR, ``Y_rest = Q T``, ``Y' = Q``, ``R' = T R``: exact wha
 shares, at ``O(m_rest w k)``, which for a window is ``O(W w k)``, still nothing in the
 number of snapshots absorbed before it. The same QR writes the live rows anew once the
 dead rows outnumber them, which also resets the orthogonality lost by the small downdates
-in between. In the small downdate a direction with ``c_i^2`` below its own rounding
-(``DROP_FACTOR (k + r) eps``) would be dropped, and what it carries on the remaining
-columns, ``c_i ||B_i^T R||`` with the computed ``c_i``, counted as discarded.
+in between. No direction is ever dropped from the shares: a share computed as
+``sqrt((1 - s)(1 + s))`` is only known to about ``sqrt(delta)`` (``1.5e-8`` at
+``delta = eps``), so a direction that keeps ``1e-8`` of its support would be counted as
+carrying nothing; the QR recovers it to working accuracy instead.
 """
 
 from __future__ import annotations
@@ -52,14 +53,13 @@ from .gram_schmidt import BasisExtension
 from .update import Plan, State, StepOptions, _plan
 
 __all__ = [
-    "DROP_FACTOR", "Downdate", "Ledger", "bound_after_removal", "downdate", "intervals_add",
+    "EXACT_BELOW", "Downdate", "Ledger", "bound_after_removal", "downdate", "intervals_add",
     "intervals_contain", "intervals_count_below", "intervals_skip", "physical_rows", "plan_remove",
 ]
 
 logger = logging.getLogger(__name__)
 
 _EPS = float(np.finfo(np.float64).eps)
-DROP_FACTOR = 16.0  # a direction is dropped when c^2 <= DROP_FACTOR (k + r) eps
 LEDGER_SIZE = 32  # entries of the error ledger (older ones are merged)
 _MIN_DEAD = 64  # dead rows kept stored at least, before the live ones are written anew
 EXACT_BELOW = 0.5  # a smaller remaining share c_min orthonormalises the live rows again
@@ -71,25 +71,21 @@ class Downdate:
 
     Attributes
     ----------
-    S : ndarray, shape (k, k')
+    S : ndarray, shape (k, k)
         ``Y' = Y_rest S``: the new orthonormal factor in the coordinates of the old one.
-    R : ndarray, shape (k', p)
+    R : ndarray, shape (k, p)
         The new core ``R' = diag(c) B^T R``.
-    dropped : float
-        Norm of what the dropped directions carried on the remaining columns (0 when none
-        was dropped), from the computed shares ``c_i``.
     c_min : float
-        Smallest remaining share ``c_i`` of a kept direction (1 when the removed rows
-        were orthogonal to every direction).
+        Smallest remaining share ``c_i`` (1 when the removed rows were orthogonal to
+        every direction).
     """
 
     S: np.ndarray
     R: np.ndarray
-    dropped: float
     c_min: float
 
 
-def downdate(Z: np.ndarray, R: np.ndarray) -> Downdate:
+def downdate(Z: np.ndarray, R: np.ndarray) -> Downdate | None:
     """Return the downdate of the core ``R`` when the rows ``Z = Y_J`` of ``Y`` are removed.
 
     Parameters
@@ -101,24 +97,20 @@ def downdate(Z: np.ndarray, R: np.ndarray) -> Downdate:
 
     Returns
     -------
-    Downdate
-        ``Y_rest R = (Y_rest S) R'`` up to the dropped directions (module docstring).
+    Downdate or None
+        ``Y_rest R = (Y_rest S) R'`` (module docstring); ``None`` when a remaining share
+        is below ``EXACT_BELOW``, where the small downdate would lose accuracy and the
+        remaining rows are to be orthonormalised again instead.
     """
-    r, k = Z.shape
+    k = Z.shape[1]
     _, sv, Bt = np.linalg.svd(Z, full_matrices=True)
     s = np.zeros(k)
     s[: sv.size] = np.minimum(sv, 1.0)
-    c2 = (1.0 - s) * (1.0 + s)
-    floor = DROP_FACTOR * (k + r) * _EPS
-    keep = c2 > floor
-    c = np.sqrt(c2[keep])
-    S = Bt[keep].T / c
-    R_new = c[:, np.newaxis] * (Bt[keep] @ R)
-    # what a dropped direction carries on the remaining columns, c_i B_i^T R, with the
-    # computed c_i (the bound leaves rounding out, streamsvd.bound)
-    lost = np.sqrt(np.maximum(c2[~keep], 0.0))[:, np.newaxis] * (Bt[~keep] @ R)
-    dropped = float(np.linalg.norm(lost)) if lost.size else 0.0
-    return Downdate(S=S, R=R_new, dropped=dropped, c_min=float(c.min()) if c.size else 1.0)
+    c = np.sqrt((1.0 - s) * (1.0 + s))
+    c_min = float(c.min()) if c.size else 1.0
+    if c_min < EXACT_BELOW:
+        return None
+    return Downdate(S=Bt.T / c, R=c[:, np.newaxis] * (Bt @ R), c_min=c_min)
 
 
 # ----------------------------------------------------------------- index bookkeeping
@@ -292,15 +284,17 @@ def plan_remove(
     m = state.m - positions.size
     ext = BasisExtension.empty(state.rank, state.basis.width)
     Y_replace = Y_map = None
-    K, dropped = dd.R, dd.dropped
-    if dd.c_min < EXACT_BELOW or dead.size > max(m, _MIN_DEAD):
+    if dd is None or dead.size > max(m, _MIN_DEAD):
         # the remaining rows orthonormalised again (Householder QR): exact whatever the
         # shares, and the dead rows are no longer stored
         Y_replace, T = np.linalg.qr(np.delete(rows.V0, dead, axis=0) @ rows.Vp)
-        K, dropped = T @ state.R, 0.0
+        K = T @ state.R
+        logger.debug("remove %d columns: the remaining rows orthonormalised again",
+                     positions.size)
     else:
-        Y_map = dd.S
-    logger.debug("remove %d columns: smallest remaining share %.3e", positions.size, dd.c_min)
+        Y_map, K = dd.S, dd.R
+        logger.debug("remove %d columns: smallest remaining share %.3e", positions.size,
+                     dd.c_min)
     k_new = K.shape[0]
     if k_new < state.rank:
         # directions left with the removed columns: the core has rank k_new at most, and
@@ -310,7 +304,7 @@ def plan_remove(
             opts.truncation, max_rank=k_new if cap is None else min(cap, k_new)))
     return _plan(
         state, ext, K, opts, kind="remove", columns=int(positions.size), m=m, t0=t0,
-        d_rej=dropped, rejection_root=0.0, prior=prior, Y_replace=Y_replace,
+        d_rej=0.0, rejection_root=0.0, prior=prior, Y_replace=Y_replace,
         Y_map=Y_map,
         dead=None if Y_replace is not None else dead,
     )

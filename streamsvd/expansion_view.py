@@ -184,11 +184,32 @@ class ExpansionView:
         """Most terms kept between updates: ``max_rank + oversampling`` (None: no cap)."""
         return self.options.streaming_rank
 
+    @property
+    def target_missed_by(self) -> str | None:
+        """Why the target error is missed (None when it is met, or without a target).
+
+        ``"max_rank"``: the rank cap cut more than the target allows.
+        ``"earlier_updates"``: what was discarded before already exceeds the target's
+        budget, so no rank meets it now; the cut of every update is sized to stay within
+        the budget, but the budget of a ``"relative"`` target shrinks when snapshots
+        that carried much of the norm leave a window (or are forgotten), and a
+        ``"mean_l2"`` budget when snapshots are removed.
+        """
+        if self.target_met is not False:
+            return None
+        capped = self.max_rank is not None and self.rank >= self.max_rank
+        return "max_rank" if capped else "earlier_updates"
+
     def _warn_if_target_missed(self) -> None:
-        """Log a warning when the target error is not met (a rank cap cut more)."""
-        if self.target_met is False:
+        """Log a warning when the target error is not met, with its cause."""
+        cause = {
+            None: None,
+            "max_rank": f"max_rank={self.max_rank} cuts more than the target allows",
+            "earlier_updates": "what earlier updates discarded already exceeds the "
+            "target's budget (removed, windowed-out or forgotten snapshots shrank the budget)",
+        }[self.target_missed_by]
+        if cause is not None:
             logger.warning(
                 "the target error %.3g (%s) is not met: the bound is %.3g in that measure "
-                "(max_rank=%s cuts more than the target allows)", self.target_error,
-                self.error_measure, self.error_in_measure, self.max_rank,
+                "(%s)", self.target_error, self.error_measure, self.error_in_measure, cause,
             )

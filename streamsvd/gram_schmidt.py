@@ -340,9 +340,11 @@ class GramSchmidtResult:
     rejected : tuple of int
         Indices of the input columns whose new direction was rejected.
     discarded_energy : float
-        ``||Res V_rej^T||_F^2`` (in ``M``) of the rejected residuals, computed exactly from
-        their Gram matrix and that of their right vectors: ``||U V^T - U_in V_in^T||_F^2``
-        up to rounding.
+        ``||Res V_L^T||_F^2`` (in ``M``) of what the columns ``L`` keep outside the basis:
+        the residuals of the rejected columns, and the small parts of accepted columns
+        that the column rule left out of a block's span. Computed from those columns
+        themselves (their residuals' Gram matrix and that of their right vectors), it is
+        ``||U V^T - U_in V_in^T||_F^2`` up to rounding.
     """
 
     expansion: Expansion
@@ -404,6 +406,7 @@ def orthonormalize(
     # component along the basis a first projection left when it is tiny (`cross_gram`)
     H = np.zeros((min(p, n), min(p, n)))
     rejected: list[int] = []
+    lossy: list[int] = []  # columns that keep a part outside the basis, rejected or not
     for start in range(0, p, block):
         stop = min(start + block, p)
         q = basis.width
@@ -417,6 +420,8 @@ def orthonormalize(
         H[q : q + r, q : q + r] = ext.gram_new
         basis.accept(r)
         rejected.extend(int(start + k) for k in np.flatnonzero(~ext.accepted))
+        if ext.rejected_map.size:
+            lossy.extend(int(start + k) for k in np.flatnonzero(np.any(ext.rejected_map, 0)))
     q = basis.width
     Uo = basis.Q.copy()
     Rq = R[:q]
@@ -426,11 +431,14 @@ def orthonormalize(
         Uo = scipy.linalg.solve_triangular(L, Uo.T, lower=True).T
         Rq = L.T @ Rq
     Vo = V @ Rq.T
-    # the discarded part is what the rejected columns keep outside the basis, whatever
-    # block rejected them: its energy is exact even where their residuals combine
-    rej = np.asarray(rejected, dtype=np.int64)
-    res = U[:, rej] - Uo @ Rq[:, rej]
-    energy = _residual_norm(res, V[:, rej], ip) ** 2
+    # the discarded part is what the columns keep outside the basis: the rejected ones,
+    # and the accepted ones whose small coefficients the column rule left out (the kept
+    # direction is the span of the accepted columns, not each column itself); taken
+    # from the columns themselves, its energy is exact even where the residuals of
+    # different blocks combine
+    lost = np.asarray(lossy, dtype=np.int64)
+    res = U[:, lost] - Uo @ Rq[:, lost]
+    energy = _residual_norm(res, V[:, lost], ip) ** 2
     return GramSchmidtResult(Expansion(Uo, Vo, inner=ip), tuple(rejected), energy)
 
 

@@ -27,6 +27,7 @@ guaranteed bound on ``||A - U V^T||_F`` over every column compressed.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import uuid
 from pathlib import Path
@@ -250,6 +251,30 @@ def _tree_options(options: CompressorOptions) -> dict[str, Any]:
             if name in COMPRESSOR_OPTIONS}
 
 
+_NODE_CHANGES = ("oversampling", "target_error", "error_measure")  # see _node_options
+
+
+def _node_options(opts: dict[str, Any], *, columns: int) -> dict[str, Any]:
+    """Return the options of a tree's leaves and merges (the root gets ``opts`` back).
+
+    Every level of a tree cuts to the rank cap: its nodes keep twice the oversampling.
+    An ``"absolute"`` target is spent by the leaves as the ``"mean_l2"`` target
+    ``target / sqrt(columns)``: a leaf of ``m_i`` columns spends
+    ``share target sqrt(m_i / columns)``, and the merges compose the leaves' bounds as
+    ``sqrt(sum b_i^2) <= share target`` (:meth:`streamsvd.bound.Bound.combine`),
+    whatever the number of leaves; each leaf spending the whole ``share target`` would
+    overspend ``sqrt(L)`` times with ``L`` leaves. ``"mean_l2"`` and ``"relative"``
+    budgets compose so already (``sum_i m_i = m``, ``sum_i ||A_i||^2 = ||A||^2``).
+    ``columns`` counts every column the target covers (with a resumed store, those
+    before the tree's too).
+    """
+    node = dict(opts, oversampling=TREE_OVERSAMPLING * opts["oversampling"])
+    if opts["target_error"] is not None and opts["error_measure"] == "absolute":
+        node.update(error_measure="mean_l2",
+                    target_error=opts["target_error"] / math.sqrt(columns))
+    return node
+
+
 def default_leaf_columns(columns: int, block: int) -> int:
     """Return ten blocks per leaf (at least one): a function of the data, not of workers."""
     return max(block, min(10 * block, max(columns, 1)))
@@ -435,10 +460,7 @@ def _run_tree(
     ranges = leaf_ranges(start, stop, width)
     tag = uuid.uuid4().hex[:12]
     blas = blas_threads_per_task(client)
-    # every level of a tree cuts to the rank cap: its nodes keep twice the oversampling
-    # (the root is handed back with the compressor's own); one leaf is the stream itself
-    node_opts = (opts if len(ranges) == 1 else
-                 dict(opts, oversampling=TREE_OVERSAMPLING * opts["oversampling"]))
+    node_opts = opts if len(ranges) == 1 else _node_options(opts, columns=stop)
     nodes = [
         dask.delayed(_compress_leaf, pure=False)(
             spec.window(a, b), a, b, block, node_opts, blas,
@@ -469,5 +491,5 @@ def _run_tree(
     )
     (root,) = execute(nodes, client=client, progress=progress)
     # the user's copy compacts aside again: an interrupted update leaves it as it was
-    return cast(StreamCompressor, root)._copy_with(backend=MemoryBackend(),
-                                                   oversampling=opts["oversampling"])
+    return cast(StreamCompressor, root)._copy_with(
+        backend=MemoryBackend(), **{name: opts[name] for name in _NODE_CHANGES})

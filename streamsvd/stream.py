@@ -493,6 +493,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "finalized": sc.finalized, "error_bound": sc.error_bound,
         "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
         "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
+        "target_missed_by": sc.target_missed_by,
         "n_absorbed": sc.n_absorbed, "removed": sc.removed.tolist(),
         "options": sc.options.as_dict(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),

@@ -45,7 +45,7 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg.lapack import dtrtri
 
-from ._core import Truncation, UpdateRecord, core_step, r_factor
+from ._core import Before, Truncation, UpdateRecord, core_step, r_factor
 from ._scaling import safe_column_norms, safe_m_norms, safe_norm
 from .basis import BasisBackend, DeferredGram
 from .bound import Bound
@@ -439,7 +439,7 @@ def _plan(
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
-        spent=math.hypot(prior.bound, d_rej), on_sweep=on_sweep,
+        before=Before(prior, d_rej, overlapping), on_sweep=on_sweep,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
     p, r = state.rank, ext.rank

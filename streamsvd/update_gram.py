@@ -95,7 +95,7 @@ import numpy as np
 from scipy.linalg.lapack import dtrtri
 
 from ._blocks import scale_into
-from ._core import Truncation, UpdateRecord
+from ._core import Before, Truncation, UpdateRecord
 from ._scaling import pow2_exponent
 from .basis import BasisBackend, DeferredGram
 from .bound import Bound
@@ -465,9 +465,9 @@ def _plan_by_gram(
         total = max(total, _cancellation_energy(H, S, Zq, Zb))
     allowance = _allowance(total, size, n)
     amps = np.ldexp(np.sqrt(lam), top)
-    spent = math.hypot(prior.bound, math.ldexp(math.sqrt(allowance), top))
+    before = Before(prior, math.ldexp(math.sqrt(allowance), top))
     m = state.m + added
-    keep = trunc.keep_count(amps, spent=spent, m=m)
+    keep = trunc.keep_count(amps, before=before, m=m)
     keeps = (basis.defers_gram and cast(DeferredGram, basis).block_beside
              and _keeps_block(w, c, keep))
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one

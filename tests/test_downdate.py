@@ -5,6 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from streamsvd.downdate import (
+    EXACT_BELOW,
     LEDGER_SIZE,
     Ledger,
     downdate,
@@ -29,20 +30,37 @@ def test_downdate_gives_an_orthonormal_factor_and_the_same_product(seed, m, k, r
     J = rng.choice(m, size=r, replace=False)
     rest = np.setdiff1d(np.arange(m), J)
     d = downdate(Y[J], R)
+    if d is None:  # a share below EXACT_BELOW: the caller orthonormalises the rows again
+        Z = np.linalg.svd(Y[J], compute_uv=False)
+        assert np.sqrt(1 - min(Z.max(), 1.0) ** 2) < EXACT_BELOW * (1 + 1e-12)
+        return
+    assert d.c_min >= EXACT_BELOW
     Y2 = Y[rest] @ d.S
-    if d.dropped == 0.0:
-        np.testing.assert_allclose(Y2 @ d.R, Y[rest] @ R, rtol=0,
-                                   atol=50 * m * EPS / d.c_min**2 * np.linalg.norm(R))
+    np.testing.assert_allclose(Y2 @ d.R, Y[rest] @ R, rtol=0,
+                               atol=50 * m * EPS / d.c_min**2 * np.linalg.norm(R))
     # the orthogonality lost is about eps / c_min^2 (module docstring)
     assert np.linalg.norm(Y2.T @ Y2 - np.eye(Y2.shape[1]), 2) <= 50 * m * EPS / d.c_min**2
 
 
-def test_downdate_drops_a_direction_living_in_the_removed_rows():
-    Y = np.eye(6)[:, :3]  # the third direction lives in row 2 only
+def test_downdate_declines_a_direction_living_in_the_removed_rows():
+    # the third direction lives in row 2 only: its share is 0, so no small downdate
+    Y = np.eye(6)[:, :3]
     R = np.diag([3.0, 2.0, 1.0])
-    d = downdate(Y[[2]], R)
-    assert d.R.shape == (2, 3) and d.dropped == 0.0
-    np.testing.assert_allclose((Y[[0, 1, 3, 4, 5]] @ d.S) @ d.R, Y[[0, 1, 3, 4, 5]] @ R)
+    assert downdate(Y[[2]], R) is None
+    # a share of 1e-8 is below what (1 - s)(1 + s) resolves: declined as well
+    Y = np.linalg.qr(np.random.default_rng(0).standard_normal((6, 3)))[0]
+    Y[:, 2] = np.array([1.0, 1e-8, 0, 0, 0, 0]) / np.hypot(1.0, 1e-8)
+    Y = np.linalg.qr(Y[:, ::-1])[0][:, ::-1]
+    assert downdate(Y[[0]], R) is None
+
+
+def test_downdate_keeps_every_direction_when_the_shares_are_large():
+    Y = np.linalg.qr(np.random.default_rng(1).standard_normal((40, 3)))[0]
+    R = np.diag([3.0, 2.0, 1.0])
+    d = downdate(Y[[5]], R)
+    assert d is not None and d.R.shape == (3, 3)
+    rest = np.delete(np.arange(40), 5)
+    np.testing.assert_allclose((Y[rest] @ d.S) @ d.R, Y[rest] @ R, atol=100 * EPS)
 
 
 @settings(max_examples=50, deadline=None)
