@@ -99,6 +99,22 @@ def test_a_target_is_met_with_a_window(measure):
 
 
 @pytest.mark.parametrize("measure", MEASURES)
+def test_a_target_is_met_with_forgetting(measure):
+    rng = np.random.default_rng(2)
+    n, m, f = 60, 300, 0.98
+    A = spectrum_matrix(rng, n, m, 30, 4) * np.sqrt(m)
+    t = {"relative": 1e-2, "mean_l2": 1e-2, "absolute": 1e-1}[measure]
+    sc = ss.StreamCompressor(n, target_error=t, error_measure=measure, forget=f)
+    for j in range(0, m, 10):
+        sc.absorb(A[:, j:j + 10])
+        seen = A[:, :j + 10]
+        assert_bound_holds(sc, seen * f ** np.arange(seen.shape[1] - 1, -1, -1))
+    sc.finalize()
+    assert_bound_holds(sc, A * f ** np.arange(m - 1, -1, -1))
+    assert sc.target_met
+
+
+@pytest.mark.parametrize("measure", MEASURES)
 def test_a_target_is_met_with_add(measure):
     rng = np.random.default_rng(0)
     n, m = 60, 120
