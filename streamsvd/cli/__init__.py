@@ -4,12 +4,16 @@ Output. A command's result (the JSON summary of ``ingest``, the report of ``info
 ``wrote ...`` line of ``export`` and ``plot``) is the only thing written to stdout;
 progress bars and log messages go to stderr, and ``ingest --quiet`` silences the bar and
 the summary. ``streamsvd ingest ... > summary.json`` and ``streamsvd info STORE --json``
-therefore give pure JSON.
+therefore give pure JSON. When the reader of stdout has gone (``streamsvd info STORE |
+head``), the command ends silently with status 141, as a shell reports a tool that
+SIGPIPE ended.
 
 Errors. A user mistake (missing file, locked or foreign store, bad option, an option of
 another mode, bad data) prints one line ``streamsvd: error: ...`` in the words of the
 command line (its arguments, options and commands, never a Python call) and exits with
-status 2; nothing prints a traceback unless ``--debug`` is given.
+status 2; nothing prints a traceback unless ``--debug`` is given. A NaN or infinite entry
+met by ``ingest`` after STORE committed snapshots also says that STORE is kept, what it
+holds and the command that continues it (``--resume``).
 
 Start-up. At module level the package imports only the standard library and
 :mod:`streamsvd.errors`; numpy, zarr, dask, numba and matplotlib are imported by the
@@ -24,6 +28,7 @@ runs a command.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
@@ -33,9 +38,13 @@ import warnings
 from ..errors import StreamSVDError
 from . import ingest, reading
 from .parsing import CONVERGE, build_parser, locate
-from .wording import in_cli_words, interrupted
+from .wording import failed, interrupted
 
 __all__ = ["CONVERGE", "main"]
+
+#: The exit status after stdout's reader has gone, as a shell reports a process that
+#: SIGPIPE ended (128 + 13; 130 after Ctrl-C is 128 + SIGINT).
+_BROKEN_PIPE = 141
 
 _COMMANDS = {"ingest": ingest.run, "info": reading.info, "export": reading.export,
              "plot": reading.plot, "check": reading.check}
@@ -54,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     int
         The exit status: 0 on success (and after ``--help``), 2 after a user mistake
         (reported on one line of stderr as ``streamsvd: error: ...``), 130 after Ctrl-C
-        (one line saying what the store holds and the command that continues).
+        (one line saying what the store holds and the command that continues), 141,
+        silently, when the reader of stdout has gone (``streamsvd info STORE | head``).
     """
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
@@ -68,7 +78,12 @@ def main(argv: list[str] | None = None) -> int:
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     try:
         locate(args)
-        return int(_COMMANDS[args.command](args))
+        status = int(_COMMANDS[args.command](args))
+        sys.stdout.flush()  # a reader gone (`streamsvd info STORE | head`) shows here
+        return status
+    except BrokenPipeError:  # stdout is the one pipe the command writes to
+        _discard_stdout()
+        return _BROKEN_PIPE
     except KeyboardInterrupt as exc:
         # an interrupt inside a commit can leave a coroutine of zarr's created but never
         # run (the store keeps its last commit): released here, without its warning
@@ -80,5 +95,19 @@ def main(argv: list[str] | None = None) -> int:
     except (StreamSVDError, OSError, ValueError) as err:
         if args.debug:
             raise
-        print(f"streamsvd: error: {in_cli_words(str(err))}", file=sys.stderr)
+        print(f"streamsvd: error: {failed(err, args, argv)}", file=sys.stderr)
         return 2
+
+
+def _discard_stdout() -> None:
+    """Send what is left of stdout to the null device: its reader has gone.
+
+    The interpreter flushes stdout once more at exit, which would report the closed
+    pipe again; a stdout without a file descriptor (a test's capture) is left as it is.
+    """
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)

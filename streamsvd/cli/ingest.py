@@ -17,7 +17,14 @@ import json
 import sys
 from typing import TYPE_CHECKING, Any
 
-from ..errors import InputError, NonFiniteError, SourceError, StoreError, StoreMismatchError
+from ..errors import (
+    InputError,
+    NonFiniteError,
+    ShapeMismatchError,
+    SourceError,
+    StoreError,
+    StoreMismatchError,
+)
 from .parsing import (
     CONVERGE,
     DEFAULT_BLOCK,
@@ -25,6 +32,7 @@ from .parsing import (
     DEFAULT_OVERSAMPLING,
     DEFAULT_RULE,
     DEFAULT_SWEEPS,
+    diagonal_as_weights,
     load_inner,
 )
 from .reading import open_readonly
@@ -51,9 +59,14 @@ def run(args: Any) -> int:
             "--oversampling adds terms to --max-rank while streaming; add --max-rank K, or "
             "drop --oversampling."
         )
-    options = _compressor_options(args, mode, resume=resume, inner=load_inner(args))
+    inner = load_inner(args)
+    if mode == "tall":
+        inner = _tall_inner(inner, args.inner)
+    options = _compressor_options(args, mode, resume=resume, inner=inner)
     block = args.block or DEFAULT_BLOCK
     record = _source_record(args)
+    if inner is not None and inner.n is not None:
+        _check_orientation(record, inner.n, "--inner")
     with removed_on_failure(store, new=not resume):
         try:
             if mode == "memory":
@@ -200,6 +213,14 @@ def _check_mode_options(args: Any, mode: str) -> None:
             "--source-changed-ok applies to --resume only (a new STORE records its SOURCE); "
             "add --resume, or drop it."
         )
+    for given, flag in ((args.window, "--window"), (args.forget, "--forget")):
+        if given is not None and mode == "tree":
+            raise InputError(
+                f"{flag} applies to the in-memory and tall modes only; the tree mode "
+                "(--scheduler without --tall) compresses its leaves apart and cannot "
+                f"drop or weight the oldest snapshots. Drop {flag}, or drop --scheduler "
+                "(or add --tall)."
+            )
     if args.commit_every is not None and mode == "tree":
         raise InputError(
             "--commit-every does not apply to the tree mode (--scheduler without --tall), "
@@ -249,10 +270,48 @@ def _source_record(args: Any) -> Any:
                                description=src.description)
 
 
+def _tall_inner(inner: Any, path: str) -> Any:
+    """Return the inner product of ``--tall``: weights, or a matrix with only a diagonal as such.
+
+    Raises
+    ------
+    InputError
+        When the ``--inner`` matrix at ``path`` has entries off its diagonal.
+    """
+    from ..inner import DiagonalInner
+
+    inner = diagonal_as_weights(inner)
+    if inner is None or isinstance(inner, DiagonalInner):
+        return inner
+    raise InputError(
+        f"--inner with --tall must be weights: a 1-D .npy of positive weights, or a "
+        f"matrix with nothing off its diagonal; got {path}, a {inner.n} x {inner.n} matrix "
+        "with entries off its diagonal, which couples the row panels of --tall. Drop "
+        "--tall, or lump the mass matrix into weights."
+    )
+
+
+def _check_orientation(record: Any, size: int, what: str) -> None:
+    """Refuse a SOURCE saved with one snapshot per row, which ``what`` of ``size`` reveals.
+
+    Only when SOURCE's number of columns, not its snapshot size, is ``size``; any other
+    mismatch is the library's to report.
+    """
+    n, m = record.shape
+    if n != size and m == size:
+        raise ShapeMismatchError(
+            f"SOURCE {record.path} ({n} x {m}) looks saved with one snapshot per row: its "
+            f"rows have size {size}, the size of {what}, while its columns, read as "
+            f"snapshots, have size {n}. Save its transpose ({m} x {n}, one snapshot per "
+            "column) and pass that as SOURCE."
+        )
+
+
 def _check_resume(args: Any, sc: Any, record: Any) -> None:
     """Refuse to continue ``sc`` with the options and SOURCE of this command line if they differ."""
     from ..policy import check_resume
 
+    _check_orientation(record, sc.n, f"the basis in STORE {args.store}")
     given = {name: value for name, value in vars(args).items() if value is not None}
     if given.get("sweeps") == CONVERGE:
         given["sweeps"] = None

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from typing import Any, NoReturn
 
 from .. import __version__
@@ -28,6 +29,7 @@ __all__ = [
     "DEFAULT_RULE",
     "DEFAULT_SWEEPS",
     "build_parser",
+    "diagonal_as_weights",
     "load_inner",
     "locate",
 ]
@@ -78,8 +80,24 @@ _INNER_HELP = (
 )
 
 
+# a word that Python reads as a negative float (-1, -.5, -1e-3, -inf): argparse's own
+# pattern misses the exponent and the infinities, and takes such a word for an option
+_NEGATIVE_NUMBER = re.compile(
+    r"^-(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)(e[+-]?\d[\d_]*)?$|^-(inf|infinity|nan)$", re.IGNORECASE
+)
+
+
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are one line ``streamsvd: error: ...``."""
+    """An argument parser whose usage errors are one line ``streamsvd: error: ...``.
+
+    A negative number after an option is that option's value, whatever its notation, so
+    that ``--target-error -1e-3`` is refused by the option's type, in the same words as
+    ``--target-error=-1e-3``.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str) -> NoReturn:
         """Print the usage error on one line and exit with status 2."""
@@ -107,6 +125,13 @@ def _positive_int(text: str) -> int:
 
 def _nonnegative_float(text: str) -> float:
     return float(_number(text, float, 0.0, "a finite number >= 0"))
+
+
+def _positive_float(text: str) -> float:
+    value = float(_number(text, float, 0.0, "a positive number"))
+    if value == 0.0:
+        raise argparse.ArgumentTypeError(f"must be a positive number; got {text!r}")
+    return value
 
 
 def _forget(text: str) -> float:
@@ -224,6 +249,25 @@ def load_inner(args: Any) -> Any:
     return load(args.inner)
 
 
+def diagonal_as_weights(inner: Any) -> Any:
+    """Return a matrix inner product with nothing off its diagonal as its weights.
+
+    The tall mode keeps ``U`` in row panels and takes weights only; a diagonal mass
+    matrix (pyMOR's finite-volume ``l2_product`` saved by ``scipy.sparse.save_npz``) is
+    such weights. Any other inner product (or None) is returned as it is.
+    """
+    import numpy as np
+    import scipy.sparse as sp
+
+    from ..inner import DiagonalInner, MatrixInner
+
+    if not isinstance(inner, MatrixInner):
+        return inner
+    mat = inner.matrix  # its diagonal is positive (checked): n entries are not zero
+    nonzero = mat.count_nonzero() if sp.issparse(mat) else np.count_nonzero(mat)
+    return DiagonalInner(mat.diagonal()) if nonzero == inner.n else inner
+
+
 def _scheduler(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError(
@@ -271,9 +315,10 @@ def build_parser() -> argparse.ArgumentParser:
     tol.add_argument("--rtol", metavar="R", type=_nonnegative_float,
                      help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
                      "none; not with --eps)")
-    tol.add_argument("--target-error", metavar="T", type=_nonnegative_float,
-                     help="keep the fewest terms whose guaranteed error bound is at most T "
-                     "in --error-measure (default: none; not with --eps or --rtol)")
+    tol.add_argument("--target-error", metavar="T", type=_positive_float,
+                     help="keep the fewest terms whose guaranteed error bound is at most T, "
+                     "a positive number, in --error-measure (default: none; not with --eps "
+                     "or --rtol)")
     ing.add_argument("--error-measure", choices=("relative", "mean_l2", "absolute"),
                      help="'relative': ||A - U V^T||_F <= T ||A||_F; 'mean_l2': "
                      "sqrt(sum_j ||a_j - P a_j||^2 / m) <= T (pyMOR HAPOD's measure); "
@@ -323,7 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
                      f"{DEFAULT_COMMIT_EVERY})")
     ing.add_argument("--inner", metavar="FILE",
                      help="inner product in which U is orthonormal (a mass matrix, "
-                     f"quadrature weights): {_INNER_HELP}; STORE keeps it, so --resume, "
+                     f"quadrature weights): {_INNER_HELP}; with --tall, weights only (a "
+                     "matrix with nothing off its diagonal is read as its weights); STORE "
+                     "keeps it, so --resume, "
                      "info, export and plot need it only for a store written before "
                      "stores kept it (checked against STORE when given) (default: "
                      "Euclidean, or the one STORE keeps)")

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError, StoreError, StoreMismatchError
-from .parsing import load_inner
+from .parsing import diagonal_as_weights, load_inner
 from .printing import print_check, print_info, print_json
 
 __all__ = ["check", "export", "info", "open_readonly", "plot"]
@@ -38,7 +38,8 @@ def open_readonly(path: Any, *, inner: Any = None) -> Any:
     except StoreMismatchError:
         from ..parallel import open_compressor  # a tall store: dask is needed to read it
 
-        return open_compressor(path, mode="r", inner=inner)
+        # a tall store keeps weights: a matrix with only a diagonal is read as such
+        return open_compressor(path, mode="r", inner=diagonal_as_weights(inner))
 
 
 def info(args: Any) -> int:

@@ -2,7 +2,8 @@
 
 The library's messages speak to Python callers (argument names in backticks, calls such
 as ``BasisStore.create(...)``); :func:`in_cli_words` says them in the words of the
-command line. :func:`interrupted` is the line printed after Ctrl-C.
+command line; :func:`failed` is the line printed after a user mistake, and
+:func:`interrupted` the line printed after Ctrl-C.
 
 Only the standard library is imported here (see :mod:`streamsvd.cli`).
 """
@@ -13,10 +14,10 @@ import re
 import shlex
 from typing import Any
 
-from ..errors import StreamSVDError
+from ..errors import NonFiniteError, StreamSVDError
 from ..options import CompressorOptions
 
-__all__ = ["in_cli_words", "interrupted"]
+__all__ = ["failed", "in_cli_words", "interrupted"]
 
 # Advice the library gives Python callers, and what a command-line user does instead.
 _REWRITES = (
@@ -75,22 +76,53 @@ def in_cli_words(message: str) -> str:
     return " ".join(kept)
 
 
+def failed(err: Exception, args: Any, argv: list[str]) -> str:
+    """Return the line printed after ``streamsvd: error:`` for a user mistake.
+
+    When ``ingest`` stopped at a NaN or infinite entry after committing snapshots, the
+    line also says that STORE was kept, what it holds and the command that continues.
+    """
+    text = in_cli_words(str(err))
+    if args.command != "ingest" or not isinstance(err, NonFiniteError):
+        return text
+    offset = _committed_offset(args.store)
+    if not offset:  # nothing committed: a STORE this command created was removed
+        return text
+    return (
+        f"{text} STORE {args.store} is kept and holds its last commit, the snapshots up to "
+        f"column {offset} of SOURCE; once SOURCE is repaired, continue with: "
+        f"streamsvd {_again(argv)} --resume"
+    )
+
+
 def interrupted(args: Any, argv: list[str]) -> str:
     """Return the line printed after Ctrl-C: what the store holds, how to continue."""
     if args.command != "ingest":
         return "streamsvd: interrupted."
-    again = " ".join(shlex.quote(a) for a in argv if a != "--resume")
-    try:
-        from ..store import open_store
-
-        with open_store(args.store, "r") as st:
-            offset = int(st.read().attrs.get("source_offset", 0))
-    except (StreamSVDError, OSError, ValueError):
+    offset = _committed_offset(args.store)
+    if offset is None:
         return (
             f"streamsvd: interrupted; nothing was committed to STORE {args.store}; start "
-            f"again with: streamsvd {again} --resume"
+            f"again with: streamsvd {_again(argv)} --resume"
         )
     return (
         f"streamsvd: interrupted; STORE {args.store} holds the snapshots up to column "
-        f"{offset} of SOURCE (its last commit); continue with: streamsvd {again} --resume"
+        f"{offset} of SOURCE (its last commit); continue with: streamsvd {_again(argv)} "
+        "--resume"
     )
+
+
+def _again(argv: list[str]) -> str:
+    """Return the command line ``argv`` without ``--resume``, quoted for a shell."""
+    return " ".join(shlex.quote(a) for a in argv if a != "--resume")
+
+
+def _committed_offset(store: Any) -> int | None:
+    """Return the source offset of STORE's last commit, or None when it has none."""
+    try:
+        from ..store import open_store
+
+        with open_store(store, "r") as st:
+            return int(st.read().attrs.get("source_offset", 0))
+    except (StreamSVDError, OSError, ValueError):
+        return None
