@@ -114,9 +114,11 @@ class ExpansionView:
     def discarded_energy(self) -> float:
         """Sum of the energies ``||D_t||_F^2`` discarded by every update.
 
-        ``inf`` above about 1e154; :attr:`discarded_norm` is its square root, always finite.
+        ``inf`` above about 1e154 (never an exception); :attr:`discarded_norm` is its square
+        root, always finite.
         """
-        return self._state.bound.discarded**2
+        d = self._state.bound.discarded
+        return d * d
 
     @property
     def discarded_norm(self) -> float:

@@ -99,7 +99,7 @@ def open_file(path: Path, dataset: str | None) -> OpenedFile:
         no_dataset(dataset, f"the .npy file {path}")
         try:
             arr = np.load(path, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
             raise SourceError(
                 f"`source` {path} cannot be read as a .npy file ({exc}). Check the file."
             ) from exc

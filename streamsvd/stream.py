@@ -491,7 +491,7 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
         "source_offset": sc.source_offset, "updates": len(sc.history),
         "finalized": sc.finalized, "error_bound": sc.error_bound,
-        "discarded_energy": sc.discarded_energy, "orthogonality": sc.orthogonality_error(),
+        "discarded_norm": sc.discarded_norm, "orthogonality": sc.orthogonality_error(),
         "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
         "target_missed_by": sc.target_missed_by,
         "n_absorbed": sc.n_absorbed, "removed": sc.removed.tolist(),

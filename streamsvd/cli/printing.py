@@ -50,7 +50,11 @@ def print_info(summary: dict[str, Any]) -> None:
         "--final-sweeps none converges it)"))
     print(f"error bound   ||A - U V^T||_F <= {summary['error_bound']:.3e}")
     if opts.get("target_error") is not None:
-        met = "met" if summary["target_met"] else "NOT met (--max-rank cuts more)"
+        met = "met" if summary["target_met"] else "NOT met (" + {
+            "max_rank": "--max-rank cuts more than the target allows",
+            "earlier_updates": "what earlier updates discarded exceeds the budget now: "
+            "removed, windowed-out or forgotten snapshots shrank it",
+        }[summary["target_missed_by"]] + ")"
         print(f"target error  {opts['target_error']:.3e} ({opts['error_measure']}): bound "
               f"{summary['error_in_measure']:.3e} in that measure, {met}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
