@@ -258,7 +258,7 @@ def bound_after_removal(bound: Bound, ledger: Ledger) -> Bound:
     cuts add by the triangle inequality (:mod:`streamsvd.bound`); the discarded energy
     is kept (it is not subtracted: the energy of what left is not tracked per column).
     """
-    return Bound(min(bound.bound, ledger.total), math.inf, bound.discarded)
+    return bound.uncoupled(min(bound.bound, ledger.total))
 
 
 # ----------------------------------------------------------------- the plan

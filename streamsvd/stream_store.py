@@ -71,10 +71,12 @@ class _Small:
     def pack(self) -> tuple[np.ndarray, list[list[int]]]:
         """Return the flat array and the shapes of its pieces."""
         # the bound's norms are >= 0; an infinite one (the coupling after `add`) is stored
-        # as -1, since a store holds finite numbers only
-        norms = np.where(np.isinf(self.bound.to_array()), -1.0, self.bound.to_array())
-        scalars = np.concatenate([norms, [float(self.source_offset), float(self.m),
-                                          self.wasted_flops]])
+        # as -1, since a store holds finite numbers only; the parts of the bound stores
+        # before kept no record of come last, where those stores' readers do not look
+        account = self.bound.to_array()
+        norms = np.where(np.isinf(account), -1.0, account)
+        scalars = np.concatenate([norms[:3], [float(self.source_offset), float(self.m),
+                                              self.wasted_flops], norms[3:]])
         gram = np.zeros((0, 0)) if self.gram is None else self.gram
         pieces = [self.coords, gram, self.R, scalars]
         if self.Vp is not None:
@@ -91,10 +93,11 @@ class _Small:
             pieces.append(flat[start : start + size].reshape(shape))
             start += size
         scalars = pieces[-1]
+        account = np.concatenate([scalars[:3], scalars[6:8]])  # 3 floats in older stores
         return cls(
             coords=pieces[0], gram=None if pending else pieces[1], R=pieces[2],
             Vp=pieces[3] if len(pieces) == 5 else None,
-            bound=Bound.from_array(np.where(scalars[:3] < 0, np.inf, scalars[:3])),
+            bound=Bound.from_array(np.where(account < 0, np.inf, account)),
             source_offset=int(scalars[3]), m=int(scalars[4]),
             wasted_flops=float(scalars[5]),
         )

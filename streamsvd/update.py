@@ -487,7 +487,7 @@ def _plan(
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
         discarded, step.coupling_root, overlapping=overlapping,
-        rejection_root=rejection_root,
+        rejection_root=rejection_root, rejected=d_rej,
     )
     record = UpdateRecord(
         kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,

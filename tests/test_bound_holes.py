@@ -70,3 +70,32 @@ def test_discarded_energy_of_residuals_rejected_in_different_blocks_is_exact(rng
     true = np.linalg.norm(U @ V.T - g.expansion.to_dense()) ** 2
     assert g.expansion.rank == 1 and len(g.rejected) == 129
     assert abs(g.discarded_energy - true) <= 1e-10 * true
+
+
+def test_the_bound_account_is_stored_whole_and_read_from_older_stores():
+    from streamsvd.bound import Bound
+    from streamsvd.stream_store import _Small
+
+    b = Bound(3.0, np.inf, 2.0, 0.5, 1.5)
+    small = _Small(coords=np.eye(2), gram=np.eye(2), R=np.ones((2, 3)), Vp=None, bound=b,
+                   source_offset=7, m=3, wasted_flops=1.0)
+    flat, layout = small.pack()
+    back = _Small.unpack(flat, layout, pending=False)
+    assert back.bound == b and (back.source_offset, back.m) == (7, 3)
+    # a store written before kept three floats of the account, then offset, m, flops
+    old = flat[: flat.size - 2]
+    layout = [*layout[:-1], [6]]
+    back = _Small.unpack(old, layout, pending=False)
+    assert back.bound == Bound(3.0, np.inf, 2.0, np.inf, 2.0)  # k <= c, rho <= discarded
+    assert (back.source_offset, back.m, back.wasted_flops) == (7, 3, 1.0)
+
+
+def test_small_rejections_beside_converged_cuts_add_by_their_own_norm():
+    from streamsvd.bound import Bound
+
+    # converged cuts (no coupling) after residuals of norm 1e-6 were rejected: the cross
+    # term is at most rho d, not d b
+    b = Bound(1.0, 10.0, 1.0, 0.0, 1e-6)
+    after = float(b.after(np.array([0.5]), overlapping=False)[0])
+    assert after == pytest.approx(np.sqrt(1.0 + 0.25 + 2 * 1e-6 * 0.5), rel=1e-15)
+    assert b.step(0.5, 0.0, overlapping=False).bound == after

@@ -318,3 +318,27 @@ def test_property_trees_of_many_leaves_meet_the_target(seed, measure, leaves, sc
     err = assert_bound_holds(sc, A)
     assert sc.target_met
     assert err <= rel * norm * (1 + 1e-12) + ROUNDING * m * EPS * norm
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), sweeps=st.sampled_from([1, 2, None]),
+       reject_tol=st.sampled_from([None, 1e-8, 1e-4]),
+       measure=st.sampled_from(MEASURES + (None,)), cap=st.sampled_from([None, 3, 6]))
+def test_property_rejections_beside_unconverged_cuts(seed, sweeps, reject_tol, measure, cap):
+    # nearly collinear time steps (many rejected residuals) and cuts before the core
+    # converges (couplings): the cross terms the bound's recursion splits between them
+    rng = np.random.default_rng(seed)
+    n = 30
+    modes = np.linalg.qr(rng.standard_normal((n, 8)))[0] * np.logspace(0, -6, 8)
+    path = np.cumsum(rng.standard_normal((8, 60)) * 1e-3, axis=1) + rng.standard_normal((8, 1))
+    A = modes @ path + 1e-9 * rng.standard_normal((n, 60))
+    kw = {} if measure is None else {"target_error": 1e-4, "error_measure": measure}
+    if measure == "absolute":
+        kw["target_error"] = 1e-4 * np.linalg.norm(A)
+    sc = ss.StreamCompressor(n, sweeps=sweeps, reject_tol=reject_tol, max_rank=cap,
+                             oversampling=1, **kw)
+    for j in range(0, 60, 6):
+        sc.absorb(A[:, j:j + 6])
+        assert_bound_holds(sc, A[:, :j + 6])
+    sc.finalize()
+    assert_bound_holds(sc, A)
