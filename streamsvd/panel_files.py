@@ -20,6 +20,7 @@ import numpy as np
 from .errors import StoreError
 from .raw_array import RawArray
 from .storage import LocalStorage, ObjectStorage
+from .store.format import PANELS
 
 __all__ = ["SPARES", "PanelFiles"]
 
@@ -62,7 +63,7 @@ class PanelFiles:
             import zarr
 
             try:
-                z = zarr.open_array(store=self._store(), path=f"panels/{name}", mode="r")
+                z = zarr.open_array(store=self._store(), path=f"{PANELS}/{name}", mode="r")
             except (OSError, ValueError, KeyError) as exc:
                 raise StoreError(
                     f"`store` {self.root}: panel {name} of the basis cannot be opened "
@@ -82,7 +83,7 @@ class PanelFiles:
         name = f"p{uuid.uuid4().hex}"
         if not self.raw:
             return name, self._new_zarr(name, cols, dtype)
-        directory = cast(LocalStorage, self.root).root / "panels" / name
+        directory = cast(LocalStorage, self.root).root / PANELS / name
         fits = [s for s in self.spares if s.shape == (self.n, cols) and s.dtype == dtype]
         spare = fits[0] if fits else None
         if spare is not None:
@@ -129,7 +130,7 @@ class PanelFiles:
         from zarr.codecs import Crc32cCodec
 
         return zarr.create_array(
-            store=self._store(), name=f"panels/{name}", shape=(self.n, cols),
+            store=self._store(), name=f"{PANELS}/{name}", shape=(self.n, cols),
             chunks=(self.chunk_rows, max(cols, 1)), dtype=np.dtype(dtype).name,
             fill_value=0.0, compressors=[Crc32cCodec()],
             # every chunk is written (no comparison with the fill value first)
@@ -139,7 +140,7 @@ class PanelFiles:
     def delete(self, name: str) -> None:
         """Delete panel ``name``: its raw file and its zarr copy, or its zarr array."""
         self._arrays.pop(name, None)
-        self.root.delete(f"panels/{name}")
+        self.root.delete(f"{PANELS}/{name}")
 
     def drop_spares(self) -> None:
         """Delete the raw files kept to be written over."""
@@ -149,4 +150,4 @@ class PanelFiles:
 
     def listed(self) -> list[str]:
         """Return the names of the panels under the root (spares included)."""
-        return [entry for entry in self.root.list("panels") if entry.startswith("p")]
+        return [entry for entry in self.root.list(PANELS) if entry.startswith("p")]

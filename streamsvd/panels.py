@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from . import panel_tasks
-from .errors import StoreMismatchError
+from .errors import StoreFormatError
 from .inner import InnerProduct
 from .panel_files import PanelFiles
 from .row_chunks import RowChunks, io_target
@@ -412,7 +412,7 @@ class PanelBasis:
         for name, width in zip(self.panels, self.widths, strict=True):
             z = self.files.open(name)
             if z.shape != (self.n, width):
-                raise StoreMismatchError(
+                raise StoreFormatError(
                     f"`path` {self.root} is damaged: panel {name} has shape {z.shape}, "
                     f"expected {(self.n, width)}. Restore the store from a copy."
                 )

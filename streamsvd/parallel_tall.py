@@ -24,7 +24,11 @@ into memory first (``n x b``) and orthonormalises it there.
 Crash safety: an update writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two
 commits refer to it, so a process or worker killed at any instant leaves the last commit
-readable; leftovers are removed when the store is reopened for writing.
+readable; leftovers are removed when the store is reopened for writing. A store is
+created by its first commit, which holds the whole state and the basis's attributes
+(``chunk_rows``, the panels): killed before it, the store does not exist (its leftovers,
+panels included, are replaced by the next creation), never half of it
+(:mod:`streamsvd.store.create`).
 """
 
 from __future__ import annotations

@@ -96,7 +96,7 @@ class StoreLifecycle:
                                           inner=inner)
         try:
             options = CompressorOptions.from_stored(state.n, state.attrs["options"])
-            sc = cls._built(state.n, backend=backend(state.attrs.get("basis", {}), path),
+            sc = cls._built(state.n, backend=backend(state.attrs["basis"], path),
                             inner=ip, **options.as_dict())
             sc.source_offset, sc._history = restore_state(sc._state, state.arrays,
                                                           state.attrs)
@@ -105,8 +105,7 @@ class StoreLifecycle:
             sc.source_record = SourceRecord.from_attrs(state.attrs.get("source"))
             sc._persistence = StreamStore(st, commit_every=options.commit_every)
             sc._persistence.restored(
-                sc._state, state.generation, state.attrs.get("basis", {}),
-                state.arrays.get("history"),
+                sc._state, state.generation, state.attrs["basis"], state.arrays["history"],
                 inner=all(name in state.arrays for name in sc._inner_data),
             )
         except BaseException:
@@ -139,11 +138,16 @@ class StoreLifecycle:
         return out
 
     def _start_store(self, path: Any, storage_options: dict[str, Any] | None) -> None:
-        """Create the store at ``path`` and commit the current state to it."""
+        """Create the store at ``path`` by committing the current state to it.
+
+        All or nothing: the store exists once its first commit, which holds the whole
+        state (and the basis's attributes), switched its pointer; until then a failure
+        deletes everything written under it, and a process killed meanwhile leaves the
+        leftovers of an interrupted creation, which the next creation replaces.
+        """
         self._persistence = StreamStore.create(
             path, n=self.n, inner_fingerprint=self.inner.fingerprint,
-            attrs=self._attrs(None), storage_options=storage_options,
-            commit_every=self.options.commit_every,
+            storage_options=storage_options, commit_every=self.options.commit_every,
         )
         before = self._backend, self._state.basis
         try:
@@ -154,7 +158,7 @@ class StoreLifecycle:
             self._commit(None, self.source_offset)
         except BaseException:
             self._backend, self._state.basis = before
-            self._persistence.close()  # release the lock of the store left at generation 0
+            self._persistence.close()  # deletes a creation that did not commit
             self._persistence = None
             raise
         if self._backend is not before[0]:

@@ -144,12 +144,17 @@ class StreamStore:
         self._recent: tuple[dict[str, Any], ...] = ()  # the basis of the last two commits
 
     @classmethod
-    def create(cls, path: Any, *, n: int, inner_fingerprint: str, attrs: dict[str, Any],
+    def create(cls, path: Any, *, n: int, inner_fingerprint: str,
                storage_options: dict[str, Any] | None, commit_every: int | str
                ) -> StreamStore:
-        """Create a new store at ``path`` (nothing committed yet)."""
-        handle = BasisStore.create(
-            path, n=n, dtype="float64", inner_fingerprint=inner_fingerprint, attrs=attrs,
+        """Begin a new store at ``path``: its first :meth:`commit` creates it.
+
+        Until that commit the store does not exist (it has no pointer);
+        :meth:`close` before it deletes everything written under it
+        (:meth:`~streamsvd.store.BasisStore.begin`).
+        """
+        handle = BasisStore.begin(
+            path, n=n, dtype="float64", inner_fingerprint=inner_fingerprint,
             storage_options=storage_options,
         )
         return cls(handle, commit_every=commit_every)
@@ -229,11 +234,9 @@ class StreamStore:
                  history: Any, *, inner: bool) -> None:
         """Take up the commit ``state`` was restored from (see :meth:`CommitTracker.restored`).
 
-        ``history`` is None for a store killed before its first commit. Opened for
-        writing, the basis deletes what an interrupted update left.
+        Opened for writing, the basis deletes what an interrupted update left.
         """
-        if history is not None:
-            self.tracker.restored(generation, state.extents(), history, inner=inner)
+        self.tracker.restored(generation, state.extents(), history, inner=inner)
         self._recent = (basis_attrs,)
         if self.writable:
             state.basis.collect(self._recent)
@@ -265,7 +268,7 @@ def _planned_dead(dead: np.ndarray, plan: Plan | None) -> np.ndarray:
 
 def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
                       ) -> tuple[BasisStore, StoreState, InnerProduct]:
-    """Open a compressor's store and check it: ``kind`` and layout, then the inner product.
+    """Open a compressor's store and check its kind, layout, commit, then inner product.
 
     ``name`` is the class the user called (for the messages). Returns the handle, the
     state read and the inner product to use; the handle is closed on any error.
@@ -291,11 +294,42 @@ def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
                 "snapshots again into a "
                 "new store."
             )
+        _check_committed(path, state, name)
         ip = _inner_of(path, state, inner)
     except BaseException:
         st.close()
         raise
     return st, state, ip
+
+
+# what every commit of a compressor holds (StreamStore.commit)
+COMMITTED_ARRAYS = ("small", "history")
+COMMITTED_ATTRS = {"options": dict, "small_layout": list, "basis": dict}
+
+
+def _check_committed(path: Any, state: StoreState, name: str) -> None:
+    """Raise :class:`StoreFormatError` unless ``state`` is a whole commit of a compressor.
+
+    A store that an earlier version of streamsvd created in two commits, and that was
+    killed between them, holds only the first one: no arrays and none of the state.
+    """
+    if not state.arrays and "small_layout" not in state.attrs:
+        raise StoreFormatError(
+            f"`path` {path!s} is an incomplete store: its creation by a {name} was "
+            f"interrupted before its first commit (generation {state.generation} holds "
+            "none of its state), so nothing was absorbed. Delete it and ingest the "
+            "snapshots again."
+        )
+    missing = [f"array {a!r}" for a in COMMITTED_ARRAYS if a not in state.arrays] + [
+        f"attribute {a!r}" for a, kind in COMMITTED_ATTRS.items()
+        if not isinstance(state.attrs.get(a), kind)
+    ]
+    if missing:
+        raise StoreFormatError(
+            f"`path` {path!s} is damaged: generation {state.generation} lacks "
+            f"{', '.join(missing)} of the state a {name} commits. Restore the store from "
+            "a copy."
+        )
 
 
 def _inner_of(path: Any, state: StoreState, inner: Any) -> InnerProduct:
@@ -329,13 +363,7 @@ def _inner_of(path: Any, state: StoreState, inner: Any) -> InnerProduct:
 
 def restore_state(state: State, arrays: dict[str, Any], attrs: dict[str, Any]
                   ) -> tuple[int, list[UpdateRecord]]:
-    """Load a commit into ``state``; return the source offset and the history.
-
-    A store killed between its creation and its first commit holds no arrays: nothing
-    was absorbed, and ``state`` is left empty.
-    """
-    if not arrays:
-        return 0, []
+    """Load a commit into ``state``; return the source offset and the history."""
     a = {k: np.array(v, dtype=np.float64) for k, v in arrays.items()
          if not k.startswith("inner_")}
     small = _Small.unpack(a["small"], attrs["small_layout"],

@@ -13,6 +13,8 @@ import pytest
 import streamsvd as ss
 from streamsvd.commits import CommitSchedule
 from streamsvd.parallel import open_compressor
+from streamsvd.storage import open_storage
+from streamsvd.store import check_store, history
 from streamsvd.stream import StreamCompressor
 from streamsvd.testing import with_spectrum
 
@@ -318,14 +320,17 @@ def _kill_and_resume(tmp_path, rng, kills, *options):
         proc.send_signal(signal.SIGKILL)
         proc.communicate()
         if store.exists():
+            # wherever the kill landed, opening and `check` agree: killed while the store
+            # was created, nothing was committed (the next run, with --resume, replaces
+            # the leftovers); else the last commit is whole, the first one included
+            report = check_store(open_storage(store))
             try:
                 reader = open_compressor(store, mode="r")
-            except ss.StoreFormatError:
-                # killed while the store itself was being created: nothing was committed
-                import shutil
-
-                shutil.rmtree(store)
+            except ss.StoreFormatError as exc:
+                assert report.problems == [str(exc)]
+                assert history(open_storage(store)) in ("empty", "creation"), exc
                 continue
+            assert report.healthy, report.problems
             with reader:  # the last committed state is readable and consistent
                 e = reader.expansion
                 assert reader.n_seen == reader.source_offset

@@ -428,11 +428,44 @@ def test_other_format_version_names_both(store_path):
 
 def test_interrupted_creation_is_reported_and_can_be_redone(store_path):
     BasisStore.create(store_path, n=200, inner_fingerprint=FP).close()
+    # what a creation killed before its pointer switch leaves: no pointer, and generation
+    # 0 without the commit record that follows the switch
     (store_path / POINTER_NAME).unlink()
+    (store_path / "generations" / "g00000000" / "committed.json").unlink()
     with pytest.raises(StoreFormatError, match=r"no current.json .*creation was interrupted"):
         open_store(store_path)
     with BasisStore.create(store_path, n=300, inner_fingerprint=FP) as s:
         assert s.n == 300 and s.read().generation == 0
+
+
+def test_a_committed_generation_0_without_its_pointer_is_never_replaced(store_path):
+    """Generation 0 may hold data (a compressor's first commit): once committed, the
+    store is damaged without its pointer, not the leftovers of a creation."""
+    BasisStore.create(store_path, n=200, inner_fingerprint=FP, attrs={"k": 0}).close()
+    (store_path / POINTER_NAME).unlink()
+    with pytest.raises(StoreFormatError, match=r"pointer current.json is missing, but it holds "
+                       r"committed generations \(up to 0\).*The last readable generation is 0"):
+        open_store(store_path)
+    with pytest.raises(StoreError, match=r"already holds a basis store \(its pointer is missing"):
+        BasisStore.create(store_path, n=200, inner_fingerprint=FP)
+    assert (store_path / "generations" / "g00000000").exists()
+
+
+def test_a_store_begun_exists_only_once_its_first_commit_switched_the_pointer(store_path, rng):
+    s = BasisStore.begin(store_path, n=200, inner_fingerprint=FP)
+    assert s.generation == -1 and not (store_path / POINTER_NAME).exists()
+    with pytest.raises(StoreError, match=r"is being created: nothing was committed yet"):
+        s.read()
+    (store_path / "panels").mkdir()  # what a tall compressor writes before its first commit
+    with pytest.raises(StoreFormatError, match=r"creation was interrupted"):
+        open_store(store_path)
+    s.close()  # closed before its first commit: everything written under it goes
+    assert not store_path.exists()
+    with BasisStore.begin(store_path, n=200, inner_fingerprint=FP) as s:
+        arrays = factors(rng)
+        assert s.commit(arrays, {"k": 0}) == 0
+    with open_store(store_path) as reader:
+        assert_state_equal(reader.read(), arrays, {"k": 0})
 
 
 @pytest.mark.parametrize(

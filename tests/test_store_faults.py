@@ -127,6 +127,38 @@ def test_an_interrupt_at_each_step_of_a_commit_keeps_a_whole_generation(
     assert check_store(open_storage(path)).healthy
 
 
+@pytest.mark.parametrize("failure", [KeyboardInterrupt(), OSError(errno.EIO, "I/O error")])
+@pytest.mark.parametrize("point", CRASH_POINTS)
+def test_an_interrupt_at_each_step_of_a_creation_leaves_nothing_or_the_whole_store(
+        tmp_path, monkeypatch, point, failure):
+    """The pointer is the creation's last step: interrupted before it, nothing is left
+    (opening and `check` agree that there is no store); after it, the store stands."""
+    path = tmp_path / "s.zarr"
+    seen = interrupt_at(monkeypatch, point, failure)
+    after = point in AFTER_SWITCH
+    if isinstance(failure, KeyboardInterrupt):
+        with pytest.raises(KeyboardInterrupt):
+            BasisStore.create(path, n=50, inner_fingerprint=FP).close()
+    elif after:  # the creation stands; what failed after the switch is logged
+        BasisStore.create(path, n=50, inner_fingerprint=FP).close()
+    else:
+        with pytest.raises(StoreError, match=r"creating the store failed while writing "
+                           r"generation 0 and its pointer \(.*I/O error.*nothing was left"):
+            BasisStore.create(path, n=50, inner_fingerprint=FP)
+    monkeypatch.undo()
+    assert seen == [point] and path.exists() == after
+    report = check_store(open_storage(path))
+    if after:
+        assert report.healthy, report.problems
+        assert_generation(path, 0)
+    else:
+        with pytest.raises(StoreFormatError, match="does not exist") as refused:
+            open_store(path)
+        assert report.problems == [str(refused.value)]
+        committed(path, 1)  # created again
+    assert check_store(open_storage(path)).healthy
+
+
 _KILLED_WRITER = """
 import os, signal, sys
 import numpy as np

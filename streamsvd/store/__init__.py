@@ -27,6 +27,8 @@ or lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach
                                  SHA-256 of its attributes, a copy of the root attributes
       writer.lock                present while a writer has the store open (local)
       writer.lease               the same, with an expiry, in an object store
+      panels/                    a tall compressor's basis (streamsvd.panel_files),
+                                 written before the commits that list it
       generations/
         g00000005/               an older generation whose segments are still used
         g00000007/               previous generation (kept)
@@ -64,6 +66,15 @@ whole), and conditionally: ``If-Match`` the ETag of the pointer this writer last
 read (``If-None-Match: *`` at creation). A writer that lost its lease therefore can never
 replace another writer's commit; it gets :class:`~streamsvd.errors.StoreLockedError`,
 and so does a commit that finds, before writing anything, that the pointer changed.
+
+*Creation.* All or nothing: the lock is taken and the root metadata written, then the
+first commit writes generation 0 and switches the pointer to it, the last write that
+makes the store exist (:meth:`BasisStore.create` commits the attributes it is given; a
+compressor begins its store with :meth:`BasisStore.begin` and commits its whole state,
+its basis's attributes included, as generation 0). A failure before the switch deletes
+everything written under the store; a process killed before it leaves no pointer: the
+store does not open ("its creation was interrupted"), :func:`check_store` says so, and
+the next creation replaces the leftovers.
 
 *Commit.* A generation's pack is written completely first (with the attributes holding
 the caller's attributes and the segment lists), its files and directory are

@@ -229,10 +229,13 @@ class Writer:
                 if self.not_named(k):
                     self.fence.delete(gkey)
                 if isinstance(exc, self.failures) and not isinstance(exc, StoreError):
+                    kept = (
+                        "the store was not created" if previous is None
+                        else f"the current generation {previous} is unchanged"
+                    )
                     raise StoreError(
-                        f"`store` {self.path}: writing generation {k} failed ({exc}); the "
-                        f"current generation {previous} is unchanged. Fix the cause and "
-                        "commit again."
+                        f"`store` {self.path}: writing generation {k} failed ({exc}); "
+                        f"{kept}. Fix the cause and commit again."
                     ) from exc
                 raise
             # The pointer names this commit: the switch took effect and only what follows

@@ -41,6 +41,9 @@ LEASE_NAME = "writer.lease"
 GENERATIONS = "generations"
 MARKER_NAME = "committed.json"
 """Written into a generation after the pointer named it: the generation was committed."""
+PANELS = "panels"
+"""Where a tall compressor keeps its basis beside the generations (:mod:`streamsvd.panel_files`),
+written before the commits that list it, also before the first one (a store's creation)."""
 
 GEN_RE = re.compile(r"^g(\d{8})$")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -56,7 +59,7 @@ class StoreState:
     Attributes
     ----------
     generation : int
-        Number of the generation (0 for the state written by :meth:`BasisStore.create`).
+        Number of the generation (0 for the first commit, which created the store).
     arrays : dict of str to numpy.ndarray
         The committed arrays, read-only, in the store's ``dtype``; their SHA-256 was
         verified.
@@ -261,8 +264,12 @@ def generations(storage: Storage) -> list[int]:
 
 
 def committed_generations(storage: Storage) -> list[int]:
-    """Return the generations above 0 (generation 0, of the creation, holds no data)."""
-    return [k for k in generations(storage) if k > 0]
+    """Return the generations that were committed: every one above 0, and 0 once marked.
+
+    Generation 0 is written by the creation, whose pointer switch may not have happened;
+    its commit record (written after that switch) tells.
+    """
+    return [k for k in generations(storage) if k > 0 or read_marker(storage, k) is not None]
 
 
 def history(storage: Storage) -> str:
@@ -271,25 +278,27 @@ def history(storage: Storage) -> str:
     ``"store"`` is a store that has a pointer or has ever committed (a generation above
     0, or generation 0 marked as committed): such a store is never replaced. Leftovers of
     an interrupted creation hold nothing but the root metadata, the lock or lease, an
-    unmarked generation 0 and temporary files.
+    unmarked generation 0, the panels written after the root metadata and temporary
+    files.
     """
     entries = storage.list()
     if not entries:
         return "empty"
     if POINTER_NAME in entries or committed_generations(storage):
         return "store"
-    ours = {"zarr.json", GENERATIONS, LOCK_NAME, LEASE_NAME}
+    ours = {"zarr.json", GENERATIONS, LOCK_NAME, LEASE_NAME, PANELS}
     for name in entries:
         if name not in ours and not name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
             return "other"
-    if "zarr.json" in entries:
-        try:
-            doc = json.loads(storage.get("zarr.json"))
-        except (OSError, ValueError):
-            return "creation"
-        attrs = doc.get("attributes") if isinstance(doc, dict) else None
-        if not (isinstance(attrs, dict) and attrs.get("format") == FORMAT):
-            return "other"
+    if "zarr.json" not in entries:  # panels come after the root metadata
+        return "other" if PANELS in entries else "creation"
+    try:
+        doc = json.loads(storage.get("zarr.json"))
+    except (OSError, ValueError):
+        return "creation"
+    attrs = doc.get("attributes") if isinstance(doc, dict) else None
+    if not (isinstance(attrs, dict) and attrs.get("format") == FORMAT):
+        return "other"
     return "creation"
 
 

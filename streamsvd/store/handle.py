@@ -24,7 +24,7 @@ from ..segments import Appended, Piece
 from ..storage import Storage, open_storage
 from . import collector
 from .commit import Writer, plan_commit
-from .create import create_store
+from .create import Creation, begin_store
 from .format import (
     DEFAULT_CHUNK_BYTES,
     StoreState,
@@ -80,22 +80,67 @@ class BasisStore:
             raise
 
     def _setup(self, storage: Storage, mode: str, attrs: dict[str, Any], lock: Any,
-               generation: int, previous: int | None, writer: Writer | None) -> None:
+               generation: int, previous: int | None, writer: Writer | None,
+               creation: Creation | None = None) -> None:
         self._storage = storage
         self._path = named(storage)
         self._mode = mode
         self._root_attrs = dict(attrs)
         self._lock = lock
         self._writer = writer
+        self._creation = creation
         self._closed = False
         self._generation = generation
         self._previous = previous
         self._docs: dict[int, dict[str, Any]] = {}  # attributes of retained generations
         self._written: dict[str, int] = {}
-        self._finalizer = weakref.finalize(self, lock.release) if lock is not None else None
+        release = (creation.close if creation is not None
+                   else lock.release if lock is not None else None)
+        self._finalizer = weakref.finalize(self, release) if release is not None else None
 
     def _keep(self) -> collector.Keep:
         return collector.Keep(self._generation, self._previous, self._docs)
+
+    @classmethod
+    def begin(cls, path: str | os.PathLike[str] | Storage, *, n: int, dtype: Any = "float64",
+              inner_fingerprint: str, chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+              storage_options: Mapping[str, Any] | None = None) -> BasisStore:
+        """Start creating a store at ``path``; its first :meth:`commit` creates it.
+
+        The lock is taken and the root metadata written, but no pointer: the store
+        exists once the first commit (generation 0) switched the pointer to it. Until
+        then the caller may write its own objects under the store (see
+        :data:`~streamsvd.store.format.PANELS`); a first commit that fails, or
+        :meth:`close` before it, deletes everything written under the store, and a
+        process killed meanwhile leaves the leftovers of an interrupted creation, which
+        opening reports and the next creation replaces.
+
+        Parameters
+        ----------
+        path, n, dtype, inner_fingerprint, chunk_bytes, storage_options
+            As for :meth:`create`.
+
+        Returns
+        -------
+        BasisStore
+            The handle, opened with mode ``"a"`` (it holds the writer lock), at
+            generation -1 (nothing committed).
+
+        Raises
+        ------
+        StoreError
+            A store or other files exist at ``path``, or writing failed (nothing is left
+            behind then; the message names the step).
+        StoreLockedError
+            Another process is creating or writing a store at ``path``.
+        """
+        storage = open_storage(path, storage_options=storage_options)
+        creation = begin_store(storage, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+                               chunk_bytes=chunk_bytes)
+        self = cls.__new__(cls)
+        self._setup(storage, "a", creation.root_attrs, creation.lock, -1, None,
+                    creation.writer, creation)
+        return self
 
     @classmethod
     def create(cls, path: str | os.PathLike[str] | Storage, *, n: int, dtype: Any = "float64",
@@ -136,17 +181,14 @@ class BasisStore:
         StoreLockedError
             Another process is creating or writing a store at ``path``.
         """
-        storage = open_storage(path, storage_options=storage_options)
-
-        def opened(storage: Storage, root_attrs: dict[str, Any], lock: Any, writer: Writer,
-                   user_attrs: dict[str, Any]) -> BasisStore:
-            self = cls.__new__(cls)
-            self._setup(storage, "a", root_attrs, lock, -1, None, writer)
+        user_attrs = normalise_attrs(attrs)
+        self = cls.begin(path, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+                         chunk_bytes=chunk_bytes, storage_options=storage_options)
+        try:
             self._write_generation(0, {}, [], user_attrs)
-            return self
-
-        self = create_store(storage, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
-                            attrs=attrs, chunk_bytes=chunk_bytes, opened=opened)
+        except BaseException:
+            self.close()  # the lock of a store whose pointer switch took effect
+            raise
         logger.info("created basis store %s (n=%d, dtype=%s)", self.path, self.n, self.dtype)
         return self
 
@@ -223,6 +265,11 @@ class BasisStore:
             substituted silently (the message names the last readable one).
         """
         self._check_open()
+        if self._generation < 0:
+            raise StoreError(
+                f"`store` {self._path} is being created: nothing was committed yet. "
+                "Commit its first generation before reading it."
+            )
         state, pointer = read_current(self._storage, self._load, generation,
                                       retry=self._mode == "r")
         self._generation = pointer["generation"]
@@ -304,9 +351,20 @@ class BasisStore:
             self._docs[k] = doc
             self._previous, self._generation, self._written = previous, k, written
             adopted.append(pointer)
+            if self._creation is not None:
+                self._creation.done = True  # the pointer names it: the store exists
             logger.debug("committed generation %d of %s (%s)", k, self._path, written)
 
-        writer.write_generation(k, records, pieces, user_attrs, previous, adopt)
+        creation = self._creation
+        try:
+            writer.write_generation(k, records, pieces, user_attrs, previous, adopt)
+        except BaseException as exc:
+            if creation is None or creation.done:
+                raise
+            self._closed = True
+            if self._finalizer is not None:
+                self._finalizer.detach()  # the creation releases the lock as it undoes
+            creation.abort(exc, f"writing generation {k} and its pointer")
         writer.after_switch(k, adopted[0], self._keep())
 
     # --------------------------------------------------------------------- closing
@@ -318,7 +376,10 @@ class BasisStore:
             )
 
     def close(self) -> None:
-        """Release the writer lock (if held); the handle cannot be used afterwards."""
+        """Release the writer lock (if held); the handle cannot be used afterwards.
+
+        A store begun with :meth:`begin` that has not committed yet is deleted whole.
+        """
         if self._closed:
             return
         self._closed = True

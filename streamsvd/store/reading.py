@@ -18,7 +18,7 @@ from typing import Any, cast
 import numpy as np
 import zarr
 
-from ..errors import InputError, StoreFormatError
+from ..errors import InputError, StoreFormatError, StoreMismatchError, StreamSVDError
 from ..segments import assemble, digest
 from ..storage import Storage
 from .format import (
@@ -247,7 +247,9 @@ def check_store(storage: Storage) -> CheckReport:
 
     Every generation that a pointer names (the current and the previous one) is read
     with its segments verified; every other generation directory holding a commit record
-    is checked against it. Nothing is written or deleted.
+    is checked against it. A store that verifies and holds a compressor is then opened
+    read-only as ``streamsvd info`` and ``--resume`` open it (:func:`_check_opens`), so
+    that a store called healthy opens. Nothing is written or deleted.
     """
     path = named(storage)
     report = CheckReport(str(path))
@@ -258,6 +260,7 @@ def check_store(storage: Storage) -> CheckReport:
         return report
     current = pointer["generation"]
     previous = pointer.get("previous")
+    kind = None
     for k, sha in ((current, pointer["attrs_sha256"]), (previous, None)):
         if not isinstance(k, int):
             continue
@@ -269,6 +272,8 @@ def check_store(storage: Storage) -> CheckReport:
         except StoreFormatError as exc:
             report.problems.append(str(exc).strip())
             continue
+        if k == current:
+            kind = state.attrs.get("kind")
         role = "current" if k == current else "previous"
         report.verified.append(
             f"generation {k} ({role}): {len(state.arrays)} arrays, every checksum verified"
@@ -284,5 +289,30 @@ def check_store(storage: Storage) -> CheckReport:
     if report.problems:
         hint = last_readable_hint(storage)
         report.problems = [p if hint in p else f"{p} {hint}".strip() for p in report.problems]
+    else:
+        _check_opens(storage, kind, report)
     return report
 
+
+def _check_opens(storage: Storage, kind: Any, report: CheckReport) -> None:
+    """Open the compressor of ``kind`` a store holds, read-only; report why it does not open.
+
+    The compressor's own checks (what it commits, its options, its basis) are the ones
+    of opening it: the compressor classes open it (a store of another kind holds no
+    compressor, and only its checksums are verified). A store that needs its inner
+    product given to open (an earlier version's that does not keep it) is no problem.
+    """
+    from ..parallel import compressor_class  # the compressors are built on the store
+
+    cls = compressor_class(kind)
+    if cls is None:
+        return
+    try:
+        with cls.open(storage, mode="r"):
+            pass
+    except StoreMismatchError:
+        return
+    except StreamSVDError as exc:
+        report.problems.append(str(exc).strip())
+        return
+    report.verified.append(f"the {cls.__name__} it holds opens")
