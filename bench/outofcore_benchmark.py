@@ -214,8 +214,8 @@ def measure(method: str, path: Path, work: Path, errors: bool = True) -> dict[st
     if method.startswith("cli"):
         from streamsvd.store import open_store
 
-        with open_store(work / "S", "r") as st:  # generations: the commits, creation's too
-            commits = st.generation
+        with open_store(work / "S", "r") as st:  # generations from 0, the creation's commit
+            commits = st.generation + 1
         result = {"seconds": wall, "peak_rss_mb": float((work / "peak.txt").read_text()),
                   "commits": commits, "cpu_seconds": usage.ru_utime + usage.ru_stime}
         if errors:

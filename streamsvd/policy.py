@@ -1,7 +1,7 @@
 """What ``streamsvd ingest`` does with STORE: create, continue or refuse it; undo a failed start.
 
 * :func:`resuming`: with ``--resume``, a STORE that holds a store (it has a pointer, or
-  has ever committed: a generation above 0, even with its pointer missing) is continued
+  has ever committed: a committed generation, even with its pointer missing) is continued
   (opening a damaged one reports the damage); nothing, an empty directory or the
   leftovers of an interrupted creation gets a new store. Without ``--resume`` an
   existing STORE is refused.
