@@ -178,7 +178,7 @@ def run_method(method: str, cfg: dict, path: Path, work: Path) -> dict[str, Any]
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
-    import streamsvd.parallel as par
+    import streamsvd.parallel.cluster as par
 
     m, k = cfg["m"], cfg["k"]
     workers = cfg.get("workers")

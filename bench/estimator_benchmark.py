@@ -25,7 +25,7 @@ import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
 from threadpoolctl import threadpool_limits
 
-from streamsvd.estimator import StreamingSVD
+from streamsvd.sklearn.estimator import StreamingSVD
 
 logger = logging.getLogger("estimator_benchmark")
 

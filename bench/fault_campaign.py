@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd._core import HISTORY_FIELDS
+from streamsvd.engine.core import HISTORY_FIELDS
 from streamsvd.cli import main as cli
 from streamsvd.storage import open_storage
 from streamsvd.store import CRASH_POINTS, POINTER_NAME, check_store, open_store
@@ -58,7 +58,7 @@ WRAPPER = r"""
 import os, signal, sys
 point, sig, nth, lease = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
 argv = sys.argv[sys.argv.index("--") + 1:]
-import streamsvd.locks as locks, streamsvd.storage as storage
+import streamsvd.storage.lockfile as locks, streamsvd.storage as storage
 import streamsvd.store.fence as fence
 if lease > 0:
     storage.ObjectStorage.lock = lambda self, key: locks.Lease(self, key, seconds=lease)

@@ -14,7 +14,7 @@ only by their singular values (Fig. 2):
   (successive ratio 0.990).
 
 Each matrix starts from its canonical expansion ``U = I, V = A_mod^T``
-(``streamsvd.Expansion.canonical``) and is compressed with ``streamsvd.compress`` for
+(``streamsvd.Expansion.canonical``) and is compressed with ``streamsvd.linalg.compress`` for
 both rules (``"paper"``, ``"jacobi"``). The result after ``k`` sweeps is obtained by a
 separate deterministic run with ``max_sweeps=k`` for ``k`` in a geometric list (sweep
 ``k`` of a longer run is the same computation); once a run reports convergence the larger

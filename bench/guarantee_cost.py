@@ -62,7 +62,7 @@ def run_one(X: np.ndarray, M: Any, lengths: np.ndarray, kind: str, measure: str,
             target: float) -> dict[str, Any]:
     """One contender at one target; the error is measured on the snapshots it covers."""
     import streamsvd as ss
-    from streamsvd.parallel import tree_compress
+    from streamsvd.parallel.cluster import tree_compress
 
     starts = np.concatenate([[0], np.cumsum(lengths)])
     m = X.shape[1]

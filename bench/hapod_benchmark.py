@@ -109,7 +109,7 @@ def run_streamsvd_tree(X: np.ndarray, leaf: int, opts: dict[str, Any]) -> tuple[
     As ``dist_vectorarray_hapod``: the leaves spend the streaming share of the target,
     the merges none, the root's final cut the rest (dask's threaded scheduler).
     """
-    from streamsvd.parallel import tree_compress
+    from streamsvd.parallel.cluster import tree_compress
 
     root = tree_compress(X, block=leaf, leaf_columns=leaf, inner=opts.get("inner"),
                             target_error=opts["target"], error_measure="mean_l2",

@@ -8,8 +8,8 @@ The root merge of the out-of-core benchmark's tree (two leaves of ``m / 2`` colu
 blocks of 100, ``max_rank=60`` with the tree's oversampling of 20: 80 terms each), on
 ``A = U diag(s) V^T`` (rank 200, ``s`` from 1 to 1e-10, ``U``, ``V`` orthonormal, in
 memory). ``StreamCompressor.merge`` takes the Gram path
-(:func:`streamsvd.update_gram.plan_merge_by_gram`) when the cut allows it; the exact
-path (:func:`streamsvd.update.plan_merge`: the other's left vectors orthonormalised
+(:func:`streamsvd.engine.update_gram.plan_merge_by_gram`) when the cut allows it; the exact
+path (:func:`streamsvd.engine.update.plan_merge`: the other's left vectors orthonormalised
 against the basis, the core converged by sweeps) is timed by disabling the Gram path in
 this process. Each path merges once untimed (the sweeps' compiled kernels load on first
 use), then ``--repeat`` times; the median is reported, with one BLAS thread. The accuracy
@@ -31,7 +31,7 @@ import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
 from threadpoolctl import threadpool_limits
 
-import streamsvd.stream as stream_module
+import streamsvd.stream.compressor as stream_module
 from streamsvd import StreamCompressor
 
 RANK, OVERSAMPLING, BLOCK, SIGNAL = 60, 20, 100, 200

@@ -143,7 +143,7 @@ def run_child(method: str, path: str, work: str) -> dict[str, Any]:
     if method == "read":
         dask.compute(da.from_zarr(path).sum(), scheduler="threads")
     elif method in ("tall", "tall-o20", "tree"):
-        from streamsvd.parallel import tall_compress, tree_compress
+        from streamsvd.parallel.cluster import tall_compress, tree_compress
 
         if method.startswith("tall"):
             extra = {"oversampling": 20} if method == "tall-o20" else {}

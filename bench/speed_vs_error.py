@@ -12,7 +12,7 @@ Methods
 -------
 Every rotation run starts from the canonical expansion ``U = I, V = A^T``
 (``streamsvd.Expansion.canonical``, built inside the timed call; its cost alone is
-reported) and calls ``streamsvd.compress(e, rule=..., method=..., max_sweeps=k)`` for
+reported) and calls ``streamsvd.linalg.compress(e, rule=..., method=..., max_sweeps=k)`` for
 ``k = 1, 2, 3, 5, 8, 13, ...`` until the run reports convergence (default stopping test
 ``tol = sqrt(m) eps``). Each ``k`` is a separate timed run, best of 3 when a run takes
 under 5 s. A series stops when the next run is predicted (linearly in ``k``) to exceed

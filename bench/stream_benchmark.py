@@ -581,7 +581,7 @@ def _worker(spec_path: str, res_path: str) -> None:
 def _in_package(fname: str, name: str | None = None) -> bool:
     """Whether a profiled function's file is a module of the streamsvd package."""
     path = Path(fname)
-    return path.parent.name == "streamsvd" and (name is None or path.name == name)
+    return "streamsvd" in path.parent.parts and (name is None or path.name == name)
 
 
 def _profile_parts(stats: dict[Any, Any]) -> tuple[float, dict[str, float]]:
@@ -595,7 +595,7 @@ def _profile_parts(stats: dict[Any, Any]) -> tuple[float, dict[str, float]]:
     absorb = 0.0
     parts: dict[str, float] = {}
     for (fname, _line, func), (_cc, _nc, _tt, ct, callers) in stats.items():
-        if func == "absorb" and _in_package(fname, "stream.py"):
+        if func == "absorb" and _in_package(fname, "compressor.py"):
             absorb += ct
         label = part_of.get(func)
         if label is None:

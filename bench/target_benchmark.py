@@ -33,7 +33,7 @@ from engine_benchmark import make_stream
 from threadpoolctl import threadpool_limits
 
 import streamsvd as ss
-from streamsvd.parallel import tall_compress, tree_compress
+from streamsvd.parallel.cluster import tall_compress, tree_compress
 
 logger = logging.getLogger("target_benchmark")
 TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)

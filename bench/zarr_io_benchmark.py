@@ -1,4 +1,4 @@
-"""zarr from dask's threads: zarr's shared event loop against one loop per core (streamsvd.zarr_io).
+"""zarr from dask's threads: zarr's shared event loop against one loop per core (streamsvd.algebra.panels.zarr_io).
 
 Usage::
 
@@ -9,7 +9,7 @@ Two measurements, each route in its own process, interleaved, medians of ``--rep
 
 * ``tall_compress(source, block=100, max_rank=60, store=..., commit_every=1)`` and
   ``finalize()`` on a zarr array (default: the 200000 x 1000 float64 array of
-  ``bench/outofcore_benchmark.py``, made there), with :mod:`streamsvd.zarr_io`'s loops and
+  ``bench/outofcore_benchmark.py``, made there), with :mod:`streamsvd.algebra.panels.zarr_io`'s loops and
   with zarr's own (the module's store check patched to refuse every store, in the child
   only). The passes use raw panels; each commit writes the zarr copy of the new panel,
   which is what the routes differ in (before raw panels, the passes read and wrote zarr
@@ -47,7 +47,7 @@ DEFAULT_SOURCE = Path(tempfile.gettempdir()) / "streamsvd-ooc" / "A_200000x1000_
 def _route(route: str) -> None:
     """In this (child) process, send every zarr read and write through zarr's own loop."""
     if route == "zarr":
-        from streamsvd import zarr_io
+        from streamsvd.algebra.panels import zarr_io
 
         zarr_io._parallel = lambda array: False  # type: ignore[assignment]
 
@@ -57,7 +57,7 @@ def child_tall(source: str, route: str) -> dict[str, float]:
     import resource
 
     _route(route)
-    from streamsvd.parallel import tall_compress
+    from streamsvd.parallel.cluster import tall_compress
 
     with tempfile.TemporaryDirectory() as work:
         t0 = time.perf_counter()
@@ -78,7 +78,7 @@ def child_ops(route: str, threads: int, rows: int, ops: int, cols: int = 100
     from zarr.codecs import Crc32cCodec
 
     _route(route)
-    from streamsvd import zarr_io
+    from streamsvd.algebra.panels import zarr_io
 
     X = np.random.default_rng(0).standard_normal((rows, cols))
     out = {}

@@ -14,12 +14,14 @@ once.
 from __future__ import annotations
 
 import importlib
+import importlib.abc
+import importlib.machinery
 import logging
 import sys
 import types
 from typing import TYPE_CHECKING, Any
 
-from .errors import (
+from streamsvd.errors import (
     BrokenStateError,
     ConvergenceError,
     InnerProductMismatchError,
@@ -37,85 +39,102 @@ from .errors import (
 )
 
 if TYPE_CHECKING:
-    from .compress import CompressResult, SweepState, compress
-    from .expansion import Expansion
-    from .gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
-    from .inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
-    from .rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
-    from .storage import open_storage
-    from .store import BasisStore, open_store
-    from .stream import StreamCompressor, UpdateRecord
+    from streamsvd.linalg.compress import CompressResult, SweepState, compress
+    from streamsvd.linalg.expansion import Expansion
+    from streamsvd.linalg.gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
+    from streamsvd.algebra.inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
+    from streamsvd.linalg.rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
+    from streamsvd.storage import open_storage
+    from streamsvd.store import BasisStore, open_store
+    from streamsvd.stream.compressor import StreamCompressor, UpdateRecord
 
-__version__ = "0.1.0"
+from streamsvd._version import __version__
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 # public name -> submodule that defines it
 _LAZY = {
-    "CompressResult": "compress",
-    "SweepState": "compress",
-    "compress": "compress",
-    "Expansion": "expansion",
-    "GramSchmidtResult": "gram_schmidt",
-    "orthonormalize": "gram_schmidt",
-    "orthonormalize_literal": "gram_schmidt",
-    "DiagonalInner": "inner",
-    "Euclidean": "inner",
-    "InnerProduct": "inner",
-    "MatrixInner": "inner",
-    "as_inner": "inner",
-    "PairDynamics": "rotations",
-    "PairRotation": "rotations",
-    "pair_dynamics": "rotations",
-    "rotate_pair": "rotations",
-    "StreamCompressor": "stream",
+    "CompressResult": "linalg.compress",
+    "SweepState": "linalg.compress",
+    "compress": "linalg.compress",
+    "Expansion": "linalg.expansion",
+    "GramSchmidtResult": "linalg.gram_schmidt",
+    "orthonormalize": "linalg.gram_schmidt",
+    "orthonormalize_literal": "linalg.gram_schmidt",
+    "DiagonalInner": "algebra.inner",
+    "Euclidean": "algebra.inner",
+    "InnerProduct": "algebra.inner",
+    "MatrixInner": "algebra.inner",
+    "as_inner": "algebra.inner",
+    "PairDynamics": "linalg.rotations",
+    "PairRotation": "linalg.rotations",
+    "pair_dynamics": "linalg.rotations",
+    "rotate_pair": "linalg.rotations",
+    "StreamCompressor": "stream.compressor",
     "BasisStore": "store",
     "open_store": "store",
     "open_storage": "storage",
-    "UpdateRecord": "stream",
+    "UpdateRecord": "stream.compressor",
 }
 
-# submodules reachable as attributes (``streamsvd.store``) without importing them first
-_SUBMODULES = frozenset({
-    "basis", "bound", "cli", "compress", "errors", "estimator", "expansion",
-    "gram_schmidt", "inner", "locks", "panels", "parallel", "parallel_tall",
-    "parallel_tree", "plotting", "provenance", "rotations", "rows", "sources", "storage",
-    "store", "stream", "testing", "update",
+# the layers, reachable as attributes (``streamsvd.store``) without importing them first
+_SUBPACKAGES = frozenset({
+    "algebra", "cli", "engine", "errors", "io", "linalg", "parallel", "plotting",
+    "sklearn", "storage", "store", "stream", "testing",
 })
+
+# module paths of the flat layout before the layers, kept for one release as aliases of
+# their new homes (``import streamsvd.sources`` is ``streamsvd.io.sources``)
+_MOVED = {
+    "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
+    "expansion": "linalg.expansion", "gram_schmidt": "linalg.gram_schmidt",
+    "inner": "algebra.inner", "locks": "storage.lockfile", "panels": "algebra.panels.basis",
+    "parallel_tall": "parallel.tall", "parallel_tree": "parallel.tree",
+    "provenance": "io.provenance", "rotations": "linalg.rotations", "rows": "engine.rows",
+    "sources": "io.sources", "update": "engine.update",
+}
+
+
+class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Import an old module path (:data:`_MOVED`) as a stand-in for its new home.
+
+    The stand-in reads every attribute from the module at the new home, which is left
+    as it is (its name, its spec).
+    """
+
+    def find_spec(self, fullname: str, path: Any, target: Any = None) -> Any:
+        prefix, _, name = fullname.rpartition(".")
+        if prefix != __name__ or name not in _MOVED:
+            return None
+        return importlib.machinery.ModuleSpec(fullname, self)
+
+    def create_module(self, spec: Any) -> None:
+        """Use the default module."""
+
+    def exec_module(self, module: types.ModuleType) -> None:
+        home = importlib.import_module(f"{__name__}.{_MOVED[module.__name__.rpartition('.')[2]]}")
+        module.__doc__ = f"Moved to :mod:`{home.__name__}`."
+        module.__all__ = list(getattr(home, "__all__", ()))
+        module.__getattr__ = lambda name: getattr(home, name)  # type: ignore[method-assign]
+
+
+sys.meta_path.insert(0, _MovedModules())
 
 
 def __getattr__(name: str) -> Any:
-    """Import a public name (or a submodule) of streamsvd on first access."""
+    """Import a public name (or a layer) of streamsvd on first access."""
     module = _LAZY.get(name)
     if module is not None:
         value = getattr(importlib.import_module(f".{module}", __name__), name)
         globals()[name] = value  # later look-ups do not come here again
         return value
-    if name in _SUBMODULES:
-        return importlib.import_module(f".{name}", __name__)
+    if name in _SUBPACKAGES or name in _MOVED:
+        return importlib.import_module(f".{_MOVED.get(name, name)}", __name__)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY) | _SUBMODULES)
-
-
-class _Package(types.ModuleType):
-    """The package's module type: keeps a public function named like its submodule.
-
-    Importing the submodule ``streamsvd.compress`` (which any module using it does)
-    binds the module on the package as ``compress``; the public name ``compress`` is the
-    function, as it was when the package imported it eagerly, so the function is bound
-    instead.
-    """
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if isinstance(value, types.ModuleType) and _LAZY.get(name) == name:
-            value = getattr(value, name)
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
+    return sorted(set(globals()) | set(_LAZY) | _SUBPACKAGES)
 
 
 __all__ = [

@@ -73,8 +73,8 @@ def test_discarded_energy_of_residuals_rejected_in_different_blocks_is_exact(rng
 
 
 def test_the_bound_account_is_stored_whole_and_read_from_older_stores():
-    from streamsvd.bound import Bound
-    from streamsvd.stream_store import _Small
+    from streamsvd.engine.bound import Bound
+    from streamsvd.stream.persistence import _Small
 
     b = Bound(3.0, np.inf, 2.0, 0.5, 1.5)
     small = _Small(coords=np.eye(2), gram=np.eye(2), R=np.ones((2, 3)), Vp=None, bound=b,
@@ -91,7 +91,7 @@ def test_the_bound_account_is_stored_whole_and_read_from_older_stores():
 
 
 def test_small_rejections_beside_converged_cuts_add_by_their_own_norm():
-    from streamsvd.bound import Bound
+    from streamsvd.engine.bound import Bound
 
     # converged cuts (no coupling) after residuals of norm 1e-6 were rejected: the cross
     # term is at most rho d, not d b

@@ -18,7 +18,7 @@ from streamsvd.cli.parsing import build_parser
 from streamsvd.cli.reading import open_readonly
 from streamsvd.cli.wording import in_cli_words
 from streamsvd.plotting import compressor_figure
-from streamsvd.stream import StreamCompressor
+from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 
 WORKTREE = Path(__file__).resolve().parents[1]
@@ -403,7 +403,7 @@ def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, m
         def interrupt(*args, **kwargs):
             raise KeyboardInterrupt
 
-        monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupt)
+        monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupt)
     for resume in ([], ["--resume"]):
         store = tmp_path / "s.zarr"
         status, _, err = run_cli([*argv, store, "--block", "7", "--quiet", *resume,
@@ -422,7 +422,7 @@ def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, m
     # a store that existed before the command is kept, even when it holds no snapshot
     store = tmp_path / "kept.zarr"
     if mode == "tall":
-        from streamsvd.parallel import TallCompressor
+        from streamsvd.parallel.cluster import TallCompressor
 
         TallCompressor(80, store=store).close()
     else:
@@ -646,9 +646,9 @@ def test_lazy_exports_resolve_to_the_same_objects():
     code = (
         "import sys, streamsvd as ss\n"
         "assert 'numpy' not in sys.modules\n"
-        "import streamsvd.stream\n"  # imports the submodule streamsvd.compress on the way
+        "import streamsvd.stream\n"  # imports the submodule streamsvd.linalg.compress on the way
         "assert ss.StreamCompressor is streamsvd.stream.StreamCompressor\n"
-        "assert ss.compress is sys.modules['streamsvd.compress'].compress\n"
+        "assert ss.compress is sys.modules['streamsvd.linalg.compress'].compress\n"
         "assert set(ss.__all__) <= set(dir(ss))\n"
         "assert all(getattr(ss, name) is not None for name in ss.__all__)\n"
         "from streamsvd import *\n"
@@ -791,7 +791,7 @@ def test_store_that_does_not_keep_its_inner_product_needs_inner(tmp_path, matrix
     np.save(src, matrix[:, :30])
     store = tmp_path / "old.zarr"
     with monkeypatch.context() as m:  # as an earlier version wrote it: no inner data
-        m.setattr("streamsvd.stream.inner_arrays", lambda inner: None)
+        m.setattr("streamsvd.stream.compressor.inner_arrays", lambda inner: None)
         assert main(["ingest", str(src), str(store), "--inner", str(path), "--quiet"]) == 0
     status, _, err = run_cli(["info", store], capsys)
     assert_one_line_error(status, err)
@@ -867,9 +867,9 @@ def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch
     """With the default --commit-every auto, Ctrl-C during an update commits the updates
     absorbed before it (whichever of them the schedule had committed), and --resume ends
     bit for bit where an uninterrupted run ends."""
-    import streamsvd.stream
+    import streamsvd.stream.compressor
 
-    plan = streamsvd.stream.plan_absorb
+    plan = streamsvd.stream.compressor.plan_absorb
     calls = []
 
     def interrupted_at_the_fifth(*args, **kwargs):
@@ -880,11 +880,11 @@ def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch
 
     argv = ["ingest", npy, tmp_path / "s.zarr", "--block", "7", "--max-rank", "4", "--quiet",
             *MODES[mode]]
-    monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupted_at_the_fifth)
+    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupted_at_the_fifth)
     status, _, err = run_cli(argv, capsys)
     assert status == 130, err
     assert "holds the snapshots up to column 28 of SOURCE (its last commit)" in err
-    monkeypatch.setattr("streamsvd.stream.plan_absorb", plan)
+    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", plan)
     assert main([str(a) for a in [*argv, "--resume"]]) == 0
     assert main([str(a) for a in [*argv[:2], tmp_path / "ref.zarr", *argv[3:]]]) == 0
     with open_readonly(tmp_path / "s.zarr") as a, open_readonly(tmp_path / "ref.zarr") as b:
@@ -899,9 +899,9 @@ def test_ctrl_c_inside_a_commit_prints_one_line_and_no_warning(tmp_path, npy, ca
     holds the one line that says what the store holds."""
     import warnings
 
-    import streamsvd.stream
+    import streamsvd.stream.compressor
 
-    plan = streamsvd.stream.plan_absorb
+    plan = streamsvd.stream.compressor.plan_absorb
     calls = []
 
     async def create_array():
@@ -914,7 +914,7 @@ def test_ctrl_c_inside_a_commit_prints_one_line_and_no_warning(tmp_path, npy, ca
             raise KeyboardInterrupt
         return plan(*args, **kwargs)
 
-    monkeypatch.setattr("streamsvd.stream.plan_absorb", interrupted_in_a_commit)
+    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupted_in_a_commit)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         status, _, err = run_cli(["ingest", npy, tmp_path / "s.zarr", "--block", "7",

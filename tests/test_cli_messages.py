@@ -17,7 +17,7 @@ from test_cli import MODES, WORKTREE, assert_one_line_error, run_cli
 
 from streamsvd.cli import main
 from streamsvd.cli.reading import open_readonly
-from streamsvd.inner import DiagonalInner
+from streamsvd.algebra.inner import DiagonalInner
 from streamsvd.testing import with_spectrum
 
 

@@ -1,10 +1,10 @@
-"""The small pieces of streamsvd.downdate: the downdate itself, index intervals, ledger."""
+"""The small pieces of streamsvd.engine.downdate: the downdate itself, index intervals, ledger."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from streamsvd.downdate import (
+from streamsvd.engine.downdate import (
     EXACT_BELOW,
     LEDGER_SIZE,
     Ledger,

@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import streamsvd as ss
-from streamsvd.bound import Bound
-from streamsvd.parallel import TallCompressor
-from streamsvd.rows import COND_LIMIT, RowFactor
+from streamsvd.engine.bound import Bound
+from streamsvd.parallel.cluster import TallCompressor
+from streamsvd.engine.rows import COND_LIMIT, RowFactor
 from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps
@@ -268,8 +268,8 @@ def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
     """A rank-80 matrix compressed in a tree of 60-column leaves: rounding-noise terms of
     the leaves are rejected relative to the energy they carry, so the tree's rank is the
     stream's; a merge task returns a new compressor and leaves both inputs as they were."""
-    from streamsvd.parallel import tree_compress
-    from streamsvd.parallel_tree import _merge_pair
+    from streamsvd.parallel.cluster import tree_compress
+    from streamsvd.parallel.tree import _merge_pair
 
     A = with_spectrum(np.logspace(0, -10, 80), 4000, 240, rng)
     opts = dict(rule="jacobi", sweeps=None)
@@ -425,7 +425,7 @@ def test_safe_column_norms_match_lapack_at_any_scale_and_layout(rng, layout):
     1e300, bit-identical whatever the memory layout, with a zero column."""
     import scipy.linalg.blas as blas
 
-    from streamsvd._scaling import column_exponents, safe_column_norms
+    from streamsvd._util.scaling import column_exponents, safe_column_norms
 
     X = rng.standard_normal((70001, 6)) * np.array([1e-300, 1e-150, 1.0, 1e150, 1e300, 0.0])
     X = np.asarray(X, order=layout)

@@ -11,9 +11,9 @@ import scipy.sparse as sp
 
 import streamsvd as ss
 from streamsvd.errors import SparseInputError
-from streamsvd.estimator import NotFittedError, StreamingSVD
-from streamsvd.sources import Source
-from streamsvd.stream import StreamCompressor
+from streamsvd.sklearn.estimator import NotFittedError, StreamingSVD
+from streamsvd.io.sources import Source
+from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps

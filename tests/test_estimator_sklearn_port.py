@@ -29,7 +29,7 @@ from sklearn.utils._testing import (  # noqa: E402
 )
 from sklearn.utils.fixes import CSC_CONTAINERS, CSR_CONTAINERS, LIL_CONTAINERS  # noqa: E402
 
-from streamsvd.estimator import StreamingSVD  # noqa: E402
+from streamsvd.sklearn.estimator import StreamingSVD  # noqa: E402
 
 
 @pytest.fixture

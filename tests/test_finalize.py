@@ -12,8 +12,8 @@ import pytest
 import streamsvd as ss
 from streamsvd.cli import main
 from streamsvd.errors import InputError
-from streamsvd.options import CompressorOptions
-from streamsvd.parallel import TallCompressor, open_compressor
+from streamsvd.stream.options import CompressorOptions
+from streamsvd.parallel.cluster import TallCompressor, open_compressor
 from streamsvd.store import open_store
 from streamsvd.testing.matrices import with_spectrum
 

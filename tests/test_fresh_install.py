@@ -32,7 +32,7 @@ def test_library_imports_without_test_extras():
         "from streamsvd.testing import assert_svd_contract, hard_matrices, with_spectrum\n"
         "import numpy as np\n"
         "A = with_spectrum(np.logspace(0, -3, 5), 20, 10, np.random.default_rng(0))\n"
-        "from streamsvd.estimator import StreamingSVD\n"
+        "from streamsvd.sklearn.estimator import StreamingSVD\n"
         "print(type(StreamingSVD()).__name__)\n"
     )
     assert out.returncode == 0, out.stderr

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import streamsvd as ss
-from streamsvd.parallel import tree_compress
+from streamsvd.parallel.cluster import tree_compress
 
 EPS = np.finfo(float).eps
 ROUNDING = 50.0  # the rounding allowance in units of max(n, m) eps ||A||: the LAPACK test

@@ -13,11 +13,11 @@ from dask.system import CPU_COUNT
 
 from streamsvd import StreamCompressor
 from streamsvd.errors import InputError, NonFiniteError, SourceError
-from streamsvd.ingest import IngestResult, ingest
-from streamsvd.parallel import tall_compress, tree_compress
-from streamsvd.rotations import load_kernels_in_background
-from streamsvd.scheduling import execute
-from streamsvd.sources import Source, open_source
+from streamsvd.stream.ingest import IngestResult, ingest
+from streamsvd.parallel.cluster import tall_compress, tree_compress
+from streamsvd.linalg.rotations import load_kernels_in_background
+from streamsvd._util.scheduling import execute
+from streamsvd.io.sources import Source, open_source
 
 EPS = np.finfo(np.float64).eps
 N, M = 37, 23
@@ -216,7 +216,7 @@ def test_execute_honours_the_configured_synchronous_scheduler(rng):
 
 
 def test_tall_mode_runs_on_the_synchronous_scheduler(rng, monkeypatch):
-    import streamsvd.row_chunks as row_chunks
+    import streamsvd.algebra.panels.row_chunks as row_chunks
 
     seen: set[str] = set()
     real = row_chunks.execute
@@ -299,10 +299,10 @@ def test_local_modes_never_import_distributed(tmp_path):
 def test_a_dask_chunk_is_computed_once_per_block_read(rng, monkeypatch):
     # a tree leaf reads its window of a dask source by slabs of whole dask chunks, even
     # when a slab of the reader's size holds fewer rows than a chunk
-    import streamsvd.sources
-    from streamsvd.parallel_tree import SourceSpec
+    import streamsvd.io.sources
+    from streamsvd.parallel.tree import SourceSpec
 
-    monkeypatch.setattr(streamsvd.sources, "_READ_BYTES", 4 * 5 * 8)  # 4 rows of 5 columns
+    monkeypatch.setattr(streamsvd.io.sources, "_READ_BYTES", 4 * 5 * 8)  # 4 rows of 5 columns
 
     computed: list[int] = []
     A = rng.standard_normal((N, M))

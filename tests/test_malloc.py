@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from dask.system import CPU_COUNT
 
-import streamsvd._malloc as malloc
-from streamsvd import parallel, parallel_tree
+import streamsvd._util.malloc as malloc
+from streamsvd.parallel import cluster as parallel
+from streamsvd.parallel import tree as parallel_tree
 
 
 @pytest.fixture

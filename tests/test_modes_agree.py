@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-import streamsvd.rotations as rotations
-from streamsvd.parallel import TallCompressor, tall_compress, tree_compress
+import streamsvd.linalg.rotations as rotations
+from streamsvd.parallel.cluster import TallCompressor, tall_compress, tree_compress
 
 EPS = np.finfo(float).eps
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from streamsvd._core import HISTORY_FIELDS
+from streamsvd.engine.core import HISTORY_FIELDS
 from streamsvd.cli import main
 from streamsvd.errors import (
     InputError,
@@ -30,10 +30,10 @@ from streamsvd.errors import (
     StoreError,
     StoreLockedError,
 )
-from streamsvd.locks import Lease
+from streamsvd.storage.lockfile import Lease
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.store import GENERATIONS, LEASE_NAME, POINTER_NAME, BasisStore, open_store
-from streamsvd.stream import StreamCompressor
+from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 
 
@@ -142,7 +142,7 @@ def test_store_round_trip_and_gc_on_s3(s3, rng):
 
 
 def test_store_appends_on_s3(s3, rng):
-    from streamsvd.segments import Appended
+    from streamsvd.store.segments import Appended
 
     url = f"{s3}/appended.zarr"
     rows = rng.standard_normal((12, 2))
@@ -201,7 +201,7 @@ def test_expired_lease_of_a_dead_writer_is_taken_over(s3, caplog):
     url = f"{s3}/exp.zarr"
     BasisStore.create(url, n=3, inner_fingerprint="e").close()
     _foreign_lease(url, expires=time.time() - 5)
-    with caplog.at_level(logging.WARNING, logger="streamsvd.locks"):
+    with caplog.at_level(logging.WARNING, logger="streamsvd.storage.lockfile"):
         with open_store(url, "a") as st:
             st.commit({"x": np.zeros(3)})
     assert "taking over the lease" in caplog.text and "expired" in caplog.text
@@ -213,7 +213,7 @@ def test_lease_of_a_dead_process_on_this_host_is_taken_over(s3, caplog):
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
     _foreign_lease(url, expires=time.time() + 3600, host=socket.gethostname(), pid=proc.pid)
-    with caplog.at_level(logging.WARNING, logger="streamsvd.locks"):
+    with caplog.at_level(logging.WARNING, logger="streamsvd.storage.lockfile"):
         with open_store(url, "a"):
             pass
     assert "no longer running" in caplog.text
@@ -320,7 +320,7 @@ def test_cli_storage_option_reaches_the_file_system(s3, rng, tmp_path, capsys, m
 
 def test_python_api_takes_storage_options(s3, rng, monkeypatch):
     """`storage_options=` reaches the file system from every facade of the library."""
-    from streamsvd.parallel import TallCompressor, open_compressor, tree_compress
+    from streamsvd.parallel.cluster import TallCompressor, open_compressor, tree_compress
 
     A = _problem(rng, m=40)
     endpoint = os.environ.pop("AWS_ENDPOINT_URL")
@@ -440,7 +440,7 @@ def test_cli_tree_and_tall_modes_on_a_local_cluster_with_s3(s3, rng, tmp_path, m
             "--workers", "2", *extra]
     assert main(["ingest", str(tmp_path / "a.npy"), str(tmp_path / "ref"), *opts]) == 0
     assert main(["ingest", f"{s3}/a.zarr", f"{s3}/{mode}", *opts]) == 0
-    from streamsvd.parallel import open_compressor
+    from streamsvd.parallel.cluster import open_compressor
 
     with open_compressor(tmp_path / "ref") as ref, open_compressor(f"{s3}/{mode}") as sc:
         assert sc.n_seen == ref.n_seen == A.shape[1]
@@ -509,7 +509,7 @@ def test_reader_whose_generation_is_collected_retries_from_the_new_pointer(s3, m
 
 def test_sources_at_urls(s3, rng, tmp_path, monkeypatch):
     from streamsvd.errors import SourceError
-    from streamsvd.sources import open_source
+    from streamsvd.io.sources import open_source
 
     A = rng.standard_normal((20, 30))
     _write_zarr(f"{s3}/a.zarr", A)

@@ -25,7 +25,7 @@ from streamsvd.errors import (
     StoreError,
     StoreMismatchError,
 )
-from streamsvd.parallel import (
+from streamsvd.parallel.cluster import (
     TallCompressor,
     connect,
     ingest,
@@ -271,7 +271,7 @@ def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, 
 def test_the_root_merge_loads_the_sweep_kernels_that_finalize_needs(rng, monkeypatch):
     """On the threaded scheduler the root's merge (only it: the leaves keep both cores
     busy) starts loading the compiled sweep kernels, which the root's ``finalize`` uses."""
-    import streamsvd.parallel_tree as parallel_tree
+    import streamsvd.parallel.tree as parallel_tree
 
     calls = []
     monkeypatch.setattr(parallel_tree, "load_kernels_in_background",
@@ -368,7 +368,7 @@ def test_tall_extreme_scales(rng, scale):
         for j in range(0, 40, 10):
             a.absorb(A[:, j : j + 10])
             b.absorb(A[:, j : j + 10] * scale)
-        # a rank cap absorbs through the snapshots' Gram (streamsvd.update_gram), which
+        # a rank cap absorbs through the snapshots' Gram (streamsvd.engine.update_gram), which
         # gives an amplitude s_i to about eps (s_1 / s_i)^2: the kept six to rounding, the
         # oversampled noise terms (s_i ~ 1e-5) to 1e-6
         np.testing.assert_allclose(b.amplitudes[:6] / scale, a.amplitudes[:6], rtol=1e-12)
@@ -502,7 +502,7 @@ def test_tall_block_is_read_by_row_chunks_and_never_whole(rng, tmp_path, monkeyp
     """With a cut, a block of a zarr source is read row chunk by row chunk within the
     update's pass: no task holds it whole, it is never loaded into memory, and the result
     is the in-memory stream's."""
-    from streamsvd.parallel_tall import PanelBackend
+    from streamsvd.parallel.tall import PanelBackend
 
     n, rows, b = 4000, 250, 20
     A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
@@ -538,7 +538,7 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
     one more."""
     import functools
 
-    from streamsvd import panel_tasks
+    from streamsvd.algebra.panels import tasks as panel_tasks
 
     n, rows, b = 4000, 250, 20
     A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)
@@ -564,8 +564,8 @@ def test_tall_passes_are_one_task_per_row_chunk(rng, tmp_path, monkeypatch):
 
 
 def test_tall_float32_source_stays_float32_in_the_scratch_copy(rng, tmp_path, monkeypatch):
-    from streamsvd.panels import PanelBasis
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.basis import PanelBasis
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = low_rank(rng, n=600, m=40, rank=15, noise=1e-6)
     path = _zarr_source(tmp_path, A, 100, 10, dtype="float32")
@@ -592,8 +592,8 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
     over by the next update (renamed: an array handed out before finds its file gone),
     so once the basis is at its cap an update makes no new file; the result is the
     in-memory one, and closing removes the files kept."""
-    from streamsvd.panels import PanelBasis
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.basis import PanelBasis
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = low_rank(rng, n=600, m=120, rank=15, noise=1e-9)
     path = _zarr_source(tmp_path, A, 100, 10)
@@ -645,7 +645,7 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
 def test_raw_scratch_holds_what_each_task_wrote(rng, tmp_path, dtype):
     """Row ranges written by separate calls (any memory order) read back exactly, by any
     row range and column slice."""
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = rng.standard_normal((1003, 7)).astype(dtype)
     scratch = RawArray(tmp_path / "pabc", A.shape, dtype, chunk_rows=250)
@@ -666,7 +666,7 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
     """Local panels are raw files; without a store no commit refers to them, and `save`
     copies them into the store, whose commit lists zarr copies of them: the reopened
     compressor is the saved one exactly."""
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
     kw = {"workdir": tmp_path / "work"} if workdir else {}
@@ -688,7 +688,7 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
 def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
     """In a store the passes use raw panels; every panel a commit lists has a zarr copy
     (checksummed) equal to the raw file, and a panel no commit lists has none."""
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
     store = tmp_path / "s.zarr"
@@ -715,7 +715,7 @@ def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
 def test_tall_scratch_left_by_a_crash_is_removed_on_reopen(rng, tmp_path):
     """A scratch copy left by a killed process (named as a panel, referred to by no
     commit) goes when the store is next opened for writing."""
-    from streamsvd.raw_array import RawArray
+    from streamsvd.algebra.panels.raw_array import RawArray
 
     A = low_rank(rng, n=500, m=40, rank=10, noise=1e-8)
     store = tmp_path / "s.zarr"
@@ -736,8 +736,8 @@ def test_tall_reading_the_next_block_ahead_changes_no_digit(rng, tmp_path, monke
     """A compaction that also reads the next block (ingest names it, ``expect``) gives
     the stream of the two passes per update bit for bit, and the expansion of the
     in-memory stream to rounding."""
-    from streamsvd import panel_tasks
-    from streamsvd.panels import PanelBasis
+    from streamsvd.algebra.panels import tasks as panel_tasks
+    from streamsvd.algebra.panels.basis import PanelBasis
 
     A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)
     path = _zarr_source(tmp_path, A, 250, 20, dtype=dtype)
@@ -783,12 +783,12 @@ def test_tall_next_block_that_fails_is_reported_by_its_own_update(rng, caplog):
     before it, bit for bit."""
     import logging
 
-    from streamsvd.ingest import ingest as ingest_blocks
-    from streamsvd.sources import open_source
+    from streamsvd.stream.ingest import ingest as ingest_blocks
+    from streamsvd.io.sources import open_source
 
     A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)
     x = failing(da.from_array(A, chunks=(250, 20)), bad_block=2)
-    with caplog.at_level(logging.DEBUG, logger="streamsvd.panels"):
+    with caplog.at_level(logging.DEBUG, logger="streamsvd.algebra.panels.basis"):
         with TallCompressor(2000, max_rank=12, oversampling=0, chunk_rows=250) as tc:
             with pytest.raises(SourceError, match=r"reading columns 40:60 \(offset 40\)"):
                 ingest_blocks(open_source(x), tc, block=20, rows=250)

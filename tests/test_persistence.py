@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-from streamsvd.commits import CommitSchedule
-from streamsvd.parallel import open_compressor
+from streamsvd.stream.commits import CommitSchedule
+from streamsvd.parallel.cluster import open_compressor
 from streamsvd.storage import open_storage
 from streamsvd.store import check_store, history
-from streamsvd.stream import StreamCompressor
+from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 
 
@@ -121,7 +121,7 @@ def test_auto_schedule_expects_an_unmeasured_basis_at_the_assumed_rate():
     the fastest rate measured (at least ``ASSUMED_RATE``): after the quick commit that
     creates a store, the first update writing a 112 MB basis waits until its 1.12 s fit
     in a tenth of the time; then the rate it was written at is used."""
-    from streamsvd.commits import ASSUMED_RATE
+    from streamsvd.stream.commits import ASSUMED_RATE
 
     clock = _Clock()
     schedule = CommitSchedule("auto", clock=clock)
@@ -275,7 +275,7 @@ def test_read_only_compressor_cannot_absorb(tmp_path, rng):
 def test_read_only_tall_compressor_writes_nothing(tmp_path, rng):
     """Refused before planning, also when no commit would be due: a tall update writes
     panels while it plans."""
-    from streamsvd.parallel_tall import TallCompressor
+    from streamsvd.parallel.tall import TallCompressor
 
     A = rng.standard_normal((300, 60))
     path = tmp_path / "t.zarr"
@@ -427,7 +427,7 @@ def _expansions_equal(a, b):
 
 @pytest.mark.parametrize("commit_every", [1, 2])
 def test_store_holds_the_state_after_every_kind_of_update(tmp_path, rng, commit_every, monkeypatch):
-    import streamsvd.rows as rows_mod
+    import streamsvd.engine.rows as rows_mod
 
     monkeypatch.setattr(rows_mod, "WIDTH_LIMIT", 1.0)  # rebase V0 whenever it widens
     n = 50
@@ -520,7 +520,7 @@ def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
     w = rng.uniform(0.5, 2.0, A.shape[0])
     path = tmp_path / "old.zarr"
     with monkeypatch.context() as m:
-        m.setattr("streamsvd.stream.inner_arrays", lambda inner: None)
+        m.setattr("streamsvd.stream.compressor.inner_arrays", lambda inner: None)
         with StreamCompressor(A.shape[0], inner=w, store=path) as sc:
             sc.absorb(A[:, :20])
     with pytest.raises(ss.StoreMismatchError, match=r"`inner` must be given: the store .* "
@@ -536,7 +536,7 @@ def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
 
 
 def test_source_record_is_kept_by_every_commit_and_compared():
-    from streamsvd.provenance import SourceRecord
+    from streamsvd.io.provenance import SourceRecord
 
     rec = SourceRecord.of("run.h5", dataset="/u", shape=(60, 30), description="HDF5")
     assert rec.dataset == "u" and rec.resolved.endswith("/run.h5")
@@ -555,7 +555,7 @@ def test_source_record_is_kept_by_every_commit_and_compared():
 
 
 def test_source_record_survives_commits_and_reopening(tmp_path, rng):
-    from streamsvd.provenance import SourceRecord
+    from streamsvd.io.provenance import SourceRecord
 
     A = _data(rng)
     rec = SourceRecord.of("a.npy", dataset=None, shape=A.shape, description=".npy file a.npy")

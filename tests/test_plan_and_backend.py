@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from streamsvd import StreamCompressor
-from streamsvd import rows as rows_module
-from streamsvd.basis import MemoryBackend
-from streamsvd.parallel import TallCompressor, open_compressor
-from streamsvd.parallel_tall import PanelBackend
-from streamsvd.update import apply_plan, plan_absorb, stage_plan
+from streamsvd.engine import rows as rows_module
+from streamsvd.algebra.memory import MemoryBackend
+from streamsvd.parallel.cluster import TallCompressor, open_compressor
+from streamsvd.parallel.tall import PanelBackend
+from streamsvd.engine.update import apply_plan, plan_absorb, stage_plan
 
 
 def _panels(basis):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-from streamsvd.parallel import tall_compress, tree_compress
+from streamsvd.parallel.cluster import tall_compress, tree_compress
 
 EPS = np.finfo(float).eps
 RATIO = 50.0

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import streamsvd as ss
-from streamsvd.rotations import rotation_tangent, sweep_core, sweep_literal
+from streamsvd.linalg.rotations import rotation_tangent, sweep_core, sweep_literal
 from streamsvd.testing import rank2_expansions
 
 EPS = np.finfo(float).eps

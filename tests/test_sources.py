@@ -7,7 +7,7 @@ import pytest
 import zarr
 
 from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
-from streamsvd.sources import Source, open_source
+from streamsvd.io.sources import Source, open_source
 
 N, M = 9, 23
 
@@ -117,7 +117,7 @@ def test_zarr_blocks_decoded_slab_by_slab_are_the_array(rng, tmp_path, monkeypat
     a slab of whole row chunks at a time (the last one shorter); other dtypes are
     converted as they are copied. Either way the block is the array, and a non-finite
     entry is named where it is."""
-    import streamsvd.sources as sources
+    import streamsvd.io.sources as sources
 
     monkeypatch.setattr(sources, "_READ_BYTES", 3 * 10 * 5 * 8)  # three row chunks
     A = np.rint(rng.standard_normal((203, 17)) * 100)
@@ -209,7 +209,7 @@ def test_dask_blocks_are_computed_one_at_a_time(A):
 def test_read_ahead_fills_a_dropped_block_again_and_never_one_still_held():
     """A block the caller dropped is handed to a later read to be filled again; a block
     the caller still holds (in a list, as a view, or as its loop variable) never is."""
-    from streamsvd.sources import read_ahead
+    from streamsvd.io.sources import read_ahead
 
     spares = []
 
@@ -240,7 +240,7 @@ def test_blocks_filled_again_are_the_array_and_name_the_first_bad_entry(rng, tmp
                                                                         monkeypatch):
     """Blocks read into dropped ones, slab by slab, are the array; a non-finite entry is
     named by the first in column order, even when an earlier slab holds a later one."""
-    import streamsvd.sources as sources
+    import streamsvd.io.sources as sources
 
     monkeypatch.setattr(sources, "_READ_BYTES", 2 * 10 * 4 * 8)  # two row chunks
     A = rng.standard_normal((95, 24))

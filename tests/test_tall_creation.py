@@ -22,14 +22,14 @@ import pytest
 
 import streamsvd as ss
 from streamsvd.cli import main
-from streamsvd.locks import FileLock
-from streamsvd.panel_files import PanelFiles
-from streamsvd.panels import PanelBasis
-from streamsvd.parallel import open_compressor
-from streamsvd.parallel_tall import TallCompressor
+from streamsvd.storage.lockfile import FileLock
+from streamsvd.algebra.panels.files import PanelFiles
+from streamsvd.algebra.panels.basis import PanelBasis
+from streamsvd.parallel.cluster import open_compressor
+from streamsvd.parallel.tall import TallCompressor
 from streamsvd.storage import LocalStorage, open_storage
 from streamsvd.store import MARKER_NAME, BasisStore, check_store, history, open_store
-from streamsvd.stream import StreamCompressor
+from streamsvd.stream.compressor import StreamCompressor
 
 N, M, BLOCK, ROWS, RANK = 60, 40, 10, 20, 6
 TALL = ("--tall", "--chunk-rows", str(ROWS))

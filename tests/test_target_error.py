@@ -150,7 +150,7 @@ def test_tree_spends_its_leaves_budget_once_and_keeps_the_streams_modes(target):
     rejection threshold ``n eps`` of the largest amplitude); its leaves spend the
     streaming share and the root's finalize the rest, as pyMOR's dist_vectorarray_hapod:
     the tree keeps the modes of the stream (within one) and its bound holds."""
-    from streamsvd.parallel import tree_compress
+    from streamsvd.parallel.cluster import tree_compress
 
     x = np.linspace(0.0, 1.0, 400)[:, np.newaxis]
     t = np.linspace(0.0, 1.0, 320)[np.newaxis, :]

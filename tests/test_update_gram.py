@@ -1,4 +1,4 @@
-"""The absorb through the snapshots' Gram matrix (streamsvd.update_gram): taken when a
+"""The absorb through the snapshots' Gram matrix (streamsvd.engine.update_gram): taken when a
 target error allows it, as certified as the exact path, never taken where it would lose
 digits the target needs."""
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-import streamsvd.stream as stream_module
-from streamsvd.parallel import tall_compress
+import streamsvd.stream.compressor as stream_module
+from streamsvd.parallel.cluster import tall_compress
 from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps
@@ -264,7 +264,7 @@ def test_a_merge_of_scales_far_apart_takes_the_exact_path(rng):
 
 
 def _in_place(n, **kw):
-    from streamsvd.basis import MemoryBackend
+    from streamsvd.algebra.memory import MemoryBackend
 
     return ss.StreamCompressor(n, backend=MemoryBackend(compact_in_place=True), **kw)
 
@@ -276,7 +276,7 @@ def test_a_basis_compacting_in_place_keeps_the_expansion_with_one_buffer_less(in
     compaction buffer: its traced peak is about one ``n x k`` buffer lower."""
     import tracemalloc
 
-    from streamsvd._slabs import SLAB_BYTES
+    from streamsvd._util.slabs import SLAB_BYTES
 
     n = 60000
     A = with_spectrum(np.logspace(0, -10, 120), n, 240, rng)
@@ -314,7 +314,7 @@ def test_a_basis_compacting_in_place_keeps_the_expansion_with_one_buffer_less(in
 
 
 def test_an_interrupted_in_place_compaction_breaks_the_compressor_and_says_so(rng):
-    import streamsvd.update_gram as update_gram
+    import streamsvd.engine.update_gram as update_gram
 
     n = 3000
     A = with_spectrum(np.logspace(0, -10, 80), n, 200, rng)
@@ -342,13 +342,13 @@ def test_a_tree_whose_in_place_updates_break_compresses_them_again_aside(
     completes with a bound that holds, and the user's root compacts aside."""
     import logging
 
-    import streamsvd.update_gram as update_gram
-    from streamsvd.parallel import tree_compress
+    import streamsvd.engine.update_gram as update_gram
+    from streamsvd.parallel.cluster import tree_compress
 
     n, m = 2000, 400
     A = with_spectrum(np.logspace(0, -10, 100), n, m, rng)
     monkeypatch.setattr(update_gram, "_MAX_DRIFT", -1.0)  # every Gram compaction declined
-    with caplog.at_level(logging.WARNING, logger="streamsvd.parallel_tree"):
+    with caplog.at_level(logging.WARNING, logger="streamsvd.parallel.tree"):
         sc = tree_compress(A, block=50, leaf_columns=100, max_rank=20)
     assert "compressed again, compacting aside" in caplog.text  # a leaf
     assert "made again, compacting aside" in caplog.text  # a merge
@@ -423,8 +423,8 @@ def _counted(method, calls):
 def _bases_and_blocks(rng, n, w, b):
     """Yield ``(basis, inner, X)``: an orthonormal in-memory basis of ``w`` columns and a
     Gaussian block of ``b``, for the Euclidean and a weighted inner product."""
-    from streamsvd.basis import MemoryBasis
-    from streamsvd.inner import as_inner
+    from streamsvd.algebra.memory import MemoryBasis
+    from streamsvd.algebra.inner import as_inner
 
     for weights in (None, np.linspace(0.5, 2.0, n)):
         inner = as_inner(weights, n)
@@ -474,7 +474,7 @@ def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng, b
     which a version reading 4 and 5 only refuses; reopened, the stream continues as the
     uninterrupted one, digit for digit."""
     from streamsvd.store import open_store
-    from streamsvd.stream_store import LAYOUT, PENDING_GRAM
+    from streamsvd.stream.persistence import LAYOUT, PENDING_GRAM
 
     A, ref, blocks = _pending_stream(rng, block=block)
     for X in blocks:
@@ -628,7 +628,7 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
     """Interrupted after its block was copied beside the basis, an update leaves the
     stored width, the expansion and the store as they were; the next absorb of the same
     block keeps it."""
-    import streamsvd.update_gram as update_gram
+    import streamsvd.engine.update_gram as update_gram
 
     n = 400
     A = with_spectrum(np.logspace(0, -6, 100), n, 120, rng)

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 import streamsvd as ss
 from streamsvd.errors import InputError
-from streamsvd.parallel_tall import TallCompressor
+from streamsvd.parallel.tall import TallCompressor
 
 EPS = np.finfo(np.float64).eps
 
@@ -380,7 +380,7 @@ def _pca_reference(X: np.ndarray, w: np.ndarray, k: int):
 
 @pytest.mark.parametrize("window, forget, k", [(50, 1.0, 5), (None, 0.97, 4), (40, 0.9, 6)])
 def test_estimator_window_and_forget_equal_pca_of_the_weighted_window(rng, window, forget, k):
-    from streamsvd.estimator import StreamingSVD
+    from streamsvd.sklearn.estimator import StreamingSVD
 
     X = rng.standard_normal((300, 12)) @ rng.standard_normal((12, 12)) + 3.0
     est = StreamingSVD(n_components=k, window=window, forget=forget)
@@ -406,14 +406,14 @@ def test_estimator_window_and_forget_equal_pca_of_the_weighted_window(rng, windo
     ({"forget": 2.0}, r"`forget` must be a number in \(0, 1\] .*got float 2.0"),
 ])
 def test_estimator_bad_window_and_forget(rng, options, message):
-    from streamsvd.estimator import StreamingSVD
+    from streamsvd.sklearn.estimator import StreamingSVD
 
     with pytest.raises(InputError, match=message):
         StreamingSVD(n_components=2, **options).partial_fit(rng.standard_normal((10, 4)))
 
 
 def test_estimator_window_may_not_change_between_partial_fits(rng):
-    from streamsvd.estimator import StreamingSVD
+    from streamsvd.sklearn.estimator import StreamingSVD
 
     est = StreamingSVD(n_components=2, window=10)
     est.partial_fit(rng.standard_normal((10, 4)))
@@ -462,7 +462,7 @@ def test_a_store_with_removals_has_its_own_layout(rng, tmp_path):
     """Layout 4 until a snapshot is removed, 5 after: a version that reads layout 4 only
     (and knows no dead rows) refuses the store instead of taking dead rows for live ones."""
     from streamsvd.store import open_store
-    from streamsvd.stream_store import LAYOUT, LAYOUT_WITH_REMOVALS
+    from streamsvd.stream.persistence import LAYOUT, LAYOUT_WITH_REMOVALS
 
     A = _data(rng, 40, 30, 8, 1e-3)
     path = tmp_path / "s.zarr"

@@ -1,4 +1,4 @@
-"""zarr reads and writes on the package's own event loops (streamsvd.zarr_io)."""
+"""zarr reads and writes on the package's own event loops (streamsvd.algebra.panels.zarr_io)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 import zarr
 from zarr.storage import LocalStore, LoggingStore, MemoryStore
 
-from streamsvd import zarr_io
+from streamsvd.algebra.panels import zarr_io
 
 
 def _array(store, shape=(257, 13), chunks=(50, 5)):

@@ -2,10 +2,10 @@
 
 The mode follows from the options (in memory by default, the tree mode with
 ``--scheduler``, the tall mode with ``--tall``); an option of another mode is refused.
-The in-memory mode runs the one ingest driver (:func:`streamsvd.ingest.ingest`) here; the
-dask modes run :func:`streamsvd.parallel.ingest`, which runs it too.
+The in-memory mode runs the one ingest driver (:func:`streamsvd.stream.ingest.ingest`) here; the
+dask modes run :func:`streamsvd.parallel.cluster`, which runs it too.
 What is done with an existing STORE (create, continue, refuse, undo a failed start) is
-:mod:`streamsvd.policy`'s.
+:mod:`streamsvd.cli.policy`'s.
 
 Only the standard library is imported at module level (see :mod:`streamsvd.cli`).
 """
@@ -17,7 +17,7 @@ import json
 import sys
 from typing import TYPE_CHECKING, Any
 
-from ..errors import (
+from streamsvd.errors import (
     InputError,
     NonFiniteError,
     ShapeMismatchError,
@@ -25,7 +25,7 @@ from ..errors import (
     StoreError,
     StoreMismatchError,
 )
-from .parsing import (
+from streamsvd.cli.parsing import (
     CONVERGE,
     DEFAULT_BLOCK,
     DEFAULT_COMMIT_EVERY,
@@ -35,10 +35,10 @@ from .parsing import (
     diagonal_as_weights,
     load_inner,
 )
-from .reading import open_readonly
+from streamsvd.cli.reading import open_readonly
 
 if TYPE_CHECKING:  # the storage module imports zarr: only for the annotations
-    from ..storage import Storage
+    from streamsvd.storage import Storage
 
 __all__ = ["run"]
 
@@ -47,8 +47,8 @@ def run(args: Any) -> int:
     """Run ``streamsvd ingest``; print the JSON summary unless ``--quiet``."""
     mode = _mode(args)
     _check_mode_options(args, mode)
-    from .._malloc import keep_freed_memory
-    from ..policy import removed_on_failure, resuming
+    from streamsvd._util.malloc import keep_freed_memory
+    from streamsvd.cli.policy import removed_on_failure, resuming
 
     keep_freed_memory()
 
@@ -91,9 +91,9 @@ def _final(args: Any) -> bool:
 
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
-    from ..ingest import ingest
-    from ..sources import open_source
-    from ..stream import StreamCompressor, summary_of
+    from streamsvd.stream.ingest import ingest
+    from streamsvd.io.sources import open_source
+    from streamsvd.stream.compressor import StreamCompressor, summary_of
 
     with open_source(args.source, dataset=args.dataset) as src:
         if resume:
@@ -114,7 +114,7 @@ def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any
 
 def _ingest_dask(args: Any, mode: str, store: Storage, block: int, options: dict[str, Any], *,
                  resume: bool, record: Any) -> dict[str, Any]:
-    from ..parallel import ingest as ingest_on_dask
+    from streamsvd.parallel.cluster import ingest as ingest_on_dask
 
     if resume:  # the engine takes no option with resume: check here
         with open_readonly(store, inner=options.get("inner")) as sc:
@@ -143,8 +143,8 @@ def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
     NaN or infinite entry after it is the one the tall update refused. Returns without
     raising when it finds none (the caller re-raises the update's error).
     """
-    from ..parallel import open_compressor
-    from ..sources import open_source
+    from streamsvd.parallel.cluster import open_compressor
+    from streamsvd.io.sources import open_source
 
     try:
         with open_compressor(store, mode="r") as sc:
@@ -158,7 +158,7 @@ def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
 
 def _check_store_kind(store: Storage, *, tall: bool) -> None:
     """Raise a command-line error when STORE was written in the other mode."""
-    from ..parallel import TallCompressor, compressor_class, stored_kind
+    from streamsvd.parallel.cluster import TallCompressor, compressor_class, stored_kind
 
     try:
         cls = compressor_class(stored_kind(store))
@@ -233,7 +233,7 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
     """Return the options of a new store, with the command's defaults (to resume: inner)."""
     if resume:
         return {} if inner is None else {"inner": inner}
-    from ..options import STREAMING_SHARE
+    from streamsvd.stream.options import STREAMING_SHARE
 
     sweeps = DEFAULT_SWEEPS if args.sweeps is None else args.sweeps
     options: dict[str, Any] = {
@@ -258,8 +258,8 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
 
 def _source_record(args: Any) -> Any:
     """Open SOURCE (checking it) and return its record."""
-    from ..provenance import SourceRecord
-    from ..sources import open_source
+    from streamsvd.io.provenance import SourceRecord
+    from streamsvd.io.sources import open_source
 
     source, dataset = getattr(args, "source_given", (args.source, args.dataset))
     with open_source(args.source, dataset=args.dataset) as src:
@@ -278,7 +278,7 @@ def _tall_inner(inner: Any, path: str) -> Any:
     InputError
         When the ``--inner`` matrix at ``path`` has entries off its diagonal.
     """
-    from ..inner import DiagonalInner
+    from streamsvd.algebra.inner import DiagonalInner
 
     inner = diagonal_as_weights(inner)
     if inner is None or isinstance(inner, DiagonalInner):
@@ -309,7 +309,7 @@ def _check_orientation(record: Any, size: int, what: str) -> None:
 
 def _check_resume(args: Any, sc: Any, record: Any) -> None:
     """Refuse to continue ``sc`` with the options and SOURCE of this command line if they differ."""
-    from ..policy import check_resume
+    from streamsvd.cli.policy import check_resume
 
     _check_orientation(record, sc.n, f"the basis in STORE {args.store}")
     given = {name: value for name, value in vars(args).items() if value is not None}

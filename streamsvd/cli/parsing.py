@@ -18,8 +18,8 @@ import math
 import re
 from typing import Any, NoReturn
 
-from .. import __version__
-from ..errors import InputError
+from streamsvd._version import __version__
+from streamsvd.errors import InputError
 
 __all__ = [
     "CONVERGE",
@@ -41,7 +41,7 @@ CONVERGE = "converge"
 DEFAULT_BLOCK = 100
 DEFAULT_RULE = "paper"
 DEFAULT_SWEEPS = 1
-#: Commits timed to take about a tenth of the time (``streamsvd.commits.AUTO``).
+#: Commits timed to take about a tenth of the time (``streamsvd.stream.commits.AUTO``).
 DEFAULT_COMMIT_EVERY = "auto"
 DEFAULT_OVERSAMPLING = 10
 #: The ``--final-sweeps`` values: converge the core at the end, or leave it as streamed.
@@ -217,8 +217,8 @@ def _add_storage_option(parser: argparse.ArgumentParser) -> None:
 
 def locate(args: Any) -> None:
     """Turn STORE into a storage and a SOURCE URL into its zarr array (with the options)."""
-    from ..sources import open_zarr_url
-    from ..storage import is_url, open_storage
+    from streamsvd.io.sources import open_zarr_url
+    from streamsvd.storage import is_url, open_storage
 
     options = _storage_options(args)
     urls = [getattr(args, name) for name in ("store", "source") if hasattr(args, name)]
@@ -244,7 +244,7 @@ def load_inner(args: Any) -> Any:
     """Return the inner product of ``--inner`` (loaded from its file), or None."""
     if args.inner is None:
         return None
-    from ..inner import load_inner as load
+    from streamsvd.algebra.inner import load_inner as load
 
     return load(args.inner)
 
@@ -259,7 +259,7 @@ def diagonal_as_weights(inner: Any) -> Any:
     import numpy as np
     import scipy.sparse as sp
 
-    from ..inner import DiagonalInner, MatrixInner
+    from streamsvd.algebra.inner import DiagonalInner, MatrixInner
 
     if not isinstance(inner, MatrixInner):
         return inner

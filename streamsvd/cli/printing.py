@@ -12,8 +12,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from .parsing import CONVERGE
-from .wording import in_cli_words
+from streamsvd.cli.parsing import CONVERGE
+from streamsvd.cli.wording import in_cli_words
 
 __all__ = ["print_check", "print_info", "print_json"]
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError, StoreError, StoreMismatchError
-from .parsing import diagonal_as_weights, load_inner
-from .printing import print_check, print_info, print_json
+from streamsvd.errors import InputError, StoreError, StoreMismatchError
+from streamsvd.cli.parsing import diagonal_as_weights, load_inner
+from streamsvd.cli.printing import print_check, print_info, print_json
 
 __all__ = ["check", "export", "info", "open_readonly", "plot"]
 
@@ -24,19 +24,19 @@ def open_readonly(path: Any, *, inner: Any = None) -> Any:
 
     ``inner``: the inner product, needed only for a store that does not keep its own.
     """
-    from ..storage import open_storage
+    from streamsvd.storage import open_storage
 
     if open_storage(path).is_file():
         raise StoreError(
             f"STORE {path} is a file; a basis store is a directory written by "
             "`streamsvd ingest`."
         )
-    from ..stream import StreamCompressor
+    from streamsvd.stream.compressor import StreamCompressor
 
     try:
         return StreamCompressor.open(path, mode="r", inner=inner)
     except StoreMismatchError:
-        from ..parallel import open_compressor  # a tall store: dask is needed to read it
+        from streamsvd.parallel.cluster import open_compressor  # a tall store: dask is needed to read it
 
         # a tall store keeps weights: a matrix with only a diagonal is read as such
         return open_compressor(path, mode="r", inner=diagonal_as_weights(inner))
@@ -44,7 +44,7 @@ def open_readonly(path: Any, *, inner: Any = None) -> Any:
 
 def info(args: Any) -> int:
     """Run ``streamsvd info``: the store's summary, as text or ``--json``."""
-    from ..stream import summary_of
+    from streamsvd.stream.compressor import summary_of
 
     with open_readonly(args.store, inner=load_inner(args)) as sc:
         summary = summary_of(sc)
@@ -80,7 +80,7 @@ def export(args: Any) -> int:
 
 def plot(args: Any) -> int:
     """Run ``streamsvd plot``: draw the store's figure to OUT."""
-    from ..plotting import compressor_figure
+    from streamsvd.plotting import compressor_figure
 
     out = Path(args.out)
     with open_readonly(args.store, inner=load_inner(args)) as sc:
@@ -92,8 +92,8 @@ def plot(args: Any) -> int:
 
 def check(args: Any) -> int:
     """Verify every checksum of STORE: one line per problem (exit 2), or what verified (0)."""
-    from ..storage import open_storage
-    from ..store import check_store
+    from streamsvd.storage import open_storage
+    from streamsvd.store import check_store
 
     report = check_store(open_storage(args.store))
     print_check(report)

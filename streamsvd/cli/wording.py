@@ -14,8 +14,8 @@ import re
 import shlex
 from typing import Any
 
-from ..errors import NonFiniteError, StreamSVDError
-from ..options import CompressorOptions
+from streamsvd.errors import NonFiniteError, StreamSVDError
+from streamsvd.stream.options import CompressorOptions
 
 __all__ = ["failed", "in_cli_words", "interrupted"]
 
@@ -120,7 +120,7 @@ def _again(argv: list[str]) -> str:
 def _committed_offset(store: Any) -> int | None:
     """Return the source offset of STORE's last commit, or None when it has none."""
     try:
-        from ..store import open_store
+        from streamsvd.store import open_store
 
         with open_store(store, "r") as st:
             return int(st.read().attrs.get("source_offset", 0))

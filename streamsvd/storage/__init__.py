@@ -1,7 +1,7 @@
 """Where a basis store lives: a local directory or an object store, as keys and bytes.
 
 A basis store (:mod:`streamsvd.store`) and the row panels of the tall mode
-(:mod:`streamsvd.panels`) speak to a *storage*: a root under which ``/``-separated keys
+(:mod:`streamsvd.algebra.panels.basis`) speak to a *storage*: a root under which ``/``-separated keys
 name small objects (the pointer, the lock or lease, JSON metadata) and zarr arrays
 (opened through :meth:`LocalStorage.zarr_store` / :meth:`ObjectStorage.zarr_store`, a
 zarr v3 store over the same root). :func:`open_storage` turns what the user passed into
@@ -11,7 +11,7 @@ one:
   temporary file, ``fsync``, :func:`os.replace` (atomic on POSIX) and an ``fsync`` of the
   directory; :meth:`LocalStorage.flush` makes what zarr wrote durable (zarr never calls
   ``fsync``); the writer lock is a file with an advisory ``flock``
-  (:class:`streamsvd.locks.FileLock`).
+  (:class:`streamsvd.storage.lockfile.FileLock`).
 * any other fsspec URL (``s3://bucket/prefix``, with ``storage_options`` passed to the
   file system, and the usual ``AWS_*`` environment variables): :class:`ObjectStorage`.
   An object store has no rename: an overwrite is a single ``PUT``, which S3 and
@@ -19,7 +19,7 @@ one:
   and, on S3 since 2020, every read after the ``PUT`` returned gets the new one). Writing
   needs *conditional* writes (``If-None-Match: *`` to create an object only if absent,
   ``If-Match: <ETag>`` to replace it only if unchanged), which the writer lease
-  (:class:`streamsvd.locks.Lease`) and the pointer switch use; they are implemented for
+  (:class:`streamsvd.storage.lockfile.Lease`) and the pointer switch use; they are implemented for
   ``s3://`` (through s3fs); other fsspec protocols can be read but not written.
 
 An object store needs the optional packages of the ``s3`` extra
@@ -36,9 +36,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
-from ..errors import InputError
-from .local import LocalStorage
-from .objects import ObjectStorage, remote_errors
+from streamsvd.errors import InputError
+from streamsvd.storage.local import LocalStorage
+from streamsvd.storage.objects import ObjectStorage, remote_errors
 
 __all__ = [
     "LocalStorage",

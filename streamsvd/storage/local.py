@@ -3,7 +3,7 @@
 An overwrite is a temporary file, ``fsync``, :func:`os.replace` (atomic on POSIX) and an
 ``fsync`` of the directory; :meth:`LocalStorage.flush` makes what zarr wrote durable
 (zarr never calls ``fsync``); the writer lock is a file with an advisory ``flock``
-(:class:`streamsvd.locks.FileLock`).
+(:class:`streamsvd.storage.lockfile.FileLock`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from ..errors import StoreError
+from streamsvd.errors import StoreError
 
 __all__ = ["LocalStorage"]
 
@@ -171,7 +171,7 @@ class LocalStorage:
         return LocalStore(self.root, read_only=read_only)
 
     def lock(self, key: str) -> Any:
-        """Return the :class:`~streamsvd.locks.FileLock` of the file ``key``."""
-        from ..locks import FileLock
+        """Return the :class:`~streamsvd.storage.lockfile.FileLock` of the file ``key``."""
+        from streamsvd.storage.lockfile import FileLock
 
         return FileLock(self._path(key))

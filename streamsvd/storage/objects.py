@@ -14,7 +14,7 @@ import logging
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, TypeVar, cast
 
-from ..errors import InputError, OptionalDependencyError, StoreError
+from streamsvd.errors import InputError, OptionalDependencyError, StoreError
 
 __all__ = ["ObjectStorage", "remote_errors"]
 
@@ -244,8 +244,8 @@ class ObjectStorage:
         )
 
     def lock(self, key: str) -> Any:
-        """Return the :class:`~streamsvd.locks.Lease` of the object ``key``."""
-        from ..locks import Lease
+        """Return the :class:`~streamsvd.storage.lockfile.Lease` of the object ``key``."""
+        from streamsvd.storage.lockfile import Lease
 
         return Lease(self, key)
 

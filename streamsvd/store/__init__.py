@@ -10,7 +10,7 @@ readable.
 A store lives in a local directory or under a prefix of an object store
 (``s3://bucket/basis.zarr``); :mod:`streamsvd.storage` gives both the same small
 interface (keys and bytes, conditional writes, a zarr store over the root) and
-:mod:`streamsvd.locks` their writer lock or lease. The package's modules have one job
+:mod:`streamsvd.storage.lockfile` their writer lock or lease. The package's modules have one job
 each: :mod:`~streamsvd.store.format` (names, documents, the checks of the root and the
 pointer), :mod:`~streamsvd.store.reading` (verified reads, retried while the pointer
 moves; :func:`check_store`), :mod:`~streamsvd.store.commit` (the pack and the pointer
@@ -27,7 +27,7 @@ or lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach
                                  SHA-256 of its attributes, a copy of the root attributes
       writer.lock                present while a writer has the store open (local)
       writer.lease               the same, with an expiry, in an object store
-      panels/                    a tall compressor's basis (streamsvd.panel_files),
+      panels/                    a tall compressor's basis (streamsvd.algebra.panels.files),
                                  written before the commits that list it
       generations/
         g00000005/               an older generation whose segments are still used
@@ -40,12 +40,12 @@ or lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach
 Design
 ------
 *Segments.* Every array of a generation is a list of immutable *segments* along one axis
-(:mod:`streamsvd.segments`): blocks of rows or columns, each written once into the pack
+(:mod:`streamsvd.store.segments`): blocks of rows or columns, each written once into the pack
 of the generation that created it, a flat zarr array holding the new segments of that
 commit one after the other. The generation's attributes record, for each array, its
 shape, dtype, axis and segments (generation, offset in that generation's pack, shape,
 SHA-256). An array committed whole is one new segment; an
-:class:`~streamsvd.segments.Appended` array keeps the segments of the current generation
+:class:`~streamsvd.store.segments.Appended` array keeps the segments of the current generation
 that it leaves unchanged and writes only the rest, so a commit costs what changed since
 the previous one. Small segments are merged into the new one (never beyond
 ``chunk_bytes``), so an array has few segments. One pack per commit keeps the number of
@@ -126,16 +126,16 @@ this host and no longer runs (its pid is gone, or its ``flock`` is released, whi
 covers a reused pid) is stale and is taken over with a logged warning. In an object
 store the lock is a lease, ``writer.lease``, created and renewed by conditional writes,
 with an expiry after which a dead writer's lease is taken over
-(:class:`streamsvd.locks.Lease`). Readers (mode ``"r"``) never take the lock.
+(:class:`streamsvd.storage.lockfile.Lease`). Readers (mode ``"r"``) never take the lock.
 """
 
 from __future__ import annotations
 
-from ..locks import LOCK_NAME
-from ..segments import Appended
-from .create import check_creatable
-from .fence import CRASH_POINTS, crash_point
-from .format import (
+from streamsvd.storage.lockfile import LOCK_NAME
+from streamsvd.store.segments import Appended
+from streamsvd.store.create import check_creatable
+from streamsvd.store.fence import CRASH_POINTS, crash_point
+from streamsvd.store.format import (
     DEFAULT_CHUNK_BYTES,
     FORMAT,
     FORMAT_VERSION,
@@ -146,8 +146,8 @@ from .format import (
     StoreState,
     history,
 )
-from .handle import BasisStore, open_store
-from .reading import CheckReport, check_store
+from streamsvd.store.handle import BasisStore, open_store
+from streamsvd.store.reading import CheckReport, check_store
 
 __all__ = [
     "CRASH_POINTS",

@@ -17,10 +17,10 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import StoreFormatError
-from ..locks import LOCK_NAME
-from .fence import Fence
-from .format import (
+from streamsvd.errors import StoreFormatError
+from streamsvd.storage.lockfile import LOCK_NAME
+from streamsvd.store.fence import Fence
+from streamsvd.store.format import (
     MARKER_NAME,
     POINTER_NAME,
     attrs_digest,

@@ -26,13 +26,13 @@ import zarr
 import zarr.codecs
 from zarr.storage import MemoryStore
 
-from ..errors import InputError, StoreError, StoreLockedError
-from ..segments import Appended, Piece, pack, plan_appended, plan_whole
-from ..storage import Storage, remote_errors
-from . import collector
-from . import fence as _fence
-from .fence import Fence
-from .format import (
+from streamsvd.errors import InputError, StoreError, StoreLockedError
+from streamsvd.store.segments import Appended, Piece, pack, plan_appended, plan_whole
+from streamsvd.storage import Storage, remote_errors
+from streamsvd.store import collector
+from streamsvd.store import fence as _fence
+from streamsvd.store.fence import Fence
+from streamsvd.store.format import (
     DEFAULT_CHUNK_BYTES,
     FORMAT,
     FORMAT_VERSION,
@@ -153,7 +153,7 @@ class Writer:
     def __init__(
         self, storage: Storage, lock: Any, root_attrs: dict[str, Any], pointer_tag: str | None
     ) -> None:
-        from .format import named
+        from streamsvd.store.format import named
 
         self.storage = storage
         self.lock = lock
@@ -209,7 +209,7 @@ class Writer:
             "writer": getattr(self.lock, "token", None),
         }
         try:
-            from . import commit as this  # the pack writer, looked up at call time
+            from streamsvd.store import commit as this  # the pack writer, looked up at call time
 
             this._write_pack(
                 self.fence, gkey, data, doc,

@@ -24,10 +24,10 @@ from typing import Any, NoReturn
 import zarr
 from zarr.storage import MemoryStore
 
-from ..errors import StoreError, StoreLockedError
-from ..storage import Storage, remote_errors
-from .commit import Writer
-from .format import (
+from streamsvd.errors import StoreError, StoreLockedError
+from streamsvd.storage import Storage, remote_errors
+from streamsvd.store.commit import Writer
+from streamsvd.store.format import (
     FORMAT,
     FORMAT_VERSION,
     GENERATIONS,

@@ -19,8 +19,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from ..errors import StoreLockedError
-from ..storage import Storage, remote_errors
+from streamsvd.errors import StoreLockedError
+from streamsvd.storage import Storage, remote_errors
 
 logger = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from .._validation import check_finite, check_positive_int
-from ..errors import InputError, StoreFormatError, StoreMismatchError
-from ..locks import LOCK_NAME
-from ..storage import LocalStorage, Storage, remote_errors
+from streamsvd._util.validation import check_finite, check_positive_int
+from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError
+from streamsvd.storage.lockfile import LOCK_NAME
+from streamsvd.storage import LocalStorage, Storage, remote_errors
 
 FORMAT = "streamsvd-basis"
 """Value of the root attribute ``format`` of every basis store."""
@@ -42,7 +42,7 @@ GENERATIONS = "generations"
 MARKER_NAME = "committed.json"
 """Written into a generation after the pointer named it: the generation was committed."""
 PANELS = "panels"
-"""Where a tall compressor keeps its basis beside the generations (:mod:`streamsvd.panel_files`),
+"""Where a tall compressor keeps its basis beside the generations (:mod:`streamsvd.algebra.panels.files`),
 written before the commits that list it, also before the first one (a store's creation)."""
 
 GEN_RE = re.compile(r"^g(\d{8})$")
@@ -99,9 +99,9 @@ def library_version() -> str:
     try:
         return importlib.metadata.version("streamsvd")
     except importlib.metadata.PackageNotFoundError:
-        import streamsvd
+        from streamsvd._version import __version__
 
-        return str(getattr(streamsvd, "__version__", "unknown"))
+        return __version__
 
 
 def gen_name(k: int) -> str:
@@ -401,7 +401,7 @@ def missing_pointer(storage: Storage) -> StoreFormatError:
 
 def last_readable_hint(storage: Storage) -> str:
     """Name the newest generation that still reads back with every checksum verified."""
-    from .reading import last_readable
+    from streamsvd.store.reading import last_readable
 
     path = named(storage)
     k = last_readable(storage)

@@ -2,7 +2,7 @@
 
 A thin handle: it checks the root and the pointer on opening
 (:mod:`~streamsvd.store.format`), reads through :mod:`~streamsvd.store.reading`, plans
-what a commit writes (:mod:`streamsvd.segments`) and hands it to its
+what a commit writes (:mod:`streamsvd.store.segments`) and hands it to its
 :class:`~streamsvd.store.commit.Writer`, which owns the fence, the pointer switch and the
 collector.
 """
@@ -19,13 +19,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..errors import InputError, StoreError
-from ..segments import Appended, Piece
-from ..storage import Storage, open_storage
-from . import collector
-from .commit import Writer, plan_commit
-from .create import Creation, begin_store
-from .format import (
+from streamsvd.errors import InputError, StoreError
+from streamsvd.store.segments import Appended, Piece
+from streamsvd.storage import Storage, open_storage
+from streamsvd.store import collector
+from streamsvd.store.commit import Writer, plan_commit
+from streamsvd.store.create import Creation, begin_store
+from streamsvd.store.format import (
     DEFAULT_CHUNK_BYTES,
     StoreState,
     check_expected,
@@ -35,7 +35,7 @@ from .format import (
     normalise_attrs,
     read_root,
 )
-from .reading import current_doc, load_generation, read_current
+from streamsvd.store.reading import current_doc, load_generation, read_current
 
 logger = logging.getLogger("streamsvd.store")
 
@@ -301,7 +301,7 @@ class BasisStore:
             JSON-able attributes of the generation.
         appended : dict of str to Appended, optional
             Arrays that keep the unchanged part of the current generation's and write the
-            rest (:class:`~streamsvd.segments.Appended`).
+            rest (:class:`~streamsvd.store.segments.Appended`).
 
         Returns
         -------

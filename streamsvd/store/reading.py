@@ -18,10 +18,10 @@ from typing import Any, cast
 import numpy as np
 import zarr
 
-from ..errors import InputError, StoreFormatError, StoreMismatchError, StreamSVDError
-from ..segments import assemble, digest
-from ..storage import Storage
-from .format import (
+from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError, StreamSVDError
+from streamsvd.store.segments import assemble, digest
+from streamsvd.storage import Storage
+from streamsvd.store.format import (
     POINTER_NAME,
     READ_ERRORS,
     StoreState,
@@ -302,7 +302,7 @@ def _check_opens(storage: Storage, kind: Any, report: CheckReport) -> None:
     compressor, and only its checksums are verified). A store that needs its inner
     product given to open (an earlier version's that does not keep it) is no problem.
     """
-    from ..parallel import compressor_class  # the compressors are built on the store
+    from streamsvd.parallel.cluster import compressor_class  # the compressors are built on the store
 
     cls = compressor_class(kind)
     if cls is None:

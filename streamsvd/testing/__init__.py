@@ -9,8 +9,8 @@ it.
 
 from typing import Any
 
-from .contract import assert_svd_contract, svd_ratios
-from .matrices import hard_matrices, with_spectrum
+from streamsvd.testing.contract import assert_svd_contract, svd_ratios
+from streamsvd.testing.matrices import hard_matrices, with_spectrum
 
 __all__ = [
     "assert_svd_contract",
@@ -26,7 +26,7 @@ _STRATEGIES = ("low_rank_matrices", "rank2_expansions")
 
 def __getattr__(name: str) -> Any:
     if name in _STRATEGIES:
-        from . import strategies
+        from streamsvd.testing import strategies
 
         return getattr(strategies, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

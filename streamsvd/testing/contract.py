@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from ..expansion import Expansion
+from streamsvd.linalg.expansion import Expansion
 
 __all__ = ["SVDRatios", "assert_svd_contract", "svd_ratios"]
 

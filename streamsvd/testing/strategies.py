@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import strategies as st
 
-from ..expansion import Expansion
-from .matrices import with_spectrum
+from streamsvd.linalg.expansion import Expansion
+from streamsvd.testing.matrices import with_spectrum
 
 __all__ = ["low_rank_matrices", "rank2_expansions"]
 

@@ -1,0 +1,26 @@
+"""The n-sized algebra: inner products, the basis interface and its in-memory implementation
+(:mod:`~streamsvd.algebra.memory`), and the out-of-core one (:mod:`~streamsvd.algebra.panels`).
+"""
+
+from streamsvd._util.lazy import lazy_exports
+
+# public name -> the submodule that defines it (imported on first access)
+_EXPORTS = {
+    "DiagonalInner": "inner",
+    "Euclidean": "inner",
+    "InnerProduct": "inner",
+    "MatrixInner": "inner",
+    "as_inner": "inner",
+    "check_same_inner": "inner",
+    "load_inner": "inner",
+    "Backend": "memory",
+    "BasisAlgebra": "memory",
+    "BasisBackend": "memory",
+    "BasisStaging": "memory",
+    "DeferredGram": "memory",
+    "MEMORY_KIND": "memory",
+    "MemoryBackend": "memory",
+    "MemoryBasis": "memory",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

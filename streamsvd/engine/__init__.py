@@ -1,0 +1,39 @@
+"""The one update step, pure: the state, the plans of absorb, add, merge, remove and finalize,
+the core step with its truncation, and the guaranteed error bound.
+"""
+
+from streamsvd._util.lazy import lazy_exports
+
+# public name -> the submodule that defines it (imported on first access)
+_EXPORTS = {
+    "Bound": "bound",
+    "Before": "core",
+    "CoreStep": "core",
+    "ERROR_MEASURES": "core",
+    "HISTORY_FIELDS": "core",
+    "Truncation": "core",
+    "UpdateRecord": "core",
+    "core_step": "core",
+    "error_budget": "core",
+    "Downdate": "downdate",
+    "Ledger": "downdate",
+    "downdate": "downdate",
+    "plan_remove": "downdate",
+    "RightFactor": "rows",
+    "RowAppend": "rows",
+    "RowFactor": "rows",
+    "Plan": "update",
+    "State": "update",
+    "StepOptions": "update",
+    "Writes": "update",
+    "apply_plan": "update",
+    "plan_absorb": "update",
+    "plan_add": "update",
+    "plan_finalize": "update",
+    "plan_merge": "update",
+    "stage_plan": "update",
+    "plan_absorb_by_gram": "update_gram",
+    "plan_merge_by_gram": "update_gram",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,410 @@
+"""The small-core step shared by every compressor, wherever its large factors live.
+
+An update of a compressor reduces to a small matrix ``K`` (the right factor's core after
+the new rows and directions were appended, ``V_new = Q K`` with ``Q`` orthonormal). This
+module runs the rotation sweeps on ``K``, sorts and truncates the terms, measures the
+coupling between kept and cut terms, and advances the error bound; the caller applies the
+resulting small matrix ``T`` to its large factors (in memory, or chunk by chunk on disk).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from streamsvd._util.scaling import pow2_exponent, safe_column_norms
+from streamsvd.engine.bound import Bound
+from streamsvd.linalg.rotations import SweepStats, sweep_until
+
+__all__ = [
+    "HISTORY_FIELDS",
+    "Before",
+    "CoreStep",
+    "ERROR_MEASURES",
+    "Truncation",
+    "UpdateRecord",
+    "core_step",
+    "error_budget",
+    "newton_schulz",
+    "history_array",
+    "r_factor",
+    "record_from_row",
+]
+
+logger = logging.getLogger(__name__)
+
+_EPS = np.finfo(np.float64).eps
+_MAX_SWEEPS = 200  # cap of ``sweeps=None`` (to convergence)
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """What one update did (an entry of a compressor's ``history``).
+
+    Attributes
+    ----------
+    kind : {"absorb", "add", "merge", "finalize", "remove"}
+    columns : int
+        Snapshots added (``absorb``, ``merge``), removed (``remove``) or terms of the
+        increment (``add``).
+    rank : int
+        Rank after the update.
+    new_directions : int
+        Directions accepted by Gram-Schmidt.
+    rejected : int
+        Directions rejected by Gram-Schmidt.
+    cut : int
+        Terms removed by truncation.
+    discarded : float
+        ``||D_t||``: the norm of what the update removed (truncated terms and rejected
+        residuals), kept as a norm so that amplitudes up to 1e300 stay finite.
+    sweeps : int
+        Rotation sweeps run.
+    max_cosine : float
+        Largest pair cosine met in the last sweep (0 at the SVD).
+    orthogonality : float
+        ``||U^T M U - I||_2`` after the update: from the Gram of the stored basis, or,
+        after the Gram path on an in-memory basis (whose Gram the next update measures),
+        the one the Gram of the basis and the block predicts, bounded by its Frobenius
+        norm (:mod:`streamsvd.engine.update_gram`).
+    error_bound : float
+        The guaranteed bound on ``||A - U V^T||_F`` after the update.
+    seconds : float
+        Wall time of the update.
+    passes : int
+        Passes over the stored basis (products with ``Q`` or ``M Q``, and the compaction
+        that writes a new one): 2 for an absorb by the snapshots' Gram
+        (:mod:`streamsvd.engine.update_gram`), 2 to 4 for the exact path on a well-conditioned
+        block, more for nearly collinear blocks (rounds of
+        :func:`streamsvd.linalg.gram_schmidt.extend_basis`).
+    """
+
+    kind: str
+    columns: int
+    rank: int
+    new_directions: int
+    rejected: int
+    cut: int
+    discarded: float
+    sweeps: int
+    max_cosine: float
+    orthogonality: float
+    error_bound: float
+    seconds: float
+    passes: int = 0
+
+
+HISTORY_FIELDS = (
+    "kind", "columns", "rank", "new_directions", "rejected", "cut", "discarded", "sweeps",
+    "max_cosine", "orthogonality", "error_bound", "seconds", "passes",
+)
+_KINDS = ("absorb", "add", "merge", "finalize", "remove")
+
+
+def history_array(history: list[UpdateRecord]) -> np.ndarray:
+    """Encode a history as a float array (one row per record) for a store."""
+    out = np.zeros((len(history), len(HISTORY_FIELDS)))
+    for i, rec in enumerate(history):
+        row = [getattr(rec, k) for k in HISTORY_FIELDS]
+        row[0] = _KINDS.index(rec.kind)
+        out[i] = row
+    return out
+
+
+def record_from_row(row: np.ndarray) -> UpdateRecord:
+    """Decode one row of :func:`history_array`."""
+    vals: dict[str, Any] = dict(zip(HISTORY_FIELDS, row.tolist(), strict=True))
+    vals["kind"] = _KINDS[int(vals["kind"])]
+    for k in ("columns", "rank", "new_directions", "rejected", "cut", "sweeps", "passes"):
+        vals[k] = int(vals[k])
+    return UpdateRecord(**vals)
+
+
+def r_factor(X: np.ndarray) -> np.ndarray:
+    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
+    if X.size == 0:
+        return np.zeros((0, X.shape[1]))
+    return np.asarray(np.linalg.qr(X, mode="r"))
+
+
+@dataclass(frozen=True)
+class Before:
+    """The error-bound account of an update before its cut.
+
+    Attributes
+    ----------
+    prior : Bound
+        The account before the update.
+    decided : float
+        The norm this update discards whatever it cuts (rejected residuals, a rounding
+        allowance), orthogonal to every cut term.
+    overlapping : bool
+        Whether the update touches columns received before (``add``).
+    """
+
+    prior: Bound = Bound()
+    decided: float = 0.0
+    overlapping: bool = False
+
+    def bounds(self, cut_norms: np.ndarray) -> np.ndarray:
+        """Return the bound after the update for each candidate norm of the cut terms."""
+        discarded = np.hypot(self.decided, cut_norms)
+        return self.prior.after(discarded, overlapping=self.overlapping)
+
+
+NOTHING_BEFORE = Before()  # the account of a compressor that discarded nothing yet
+
+
+@dataclass(frozen=True)
+class Truncation:
+    """Which terms survive an update, after its sweeps.
+
+    A term is kept when ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` and it is among
+    the ``max_rank`` largest; terms of amplitude exactly zero carry nothing and are dropped.
+
+    With a ``target`` error, the fewest terms are kept whose error bound stays within
+    ``share`` of the budget (:func:`error_budget`): the smallest terms are cut while the
+    bound after the cut fits, as :meth:`streamsvd.engine.bound.Bound.after` gives it from the
+    account before the update (:class:`Before`). The cut is made on the converged core,
+    so its terms are orthogonal to the kept ones; how the bound then grows depends on the
+    cuts before it (the Pythagorean rule when their couplings vanish, the triangle
+    inequality after an ``add`` or a removal), and the cut is sized by the same rule.
+    """
+
+    eps: float = 0.0
+    rtol: float | None = None
+    max_rank: int | None = None
+    target: float | None = None
+    measure: str = "relative"
+    share: float = 1.0
+
+    def keep_count(
+        self, amps_sorted: np.ndarray, *, before: Before = NOTHING_BEFORE, m: int = 0
+    ) -> int:
+        """Return how many leading terms are kept (amplitudes sorted decreasingly).
+
+        ``before`` is the bound account before this cut and ``m`` the number of snapshots
+        (for a ``target``).
+        """
+        if amps_sorted.size == 0:
+            return 0
+        thresh = self.eps
+        if self.rtol is not None:
+            thresh = max(thresh, self.rtol * float(amps_sorted[0]))
+        keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
+        keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
+        if self.target is not None:
+            keep = min(keep, self._within_budget(amps_sorted, before, m))
+        if self.max_rank is not None:
+            keep = min(keep, self.max_rank)
+        return keep
+
+    def _within_budget(self, amps_sorted: np.ndarray, before: Before, m: int) -> int:
+        """Return the fewest leading terms whose cut keeps the bound within the share."""
+        assert self.target is not None
+        e = pow2_exponent(amps_sorted)
+        a = np.ldexp(amps_sorted, -e)
+        # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
+        tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
+        bound = before.bounds(np.ldexp(np.sqrt(tail), e))
+        if self.measure == "relative":
+            # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
+            # bound <= s eps ||A||, whatever the discarded part
+            se = self.share * self.target
+            kept = np.ldexp(np.sqrt(np.maximum(tail[0] - tail, 0.0)), e)
+            fits = bound * (1.0 + se) <= se * kept
+        else:
+            fits = bound <= self.share * error_budget(self.target, self.measure, m)
+        ok = np.flatnonzero(fits)
+        return int(ok[0]) if ok.size else amps_sorted.size
+
+    def needs_convergence(self, amps: np.ndarray, *, before: Before, m: int) -> bool:
+        """Whether a cut by ``max_rank`` or by the ``target`` would drop terms.
+
+        Such a cut is made on the converged core (the optimal cut of the expansion).
+        ``amps`` holds the amplitudes, in any order.
+        """
+        if self.max_rank is None and self.target is None:
+            return False
+        amps_sorted = np.sort(amps)[::-1]
+        unbounded = Truncation(self.eps, self.rtol)
+        return self.keep_count(amps_sorted, before=before, m=m) < unbounded.keep_count(
+            amps_sorted
+        )
+
+
+def error_budget(target: float, measure: str, m: int, data_norm: float = 0.0) -> float:
+    """Return the bound on ``||A - U V^T||_F`` (in ``M``) that a target error allows.
+
+    ``"absolute"``: ``target``; ``"mean_l2"`` (pyMOR HAPOD's measure,
+    ``sqrt(sum_j ||a_j - P a_j||_M^2 / m)``): ``target sqrt(m)``; ``"relative"``:
+    ``target ||A||_F``, with ``data_norm`` standing for ``||A||_F``.
+    """
+    if measure == "absolute":
+        return target
+    if measure == "mean_l2":
+        return target * math.sqrt(m)
+    return target * data_norm
+
+
+ERROR_MEASURES = ("relative", "mean_l2", "absolute")
+
+
+@dataclass(frozen=True)
+class CoreStep:
+    """Result of :func:`core_step`.
+
+    Attributes
+    ----------
+    T : ndarray, shape (p, q)
+        Orthonormal columns: the kept terms as combinations of the input terms; the caller
+        replaces its small factors ``G`` by ``G @ T``.
+    R : ndarray, shape (k, q)
+        The new core: ``V_new^T V_new = R^T R``.
+    sweeps : int
+    max_cosine : float
+    cut : int
+        Number of terms cut.
+    cut_norm : float
+        ``sqrt(sum ||v_i||^2)`` over the cut terms.
+    coupling_root : float
+        Square root of the nuclear norm of ``V_kept^T V_cut`` (zero when truncating at
+        convergence).
+    """
+
+    T: np.ndarray
+    R: np.ndarray
+    sweeps: int
+    max_cosine: float
+    cut: int
+    cut_norm: float
+    coupling_root: float
+
+
+def newton_schulz(T: np.ndarray) -> np.ndarray:
+    """Return ``T (3 I - T^T T) / 2``: one Newton-Schulz step towards orthonormal columns.
+
+    Accumulated rotations drift from orthogonality by about ``sqrt(rotations) eps``; one
+    step brings nearly orthonormal columns back to ``eps``.
+    """
+    return T @ (1.5 * np.eye(T.shape[1]) - 0.5 * (T.T @ T))
+
+
+def _precondition(Rt: np.ndarray, Qt: np.ndarray) -> None:
+    """Rotate the terms onto the right singular vectors of the core, in place.
+
+    The core ``Rt^T`` (``k x p``) is decomposed by LAPACK (``O(k p^2)``); the terms
+    rotated by its right singular vectors are orthogonal to working accuracy relative to
+    the largest, so that the Jacobi sweeps that follow converge in one or two sweeps
+    (they restore the small terms' relative accuracy) instead of tens.
+    """
+    W = np.linalg.svd(Rt.T, full_matrices=True)[2]  # rows: right singular vectors
+    Rt[...] = W @ Rt
+    Qt[...] = W @ Qt
+
+
+def core_step(
+    K: np.ndarray,
+    *,
+    rule: str,
+    sweeps: int | None,
+    m: int,
+    truncation: Truncation,
+    kind: str,
+    before: Before = NOTHING_BEFORE,
+    on_sweep: Callable[[int, float], None] | None = None,
+) -> CoreStep:
+    """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
+
+    When ``truncation.max_rank`` would cut terms that its thresholds keep
+    (:meth:`Truncation.needs_convergence`; or a ``target`` error would cut) and the
+    sweeps have not converged, Jacobi sweeps go on
+    until none rotates: the cut by the cap is then the optimal (Eckart-Young) cut of the
+    expansion. The thresholds ``eps`` and ``rtol`` act after ``sweeps`` sweeps, as in
+    Algorithm 3.
+
+    Parameters
+    ----------
+    K : ndarray, shape (k, p)
+        The core of the right factor of the extended expansion.
+    rule : {"paper", "jacobi"}
+    sweeps : int or None
+        Number of sweeps (``None``: until a sweep rotates nothing).
+    m : int
+        Number of snapshots (sets the stopping threshold ``sqrt(m) eps``).
+    truncation : Truncation
+    kind : str
+        Name of the update, for the log.
+    before : Before
+        The bound account before this update's cut (sizes a ``target`` cut).
+    on_sweep : callable, optional
+        Called after every sweep with the number of sweeps run and the largest pair
+        cosine of the last one (progress of long final sweeps).
+    """
+    p = K.shape[1]
+    R = r_factor(K) if K.shape[0] > p else K
+    e = pow2_exponent(R)
+    Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
+    Qt = np.eye(p)
+    order = np.arange(p, dtype=np.int64)
+    max_cos = 0.0
+
+    def after(s: SweepStats, done: int) -> None:
+        nonlocal max_cos
+        max_cos = s.max_cosine
+        if on_sweep is not None:
+            on_sweep(done, max_cos)
+
+    tol = math.sqrt(m) * _EPS
+    done, converged = 0, p <= 1
+    if not converged:
+        if sweeps is None:
+            _precondition(Rt, Qt)
+        _, done, converged = sweep_until(
+            Rt, Qt, order, p, rule=rule, eps=0.0, tol=tol,
+            limit=_MAX_SWEEPS if sweeps is None else sweeps, after=after,
+        )
+    amps_scaled = safe_column_norms(Rt.T)
+    if not converged and truncation.needs_convergence(
+        np.ldexp(amps_scaled, e), before=before, m=m
+    ):
+        # a cut by the rank cap is made on the converged core, so that it is the optimal
+        # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
+        # would drop energy of the leading directions for good
+        _precondition(Rt, Qt)
+        _, done, _ = sweep_until(Rt, Qt, order, p, rule="jacobi", eps=0.0, tol=tol,
+                                 limit=_MAX_SWEEPS, done=done, after=after)
+        amps_scaled = safe_column_norms(Rt.T)
+    amps = np.ldexp(amps_scaled, e)
+    order = np.argsort(-amps, kind="stable")
+    keep = truncation.keep_count(amps[order], before=before, m=m)
+    kept, cut = order[:keep], order[keep:]
+    # norms and the coupling are formed on the scaled core and scaled back as roots, so
+    # that amplitudes up to 1e300 neither overflow nor lose the bound
+    cut_norm = math.ldexp(float(np.linalg.norm(amps_scaled[cut])), e) if cut.size else 0.0
+    coupling_root = 0.0
+    if cut.size and kept.size:
+        W_kd = Rt[kept] @ Rt[cut].T
+        # the nuclear norm; of a single row or column it is the Euclidean norm
+        nuclear = (float(np.linalg.norm(W_kd)) if min(W_kd.shape) == 1
+                   else float(np.sum(scipy.linalg.svdvals(W_kd))))
+        coupling_root = math.ldexp(math.sqrt(nuclear), e)
+    if cut.size:
+        logger.info(
+            "%s: cut %d terms of norm %.3e (amplitudes %.3e .. %.3e)",
+            kind, cut.size, cut_norm, amps[cut].max(), amps[cut].min(),
+        )
+    # the accumulated rotations drift from orthogonality by about sqrt(rotations) * eps;
+    # one Newton-Schulz step, T <- T (3 I - T^T T) / 2, brings them back to eps, so that
+    # the orthogonality of U does not grow with the number of updates
+    T = newton_schulz(Qt[kept].T)
+    return CoreStep(
+        T=T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
+        cut=int(cut.size), cut_norm=cut_norm, coupling_root=coupling_root,
+    )

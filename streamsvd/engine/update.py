@@ -1,0 +1,584 @@
+"""The one update step of a compressor (absorb, add, merge), over a basis backend.
+
+State. ``U = Q coords`` with ``Q`` the stored basis (a :class:`~streamsvd.algebra.memory.BasisBackend`,
+``n x w``) and ``coords`` small (``w x p``, the coordinates of ``U`` on ``Q``);
+``gram = Q^T M Q`` (small) measures orthogonality;
+``R`` (``k x p``, ``k <= p``) is the core of the right factor: ``V = Y R`` with ``Y``
+(``m x k``) orthonormal, so ``V^T V = R^T R``. When the right vectors are kept, ``Y`` is
+stored, as ``Y = V0 Vp`` (:class:`~streamsvd.engine.rows.RowFactor`), never ``V`` itself: ``V``
+carries the amplitudes, and rounding relative to the largest one would leave the right
+vectors of amplitudes below ``eps sigma_1`` far from orthogonal, where every product
+with ``Y`` is rounded relative to 1. Each update replaces ``Y`` by
+``blockdiag(Y, Y_new) P`` with ``P`` orthonormal (a Householder QR of the core), so
+``||Y^T Y - I||`` stays at rounding level, and at convergence the right singular vectors
+``Y R diag(1 / ||r_i||)`` are orthonormal to the Jacobi tolerance ``sqrt(m) eps``.
+
+Every update is planned first (:func:`plan_absorb`, :func:`plan_add`,
+:func:`plan_merge`, :func:`plan_finalize`): the new directions are orthonormalised in the
+backend's workspace, the small core ``K`` is rotated, sorted and truncated
+(:func:`streamsvd.engine.core.core_step`), and when a compaction ``Q <- [Q, Q_new] coords`` pays it
+is computed into the workspace too, so that its Gram is measured from the columns
+themselves. A plan is small matrices and a list of deferred :class:`Writes` (the columns
+that become stored, the new rows of ``Y``); it writes nothing that the state or a store
+refers to. :func:`stage_plan` makes those writes durable for a commit (the persistence
+adapter calls it) and :func:`apply_plan` switches to them, so an exception anywhere in
+the planning, or in a commit between the two, leaves the state exactly as it was.
+
+Cost of absorbing ``b`` columns at rank ``p`` (stored width ``w``): one or two block
+projections (``4 n w b`` flops each, the second only for the columns the first cancelled),
+CholeskyQR2 of the residual (``~4 n b^2``), the small core step (``O((p + b)^3)``), a
+compaction when it pays (``2 n (w + r) p``) and ``b`` new rows of ``V`` (``O(b w p)``).
+Nothing depends on the number ``m`` of snapshots already absorbed (except the rare rebase
+of :mod:`streamsvd.engine.rows`). ``add`` costs ``O(m p^2)`` more (its increment spans every row).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import cast
+
+import numpy as np
+import scipy.linalg
+from scipy.linalg.lapack import dtrtri
+
+from streamsvd.engine.core import Before, Truncation, UpdateRecord, core_step, r_factor
+from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
+from streamsvd.algebra.memory import BasisBackend, DeferredGram
+from streamsvd.engine.bound import Bound
+from streamsvd.errors import BrokenStateError
+from streamsvd.linalg.gram_schmidt import BasisExtension, extend_basis
+from streamsvd.algebra.inner import InnerProduct
+from streamsvd.engine.rows import RightFactor, RowAppend
+
+__all__ = [
+    "COMPACT_PER_COLUMN", "Extents", "Plan", "State", "StepOptions", "apply_plan",
+    "plan_absorb", "plan_add", "plan_finalize", "gram_orthogonality", "plan_merge",
+    "plan_rows", "stage_plan", "Writes",
+]
+
+logger = logging.getLogger(__name__)
+
+# Compaction pays when the projections wasted on the extra width since the last one
+# (about 4 flops per extra column, per snapshot, per row) reach its own cost
+# (2 flops per stored column, per kept term, per row; a Gram-path update that keeps its
+# block beside the basis records that cost as already wasted).
+_WASTE_PER_COLUMN = 4.0
+COMPACT_PER_COLUMN = 2.0
+
+
+@dataclass(frozen=True)
+class StepOptions:
+    """Options of the update step (validated by the facade)."""
+
+    inner: InnerProduct
+    rule: str
+    sweeps: int | None
+    truncation: Truncation
+    reject_tol: float
+    reorth_tol: float
+
+
+@dataclass
+class State:
+    """The state of a compressor (see the module docstring); mutated by :func:`apply_plan`.
+
+    Attributes
+    ----------
+    basis, rows
+        The n-sized factor ``Q`` and the m-sized factor ``Y`` (None without right vectors).
+    coords : ndarray, shape (w, p)
+        The coordinates of ``U`` on the stored basis: ``U = Q coords``.
+    gram : ndarray, shape (w, w), or None
+        ``Q^T M Q``, measured from the stored columns (orthogonality is
+        ``||coords^T gram coords - I||``); None while it is pending.
+    R : ndarray, shape (k, p)
+        The core of the right factor: ``V = Y R``.
+    m : int
+        Snapshots represented.
+    wasted_flops : float
+        Flops spent on the stored columns beyond ``p`` since the last compaction (a
+        compaction pays once they reach its own cost).
+    bound : Bound
+        The error bound's account (:mod:`streamsvd.engine.bound`).
+
+    Notes
+    -----
+    After an update by the Gram path on an in-memory basis
+    (:mod:`streamsvd.engine.update_gram`) the Gram of the basis just written is *pending*:
+    ``gram`` is None, ``coords`` the identity and ``R`` the diagonal of the amplitudes
+    (``U V^T = Q R^T Y^T`` holds; ``Q`` is orthonormal only to about ``eps lambda_1 /
+    lambda_k``). The next update by that path measures it in one product with its block;
+    anything else reads :meth:`settled` (measured once, cached, the state unchanged), and
+    the other updates plan from :meth:`as_settled`. So a state reads the same whether or not
+    it was read between two updates.
+    """
+
+    basis: BasisBackend
+    rows: RightFactor | None
+    coords: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    gram: np.ndarray | None = field(default_factory=lambda: np.zeros((0, 0)))
+    R: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    m: int = 0
+    wasted_flops: float = 0.0
+    bound: Bound = field(default_factory=Bound)
+    _settled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(
+        default=None, repr=False, compare=False)
+
+    @property
+    def rank(self) -> int:
+        """Number of terms ``p``."""
+        return int(self.coords.shape[1])
+
+    @property
+    def pending(self) -> bool:
+        """Whether the Gram of the stored basis is not measured yet (class notes)."""
+        return self.gram is None
+
+    def settled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``(coords, gram, R)`` with the Gram measured; the state is unchanged.
+
+        For a pending state the Gram ``H = Q^T M Q`` is measured (one product over the
+        basis, made once and kept until the state changes) and the loss of
+        orthogonality moves into the small factors, as an update by the Gram path does:
+        ``coords = L^(-T)``, ``R <- R L`` with ``H = L L^T``.
+        """
+        if self.gram is not None:
+            return self.coords, self.gram, self.R
+        if self._settled is None or self._settled[0] is not self.R:
+            H = cast(DeferredGram, self.basis).measure_gram()
+            try:
+                L = np.linalg.cholesky(H)
+            except np.linalg.LinAlgError as exc:
+                raise BrokenStateError(
+                    "the basis written by the last update lost its orthogonality "
+                    "(its Gram matrix is not positive definite): its rounding exceeded "
+                    "the bound that update checked. Start again, or reopen its store."
+                ) from exc
+            coords = dtrtri(L, lower=1)[0].T  # L^{-T}
+            self._settled = (self.R, coords, H, self.R @ L)
+        return self._settled[1], self._settled[2], self._settled[3]
+
+    def as_settled(self) -> State:
+        """Return this state with its Gram measured (:meth:`settled`).
+
+        Itself, or a copy sharing its basis and rows: every update that does not take the
+        Gram path plans from it, so that a plan that fails leaves the state as it was.
+        """
+        if not self.pending:
+            return self
+        coords, gram, R = self.settled()
+        return replace(self, coords=coords, gram=gram, R=R, _settled=None)
+
+    def orthogonality(self) -> float:
+        """``||U^T M U - I||_2`` from the small Gram matrices."""
+        coords, gram, _ = self.settled()
+        return gram_orthogonality(coords, gram)
+
+    def extents(self) -> Extents:
+        """Return what the stored arrays hold, and the epochs in which they only grow."""
+        rows = self.rows
+        return Extents(
+            compactions=self.basis.compactions, columns=self.basis.width,
+            rewrites=0 if rows is None else rows.rewrites, rows=0 if rows is None else rows.m,
+        )
+
+
+@dataclass(frozen=True)
+class Extents:
+    """The stored columns of the basis and rows of ``Y``, with their epochs.
+
+    Between two compactions the basis's columns only grow; between two rewrites (a rebase
+    or a replacement) the stored rows of ``Y`` only grow (:mod:`streamsvd.stream.commits`).
+    """
+
+    compactions: int
+    columns: int
+    rewrites: int
+    rows: int
+
+
+@dataclass(frozen=True)
+class Writes:
+    """What applying a plan writes to the stored factors (nothing is written while planning).
+
+    ``columns``: workspace columns that become stored columns of the basis; ``compacted``:
+    the compacted basis (written in the backend's workspace by
+    :meth:`~streamsvd.algebra.memory.BasisAlgebra.compact_planned`) replaces the stored one;
+    ``rows``: new rows of ``Y`` and its new small factor; ``rows_replaced``: ``Y`` written
+    anew whole (``add``, or a removal that orthonormalises the live rows again);
+    ``dead_rows``: the stored rows no longer live (:mod:`streamsvd.engine.downdate`).
+    """
+
+    columns: int = 0
+    compacted: bool = False
+    rows: RowAppend | None = None
+    rows_replaced: np.ndarray | None = None
+    dead_rows: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything an update computed: the small matrices, and the writes deferred to apply."""
+
+    coords: np.ndarray
+    gram: np.ndarray | None  # None: pending (the State's notes)
+    R: np.ndarray
+    m: int
+    wasted_flops: float
+    bound: Bound
+    record: UpdateRecord
+    writes: Writes
+
+
+def stage_plan(state: State, plan: Plan) -> None:
+    """Make the plan's new columns and rows durable before a commit refers to them.
+
+    Nothing stored changes until :func:`apply_plan` (a rebase of the rows changes their
+    representation, never ``V``).
+    """
+    w = plan.writes
+    if not w.compacted:
+        state.basis.stage_new(w.columns)
+    if state.rows is not None and w.rows is not None:
+        state.rows.stage(w.rows)
+
+
+def apply_plan(state: State, plan: Plan) -> None:
+    """Switch the state to the planned one, writing what the plan deferred."""
+    w = plan.writes
+    if w.compacted:
+        state.basis.swap(plan.coords.shape[1])
+    else:
+        state.basis.accept(w.columns)
+    if state.rows is not None:
+        if w.rows_replaced is not None:
+            state.rows.replace(w.rows_replaced)
+        else:
+            assert w.rows is not None
+            state.rows.commit(w.rows)
+            if w.dead_rows is not None:
+                state.rows.dead = w.dead_rows
+    state.coords, state.gram, state.R = plan.coords, plan.gram, plan.R
+    state.m, state.wasted_flops, state.bound = plan.m, plan.wasted_flops, plan.bound
+    state._settled = None
+
+
+# ---------------------------------------------------------------------------- planning
+def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) -> Plan:
+    """Plan the absorption of a block of snapshots ``X`` (``n x b``).
+
+    The right factor grows to ``blockdiag(Y, I_b) K`` with the core
+    ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
+    ``R_new`` its residual's triangular factor).
+    """
+    state = state.as_settled()
+    ext = extend_basis(
+        state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
+        basis_gram=state.gram,
+    )
+    b = X.shape[1]
+    k, p = state.R.shape
+    K = np.zeros((k + b, p + ext.rank))
+    K[:k, :p] = state.R
+    K[k:, :p] = ext.coeffs.T
+    K[k:, p:] = ext.R_new.T
+    d_rej = ext.rejected_norm()
+    block_norm = ext.block_norm
+    return _plan(
+        state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0, d_rej=d_rej,
+        rejection_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
+    )
+
+
+def plan_add(
+    state: State,
+    U_k: np.ndarray,
+    V_k: np.ndarray,
+    dV: np.ndarray | None,
+    opts: StepOptions,
+    *,
+    t0: float,
+) -> Plan:
+    """Plan the increment ``U dV^T + U_k V_k^T`` (``dV`` in the internal term order).
+
+    The increment spans every row, so the right factor is formed whole (``O(m p^2)``)
+    and replaced by its Householder QR.
+    """
+    state = state.as_settled()
+    assert state.rows is not None
+    ref = _energy_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
+    ext = extend_basis(
+        state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref, basis_gram=state.gram,
+    )
+    V_old = (state.rows.value() @ state.R if state.rank
+             else np.zeros((V_k.shape[0], 0)))
+    if dV is not None:
+        V_old = V_old + dV
+    V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
+    Y_new, K = np.linalg.qr(V_new)
+    return _plan(
+        state, ext, K, opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
+        t0=t0, Y_replace=Y_new, d_rej=ext.rejected_norm(V_k), rejection_root=0.0,
+        prior=state.bound, overlapping=True,
+    )
+
+
+def plan_merge(
+    state: State,
+    U_o: np.ndarray,
+    R_o: np.ndarray,
+    Y_o: np.ndarray | None,
+    m_o: int,
+    prior: Bound,
+    opts: StepOptions,
+    *,
+    t0: float,
+) -> Plan:
+    """Plan appending ``m_o`` later snapshots represented by ``U_o V_o^T``.
+
+    ``V_o = Y_o R_o`` with ``Y_o`` orthonormal (``m_o x k_o``); ``Y_o`` itself is needed
+    only when the right vectors are kept. A term is rejected when its residual carries
+    ``||r_j||_M ||v_j|| <= reject_tol * max_i ||u_i||_M ||v_i||``: relative to the energy
+    of the expansion merged, as a snapshot's residual is relative to the snapshot.
+
+    The residuals of several terms can be large one by one and cancel in the merged core
+    (the weak left vectors of two expansions of the same data differ by their rounding):
+    so a term of the merged core whose amplitude is at most ``reject_tol`` times the
+    largest amplitude of the smaller of the two expansions is rounding noise of the
+    merge as well, and is cut like a term below ``eps`` (its norm counted in the bound).
+    With a target error this cut is not made: the target's cut (in this merge, or in the
+    final one when the merge does not spend the target, as in
+    :mod:`streamsvd.parallel.tree`) takes such terms within the budget.
+    """
+    state = state.as_settled()
+    u_norms, v_norms = safe_m_norms(U_o, opts.inner), safe_column_norms(R_o)
+    ref = _energy_reference(u_norms, v_norms)
+    tops = [_top_energy(u_norms, v_norms)]
+    if state.rank:
+        tops.append(float(np.max(safe_column_norms(state.R))))
+    floor = opts.reject_tol * min(tops)
+    if opts.truncation.target is None and floor > opts.truncation.eps:
+        opts = replace(opts, truncation=replace(opts.truncation, eps=floor))
+    ext = extend_basis(
+        state.basis, state.coords, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
+        reference=ref, basis_gram=state.gram,
+    )
+    k, p = state.R.shape
+    ko = R_o.shape[0]
+    K = np.zeros((k + ko, p + ext.rank))
+    K[:k, :p] = state.R
+    K[k:, :p] = R_o @ ext.coeffs.T
+    K[k:, p:] = R_o @ ext.R_new.T
+    assert state.rows is None or Y_o is not None
+    d_rej = ext.rejected_norm(R_o)
+    # the merged columns are new ones, as an absorbed block's: their rejected part meets
+    # later cuts only through their own data, of norm ||R_o|| (module bound.py)
+    return _plan(
+        state, ext, K, opts, kind="merge", columns=m_o, m=state.m + m_o, t0=t0,
+        Y_appended=Y_o, d_rej=d_rej,
+        rejection_root=math.sqrt(d_rej) * math.sqrt(safe_norm(R_o)), prior=prior,
+    )
+
+
+def plan_finalize(
+    state: State,
+    opts: StepOptions,
+    *,
+    t0: float,
+    on_sweep: Callable[[int, float], None] | None = None,
+) -> Plan:
+    """Plan sweeps of the core to convergence and the truncation (no new snapshot).
+
+    ``opts`` carries the rule and ``sweeps=None``; the result is the SVD of the current
+    expansion, truncated by the compressor's rules (Eckart-Young: what is cut is
+    orthogonal to what is kept, so the bound grows by the Pythagorean rule).
+    ``on_sweep`` is called after every sweep (:func:`streamsvd.engine.core.core_step`).
+    """
+    state = state.as_settled()
+    p = state.rank
+    ext = BasisExtension.empty(p, state.basis.width)
+    return _plan(
+        state, ext, state.R, opts, kind="finalize", columns=0, m=state.m, t0=t0,
+        d_rej=0.0, rejection_root=0.0, prior=state.bound, on_sweep=on_sweep,
+    )
+
+
+def _plan(
+    state: State,
+    ext: BasisExtension,
+    K: np.ndarray,
+    opts: StepOptions,
+    *,
+    kind: str,
+    columns: int,
+    m: int,
+    t0: float,
+    d_rej: float,
+    rejection_root: float,
+    prior: Bound,
+    Y_appended: np.ndarray | None = None,
+    Y_replace: np.ndarray | None = None,
+    overlapping: bool = False,
+    on_sweep: Callable[[int, float], None] | None = None,
+    Y_map: np.ndarray | None = None,
+    dead: np.ndarray | None = None,
+) -> Plan:
+    """Rotate and truncate the core ``K`` and plan the new factors.
+
+    The right factor is ``blockdiag(Y, Y_appended) K`` (``Y_appended`` the identity for an
+    absorbed block, absent after ``finalize``), or ``Y_replace K`` after ``add``; after a
+    removal (:mod:`streamsvd.engine.downdate`) ``Y`` stands for ``Y_live Y_map``, ``dead``
+    being the stored rows no longer live.
+    """
+    keep_rows = state.rows is not None
+    Q_K, K = _core_qr(K, want_q=keep_rows)
+    step = core_step(
+        K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
+        before=Before(prior, d_rej, overlapping), on_sweep=on_sweep,
+    )
+    Q_R, R = _core_qr(step.R, want_q=keep_rows)
+    p, r = state.rank, ext.rank
+    w = state.basis.width
+    T = step.T
+    p_new = T.shape[1]
+    # the basis [Q, Q_new] with Gu_ext = blockdiag(coords, I_r); compact when it pays, or
+    # when the next block of this width would not fit in a buffer that holds two bases
+    # and a block (a compaction is then cheaper than growing it); a smaller buffer grows
+    # (geometrically, when the next block's workspace is taken), else a tight buffer
+    # would compact at every update
+    wasted_flops = (state.wasted_flops
+                    + _WASTE_PER_COLUMN * (w + r - p_new) * max(columns, 1))
+    capacity, block = state.basis.capacity, ext.accepted.size
+    compact = (
+        wasted_flops >= COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
+        or p_new == 0
+        or (w + r + block > capacity and capacity >= 2 * p_new + block)
+    )
+    coords = np.vstack([state.coords @ T[:p], T[p:]])
+    if compact:
+        H = state.basis.compact_planned(coords, r)
+        coords, wasted_flops = np.eye(p_new), 0.0
+    else:
+        H = _extended_gram(state, ext)
+    orth = gram_orthogonality(coords, H)
+    if orth > opts.reorth_tol:
+        # U <- U L^{-T}, V <- V L with U^T M U = L L^T: U V^T is unchanged (V = Y R, so
+        # only R changes)
+        G = coords.T @ H @ coords
+        L = np.linalg.cholesky(0.5 * (G + G.T))
+        coords = scipy.linalg.solve_triangular(L, coords.T, lower=True).T
+        R = R @ L
+        orth = gram_orthogonality(coords, H)
+    rows = Y_full = None
+    if state.rows is not None:
+        # Y <- blockdiag(Y, Y_appended) P, P = Q_K Q_R orthonormal
+        P = np.eye(K.shape[0]) if Q_K is None else Q_K
+        if Q_R is not None:
+            P = P @ Q_R
+        if Y_replace is not None:
+            Y_full = Y_replace @ P
+        else:
+            rows = plan_rows(state, P, Y_appended, Y_map=Y_map)
+    discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
+    bound = prior.step(
+        discarded, step.coupling_root, overlapping=overlapping,
+        rejection_root=rejection_root, rejected=d_rej,
+    )
+    record = UpdateRecord(
+        kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,
+        rejected=ext.rejected, cut=step.cut, discarded=discarded,
+        sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
+        error_bound=bound.bound, seconds=time.perf_counter() - t0,
+        passes=ext.passes + int(compact),
+    )
+    logger.debug(
+        "%s of %d columns: %d passes over the basis, %d sweeps, rank %d", kind, columns,
+        ext.passes, step.sweeps, p_new,
+    )
+    writes = Writes(
+        columns=0 if compact else r, compacted=compact, rows=rows, rows_replaced=Y_full,
+        dead_rows=dead,
+    )
+    return Plan(coords=coords, gram=H, R=R, m=m, wasted_flops=wasted_flops, bound=bound,
+                record=record, writes=writes)
+
+
+def plan_rows(
+    state: State, P: np.ndarray, Y_appended: np.ndarray | None,
+    *, Y_map: np.ndarray | None = None,
+) -> RowAppend:
+    """Plan ``Y <- blockdiag(Y, Y_appended) P``: the new rows and the new ``Vp``.
+
+    ``P`` (``(k + k_a) x k_new``) is orthonormal; ``Y_appended`` (the identity when None)
+    holds the new rows' own orthonormal factor; ``Y_map`` (``k x k'``), when given, maps
+    ``Y`` first (``Y <- Y Y_map``: a removal). When the stored factor is too wide
+    (:attr:`~streamsvd.engine.rows.RowFactor.wide`) the plan is made in the coordinates after a
+    rebase, which staging writes.
+    """
+    rows = state.rows
+    assert rows is not None
+    k = state.R.shape[0] if Y_map is None else Y_map.shape[1]
+    rebase = rows.wide
+    Vp = np.eye(rows.Vp.shape[1]) if rebase else rows.Vp
+    if Y_map is not None:
+        Vp = Vp @ Y_map
+    N = P[k:] if Y_appended is None else Y_appended @ P[k:]
+    return rows.plan_append(Vp @ P[:k], N, rebase=rebase)
+
+
+# ---------------------------------------------------------------------------- helpers
+def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
+    """``H`` of ``[Q, Q_new]`` from the blocks Gram-Schmidt measured (:class:`BasisExtension`)."""
+    w, r = state.basis.width, ext.rank
+    H = np.zeros((w + r, w + r))
+    H[:w, :w] = state.gram
+    H[:w, w:] = ext.cross_gram
+    H[w:, :w] = ext.cross_gram.T
+    H[w:, w:] = ext.gram_new
+    return H
+
+
+def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ``(Q, R)`` with ``K = Q R``, ``R`` no taller than wide (``Q = None``: ``I``).
+
+    A core taller than wide is reduced by a Householder QR, whose ``Q`` (formed only when
+    the right vectors are kept) is orthonormal to rounding level.
+    """
+    if K.shape[0] <= K.shape[1]:
+        return None, K
+    if not want_q:
+        return None, r_factor(K)
+    Q, R = np.linalg.qr(K)
+    return Q, R
+
+
+def gram_orthogonality(coords: np.ndarray, gram: np.ndarray) -> float:
+    """``||coords^T gram coords - I||_2``: the largest eigenvalue modulus of a symmetric matrix."""
+    p = coords.shape[1]
+    if p == 0:
+        return 0.0
+    E = coords.T @ gram @ coords - np.eye(p)
+    return float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (E + E.T)))))
+
+
+def _top_energy(u_norms: np.ndarray, v_norms: np.ndarray) -> float:
+    """Return ``max_i ||u_i|| ||v_i||``, the largest term's energy (0 without a term)."""
+    return float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
+
+
+def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
+    """Return reference norms: a term's rejection relative to the largest term's energy.
+
+    The residual ``r_j`` of ``u_j`` is rejected when ``||r_j|| <= tol * ref_j`` with
+    ``ref_j = max_i(||u_i|| ||v_i||) / ||v_j||``; a term with ``v_j = 0`` carries nothing
+    (reference 0: rejected).
+    """
+    top = _top_energy(u_norms, v_norms)
+    with np.errstate(divide="ignore"):
+        ref = np.where(v_norms > 0, top / np.where(v_norms > 0, v_norms, 1.0), 0.0)
+    return ref

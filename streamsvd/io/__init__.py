@@ -1,0 +1,18 @@
+"""Snapshot sources: numpy arrays, ``.npy``, HDF5, zarr and dask arrays, read by blocks, and
+the record of where a store's snapshots came from.
+"""
+
+from streamsvd._util.lazy import lazy_exports
+
+# public name -> the submodule that defines it (imported on first access)
+_EXPORTS = {
+    "LazyBlock": "sources",
+    "Source": "sources",
+    "open_source": "sources",
+    "open_zarr_url": "sources",
+    "OpenedFile": "formats",
+    "open_file": "formats",
+    "SourceRecord": "provenance",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,295 @@
+"""The BLAS-3 kernels of block Gram-Schmidt (:func:`streamsvd.linalg.gram_schmidt.extend_basis`).
+
+Scaling a block by powers of two, ``M``-products and Gram matrices, CholeskyQR in place,
+the rounds that orthonormalise a nearly collinear residual (SVQB with re-measured
+tails), and the column-by-column rejection rule on the residual's small coefficients.
+Every function works on arrays; the basis is reached only through
+:class:`~streamsvd.algebra.memory.BasisBackend`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.linalg.blas as blas
+
+from streamsvd._util.scaling import column_exponents
+from streamsvd._util.slabs import copy_by_row_slabs
+from streamsvd.algebra.inner import InnerProduct
+
+if TYPE_CHECKING:
+    from streamsvd.algebra.memory import BasisBackend
+
+_EPS = np.finfo(np.float64).eps
+# A residual whose Gram has its eigenvalues within COND_SPLIT of the largest is
+# orthonormalised in one go (condition number at most 2^20, so that a second CholeskyQR
+# pass restores orthogonality to working accuracy); the smaller directions are measured
+# again on the vectors themselves and treated in a further round.
+COND_SPLIT = 2.0**-40
+# one CholeskyQR pass leaves an orthogonality error of about eps * cond(S): below this
+# condition of the residual's Gram one pass is enough
+ONE_PASS_COND = 16.0
+# a projection that leaves less than this share of a column's norm is made again (DGKS)
+_REPROJECT = 0.5
+
+
+def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M``-norms of the columns of an already scaled block."""
+    MX = X if inner.is_euclidean else inner.apply(X)
+    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
+
+
+def gram(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:
+    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product).
+
+    ``MX`` is ``M X`` when the caller has it already.
+    """
+    if inner.is_euclidean:
+        # numpy makes X^T X a rank-k update (syrk) and fills in the lower triangle
+        Xf = np.asfortranarray(X)
+        G = Xf.T @ Xf
+        return 0.5 * (G + G.T)
+    G = X.T @ (inner.apply(X) if MX is None else MX)
+    return 0.5 * (G + G.T)
+
+
+def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Write ``X 2^-e`` into ``Y``, ``e`` per column, so that its peak lies in [1/2, 1).
+
+    Returns the exponents (0 for a zero column) and the mask of the zero columns. The
+    copy is made first and the peaks
+    are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
+    the scaling is exact, subnormal peaks included.
+    """
+    copy_by_row_slabs(Y, X)
+    if Y.shape[0] == 0:
+        return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
+    exps, peak = column_exponents(Y)
+    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
+        Y *= np.ldexp(1.0, -exps)
+    else:
+        np.ldexp(Y, -exps[np.newaxis, :], out=Y)
+    return exps, peak == 0
+
+
+def apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M Z`` written into ``MY`` (``Z`` itself for the Euclidean product)."""
+    if inner.is_euclidean:
+        return Z
+    MY[...] = inner.apply(Z)
+    return MY
+
+
+def place_directions(
+    Qn: np.ndarray, Y: np.ndarray, MY: np.ndarray, inner: InnerProduct, MQn: np.ndarray | None
+) -> None:
+    """Write the new directions (and their ``M`` image) to the front of the workspace."""
+    r = Qn.shape[1]
+    Y[:, :r] = Qn
+    if not inner.is_euclidean:
+        MY[:, :r] = inner.apply(Qn) if MQn is None else MQn
+
+
+def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
+    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow."""
+    if x.size == 0:
+        return 0.0
+    top = int(exps.max())
+    return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
+
+
+def _eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (decreasing) and eigenvectors of a small symmetric matrix."""
+    if S.shape[0] == 0:
+        return np.zeros(0), np.zeros((0, 0))
+    lam, W = np.linalg.eigh(S)
+    return lam[::-1].copy(), np.asfortranarray(W[:, ::-1])
+
+
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Return ``A @ B`` as a new column-major array (for in-place triangular solves)."""
+    out = np.empty((A.shape[0], B.shape[1]), order="F")
+    np.matmul(A, B, out=out)
+    return out
+
+
+def right_solve(A: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """Return ``A L^{-T}``, in place when ``A`` is column-major (``L`` lower triangular)."""
+    if A.shape[0] == 0 or A.shape[1] == 0:
+        return A
+    out = blas.dtrsm(1.0, L, A, side=1, lower=1, trans_a=1, overwrite_b=1)
+    if not np.shares_memory(out, A):
+        A[...] = out
+    return A
+
+
+def cholesky_qr_in_place(
+    basis: BasisBackend,
+    Z: np.ndarray,
+    MZ: np.ndarray,
+    S: np.ndarray,
+    lam: np.ndarray,
+    cross: np.ndarray,
+    inner: InnerProduct,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """``Z = Q L^T`` in place (``Z`` becomes ``Q``, ``MZ`` its image).
+
+    ``S = Z^T M Z`` is positive definite with eigenvalues ``lam`` (decreasing) and
+    ``cross = (M Q_basis)^T Z``. Returns ``L^T``, the cross block of the result and the
+    passes made over the basis. When ``cond(S) > ONE_PASS_COND`` a second pass is made
+    (CholeskyQR2): the triangular solve by an ill-conditioned ``L`` errs by about
+    ``eps cond(L)`` in every direction, so the cross block is measured again on the
+    result of the first pass (one product with the basis) rather than transformed.
+    """
+    L = np.linalg.cholesky(S)
+    right_solve(Z, L)
+    R = L.T.copy()
+    if lam[0] <= ONE_PASS_COND * lam[-1]:
+        apply_into(Z, MZ, inner)
+        return R, right_solve(np.array(cross, order="F"), L), 0
+    # M Z is applied again, not transformed, for the same reason
+    L2 = np.linalg.cholesky(gram(Z, inner, apply_into(Z, MZ, inner)))
+    measured = basis.project(Z, None) if basis.width else np.zeros((0, Z.shape[1]))
+    right_solve(Z, L2)
+    apply_into(Z, MZ, inner)
+    cross = right_solve(np.array(measured, order="F"), L2)
+    return L2.T @ R, cross, 1 if basis.width else 0
+
+
+def orthonormalize_in_rounds(
+    basis: BasisBackend,
+    G: np.ndarray | None,
+    Z: np.ndarray,
+    S: np.ndarray,
+    C: np.ndarray,
+    inner: InnerProduct,
+    reject_tol: float,
+    ref: np.ndarray,
+) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """Orthonormalise an ill-conditioned residual round by round (see :func:`extend_basis`).
+
+    Returns the orthonormal parts, the coefficients ``Rz`` of the residual on them, the
+    directions set aside below the floor ``(T, M T, F)`` and the passes made. ``C`` (the
+    coefficients on the basis) receives what the re-projections of later rounds find.
+    """
+    b = Z.shape[1]
+    parts: list[np.ndarray] = []
+    mparts: list[np.ndarray] = []
+    rows: list[np.ndarray] = []
+    floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    Zc, Sc, Fc = Z, S, np.eye(b)
+    passes = 0
+    # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
+    # directions are set aside (smallest first) while, in every column k, what they add
+    # up to stays within reject_tol * ref_k / 2, so they cannot change a decision
+    weight = np.where(ref > 0, 1.0 / np.where(ref > 0, ref, 1.0), 0.0)
+    half_tol = 0.5 * reject_tol
+    used = np.zeros(b)  # (what the directions set aside add to column k / ref_k)^2
+    while True:
+        if parts:
+            # the unresolved part is small next to the block: its rounding along the
+            # basis and the directions found is projected out, a second time when the
+            # first pass cancelled more than half of a column (DGKS)
+            before = m_norms(Zc, inner)
+            for _ in range(2):
+                if basis.width:
+                    P = basis.project(Zc, G)
+                    basis.subtract(Zc, G, P)
+                    C += P @ Fc
+                    passes += 2
+                for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
+                    c = MQp.T @ Zc
+                    Zc -= Qp @ c
+                    rows[i] += c @ Fc
+                after = m_norms(Zc, inner)
+                if np.all(after >= _REPROJECT * before):
+                    break
+                before = after
+            Sc = gram(Zc, inner)
+        lam, W = _eigh_desc(Sc)
+        if lam.size == 0 or lam[0] <= 0.0:
+            break
+        sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(W.T @ Fc) * weight, axis=1)
+        big = (lam >= COND_SPLIT * lam[0]) & (sizes > half_tol)
+        # every round resolves at least its largest direction (the column rule rejects it
+        # if it is too small), so the rounds end
+        big[0] = True
+        if big.any():
+            Qb = _mm(Zc, W[:, big] / np.sqrt(lam[big]))
+            L2 = np.linalg.cholesky(gram(Qb, inner))
+            right_solve(Qb, L2)
+            parts.append(Qb)
+            mparts.append(Qb if inner.is_euclidean else np.asfortranarray(inner.apply(Qb)))
+            rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * (W[:, big].T @ Fc)))
+        rest = ~big
+        if not rest.any():
+            break
+        Tt = _mm(Zc, W[:, rest])
+        MTt = Tt if inner.is_euclidean else np.asfortranarray(inner.apply(Tt))
+        Ft = W[:, rest].T @ Fc
+        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Tt, MTt), 0.0))
+        adds = (norms[:, np.newaxis] * np.abs(Ft) * weight) ** 2
+        order = np.argsort(np.max(adds, axis=1), kind="stable")
+        fits = np.max(used + np.cumsum(adds[order], axis=0), axis=1) <= half_tol**2
+        cut = int(np.argmin(fits)) if not fits.all() else fits.size
+        low = np.zeros(norms.size, dtype=bool)
+        low[order[:cut]] = True
+        used += adds[low].sum(axis=0)
+        if low.any():
+            floor.append((Tt[:, low], MTt[:, low], Ft[low]))
+        if low.all():
+            break
+        Zc, Fc = np.asfortranarray(Tt[:, ~low]), Ft[~low]
+    Rz = np.vstack(rows) if rows else np.zeros((0, b))
+    return parts, Rz, floor, passes
+
+
+def column_rule(
+    Rz: np.ndarray, ref: np.ndarray, reject_tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Accept columns in order on their small coefficients ``Rz`` (``s x b``).
+
+    Returns the mask of the accepted columns and an orthonormal basis ``Wacc``
+    (``s x r``) of their span, column ``j`` the direction column ``j`` brought.
+    """
+    s, b = Rz.shape
+    thresh = reject_tol * ref
+    if s == b and b and np.all(ref > 0) and np.allclose(Rz, np.triu(Rz), rtol=0, atol=0):
+        d = np.abs(np.diag(Rz))
+        if np.all(d > thresh):  # triangular: the residual of column k is |R_kk|
+            return np.ones(b, dtype=bool), np.eye(s)
+    # each column's smallest coefficients, which together stay within half of its own
+    # threshold, are left out of the decision: they cannot change it, and the rounding
+    # they carry would otherwise tilt the span of the accepted columns (the kept
+    # directions and the rejected part are then taken from Rz itself, in full)
+    mags = Rz * Rz
+    order = np.argsort(mags, axis=0, kind="stable")
+    small = np.cumsum(np.take_along_axis(mags, order, axis=0), axis=0) <= (0.5 * thresh) ** 2
+    clean = Rz.copy()
+    np.put_along_axis(clean, order, np.where(small, 0.0, np.take_along_axis(Rz, order, 0)), 0)
+    accepted = np.zeros(b, dtype=bool)
+    B = np.zeros((s, min(s, b)))
+    r = 0
+    for k in range(b):
+        if ref[k] <= 0 or r == s:
+            continue
+        v = clean[:, k].copy()
+        for _ in range(2):
+            v -= B[:, :r] @ (B[:, :r].T @ v)
+        rho = float(np.linalg.norm(v))
+        if rho > thresh[k]:
+            B[:, r] = v / rho
+            accepted[k] = True
+            r += 1
+    return accepted, B[:, :r]
+
+
+def complement(Wacc: np.ndarray, s: int) -> np.ndarray:
+    """Return an orthonormal basis of the orthogonal complement of ``Wacc`` in ``R^s``."""
+    r = Wacc.shape[1]
+    if r == 0:
+        return np.eye(s)
+    Qf = np.linalg.qr(Wacc, mode="complete")[0]
+    return Qf[:, r:]

@@ -1,0 +1,25 @@
+"""Scale-out on dask: the tree of leaves (:func:`tree_compress`), the tall mode
+(:class:`TallCompressor`, :func:`tall_compress`), and opening a compressor on a cluster.
+"""
+
+from streamsvd._util.lazy import lazy_exports
+
+# public name -> the submodule that defines it (imported on first access)
+_EXPORTS = {
+    "COMPRESSOR_OPTIONS": "cluster",
+    "compressor_class": "cluster",
+    "ingest": "cluster",
+    "connect": "cluster",
+    "execute": "cluster",
+    "open_compressor": "cluster",
+    "stored_kind": "cluster",
+    "tall_compress": "cluster",
+    "DEFAULT_CHUNK_ROWS": "tall",
+    "KIND": "tall",
+    "PanelBackend": "tall",
+    "TallCompressor": "tall",
+    "SourceSpec": "tree",
+    "tree_compress": "tree",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

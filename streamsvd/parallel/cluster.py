@@ -1,0 +1,343 @@
+"""Scale-out on dask: out-of-core products over row chunks, tree merges on a cluster.
+
+Three ways to run the same compression beyond one in-memory stream, all built on dask
+(``dask.array``, ``dask.delayed``, ``dask.distributed``):
+
+* :func:`tree_compress` -- many snapshots: column ranges (leaves) are compressed
+  independently on workers and merged pairwise in a tree with
+  :meth:`StreamCompressor.merge`, the error bounds composed (pyMOR's distributed HAPOD);
+* :class:`TallCompressor` and :func:`tall_compress` -- tall snapshots: the stored factor
+  ``U`` lives in panels chunked by rows and every product an update needs runs over
+  row chunks with ``map_blocks`` and ``da.reduction``;
+* :func:`ingest` -- what ``streamsvd ingest --scheduler ... [--tall]`` runs.
+
+Scheduler. Every function takes ``client=``: ``None`` runs on dask's threaded scheduler
+in this process; a :class:`distributed.Client` runs the same task graphs on its cluster
+(:func:`connect` opens a :class:`~distributed.LocalCluster` or connects to a scheduler
+address). Results do not depend on the scheduler, nor on the chunking of the source,
+beyond rounding.
+
+Sources. A numpy array, a ``.npy``/HDF5/zarr path, an h5py dataset, a zarr array or any
+dask array (see :func:`~streamsvd.io.sources.open_source`). The tall mode reads its blocks
+in this process, the tree's leaves where they run, both through the one block reader
+(:meth:`~streamsvd.io.sources.Source.blocks`: the next block read in a background thread
+while the current one is absorbed, each block once) driven by
+:func:`streamsvd.stream.ingest.ingest`. On a cluster, paths must be visible to every worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Iterator
+from typing import Any, cast
+
+from streamsvd._util.malloc import keep_freed_memory
+from streamsvd._util.validation import check_positive_int
+from streamsvd.algebra.memory import MEMORY_KIND
+from streamsvd.errors import InputError, ShapeMismatchError, StoreMismatchError
+from streamsvd.stream.ingest import ingest as ingest_blocks
+from streamsvd.parallel.tall import KIND, TallCompressor
+from streamsvd.parallel.tree import COMPRESSOR_OPTIONS, SourceSpec, tree_compress
+from streamsvd.io.provenance import SourceRecord
+from streamsvd._util.scheduling import execute
+from streamsvd.storage import open_storage
+from streamsvd.store import open_store
+from streamsvd.stream.compressor import StreamCompressor, summary_of
+
+__all__ = [
+    "COMPRESSOR_OPTIONS",
+    "TallCompressor",
+    "compressor_class",
+    "connect",
+    "execute",
+    "ingest",
+    "open_compressor",
+    "stored_kind",
+    "tall_compress",
+    "tree_compress",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iterator[Any]:
+    """Yield the ``client=`` argument for a scheduler named as on the command line.
+
+    Parameters
+    ----------
+    scheduler : {None, "threads", "local"} or str
+        ``None`` or ``"threads"``: dask's threaded scheduler (yields ``None``);
+        ``"local"``: start a :class:`distributed.LocalCluster` of ``workers`` processes
+        with one thread each, closed on exit; anything else is the address of a running
+        scheduler (``tcp://host:8786``), connected to and disconnected from on exit.
+    workers : int, optional
+        Number of worker processes of a local cluster (default: the number of CPUs).
+
+    Yields
+    ------
+    distributed.Client or None
+    """
+    if scheduler is None or scheduler == "threads":
+        yield None
+        return
+    if not isinstance(scheduler, str) or not scheduler:
+        raise InputError(
+            f"`scheduler` must be 'threads', 'local' or a scheduler address such as "
+            f"'tcp://host:8786'; got {scheduler!r}."
+        )
+    from distributed import Client, LocalCluster
+
+    if scheduler == "local":
+        nw = cast(int, check_positive_int(workers if workers is not None else
+                                          (os.cpu_count() or 1), "workers"))
+        with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True,
+                          dashboard_address=":0") as cluster, Client(cluster) as client:
+            logger.info("started a local cluster of %d worker processes", nw)
+            yield client
+        return
+    if workers is not None:
+        raise InputError(
+            f"`workers` only applies to scheduler='local'; got workers={workers!r} with "
+            f"the address {scheduler!r}. Size the remote cluster where it runs."
+        )
+    try:
+        client = Client(scheduler, timeout="20s")
+    except OSError as exc:
+        raise InputError(
+            f"`scheduler` {scheduler!r} cannot be reached ({exc}). Check the address "
+            "(tcp://host:port) and that the scheduler is running."
+        ) from exc
+    with client:
+        yield client
+
+
+def compressor_class(kind: Any) -> type[StreamCompressor] | None:
+    """Return the class whose stores record ``kind`` (None for any other kind)."""
+    return {MEMORY_KIND: StreamCompressor, KIND: TallCompressor}.get(kind)
+
+
+def stored_kind(path: Any, *, storage_options: dict[str, Any] | None = None) -> Any:
+    """Return the kind a basis store records (which compressor wrote it)."""
+    with open_store(open_storage(path, storage_options=storage_options), "r") as st:
+        return st.read().attrs.get("kind")
+
+
+def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
+                    storage_options: dict[str, Any] | None = None,
+                    ) -> StreamCompressor | TallCompressor:
+    """Reopen the compressor of a store, in memory or tall, whichever wrote it.
+
+    Both kinds offer ``n``, ``n_seen``, ``rank``, ``amplitudes``, ``error_bound``,
+    ``discarded_energy``, ``history``, ``orthogonality_error()``, ``expansion``,
+    ``source_offset``, ``source_record``, ``store_path`` and ``close()``. ``inner`` is
+    needed only for a store that does not keep its inner product (see
+    :meth:`StreamCompressor.open`); ``storage_options`` for a URL ``path`` that needs them.
+    """
+    storage = open_storage(path, storage_options=storage_options)
+    kind = stored_kind(storage)
+    cls = compressor_class(kind)
+    if cls is TallCompressor:
+        return TallCompressor.open(storage, mode=mode, client=client, inner=inner)
+    if cls is StreamCompressor:
+        return StreamCompressor.open(storage, mode=mode, inner=inner)
+    raise StoreMismatchError(
+        f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
+        "or TallCompressor store."
+    )
+
+
+# ------------------------------------------------------------------------- tall driver
+
+
+def tall_compress(
+    source: Any,
+    *,
+    block: int = 100,
+    dataset: str | None = None,
+    store: Any = None,
+    resume: bool = False,
+    chunk_rows: int | None = None,
+    client: Any = None,
+    progress: bool = False,
+    storage_options: dict[str, Any] | None = None,
+    **options: Any,
+) -> TallCompressor:
+    """Stream every column of a source into a :class:`TallCompressor`, block by block.
+
+    Parameters
+    ----------
+    source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
+        The ``n x m`` snapshot matrix, absorbed block by block by
+        :func:`streamsvd.stream.ingest.ingest`; each block is handed over unread
+        (:meth:`~streamsvd.io.sources.Source.lazy`) and read once, by chunks of
+        ``chunk_rows`` rows, in the update's pass over the panels (into memory first when
+        the update takes the exact path: see :class:`TallCompressor`).
+    block : int
+        Columns per update.
+    dataset : str, optional
+        Dataset of an HDF5 file or array of a zarr group.
+    store : str or path-like, optional
+        Store of the basis: created, or continued from its recorded source offset with
+        ``resume=True``. Updates are committed as ``commit_every`` says (every update
+        by default); a failure leaves the store at its last commit. The source is
+        recorded in the store (:attr:`~streamsvd.StreamCompressor.source_record`).
+    resume : bool
+        Continue the existing store (its options and weights are used; ``inner``, if
+        passed, is checked against them).
+    chunk_rows : int, optional
+        Rows per chunk of the panels: by default the source's row chunks when it is a
+        dask, zarr or HDF5 array chunked uniformly by rows, else 16384.
+    client : distributed.Client, optional
+        Run the row-chunk products on this cluster.
+    progress : bool
+        Show a progress bar over the columns (tqdm, on stderr).
+    storage_options : dict, optional
+        Options of the object store of a URL ``store``.
+    **options
+        :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
+        ``rule``, ``sweeps``, ``reject_tol``, ``reorth_tol``,
+        ``commit_every``, and ``workdir`` without a store).
+
+    Returns
+    -------
+    TallCompressor
+        It holds the store's writer lock when ``store`` is given: close it when done.
+
+    Notes
+    -----
+    Memory. From the first call on, this process's allocator keeps freed memory for the
+    next arrays (on Linux with glibc: its mmap threshold fixed at 32 MiB and its trim
+    threshold at 256 MiB, unless ``MALLOC_*_`` variables or ``GLIBC_TUNABLES`` tune
+    malloc already): the row chunks allocated and freed at every update were otherwise
+    zeroed again by the kernel, 400000 page faults on a 200000 x 1000 array, about 10%
+    of the wall time (``bench/README.md``).
+    """
+    block = cast(int, check_positive_int(block, "block"))
+    keep_freed_memory()
+    spec = SourceSpec.of(source, dataset=dataset)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
+    if resume:
+        inner = options.pop("inner", None)
+        if store is None or options:
+            raise InputError(
+                f"`resume` needs `store` and no options but `inner` (the store's are used); "
+                f"got store={store!r} and options {sorted(options)}. Pass only the store."
+            )
+    with spec.open() as src:
+        if resume:
+            tc = TallCompressor.open(store, inner=inner, client=client,
+                                     storage_options=storage_options)
+            if tc.n != spec.n:
+                tc.close(finalize=False)
+                raise ShapeMismatchError(
+                    f"`source` must have snapshots of size {tc.n} (the store's n); got "
+                    f"{spec.n} from {spec.description}. Pass the source the store was "
+                    "built from."
+                )
+            tc.source_record = record
+        else:
+            rows = chunk_rows if chunk_rows is not None else src.row_chunks
+            tc = TallCompressor(spec.n, store=store, storage_options=storage_options,
+                                chunk_rows=rows, client=client, source_record=record,
+                                **options)
+        try:
+            ingest_blocks(src, tc, block=block, rows=tc.chunk_rows, progress=progress,
+                          desc="tall")
+            tc.flush()
+        except BaseException:
+            tc.close(finalize=False)
+            raise
+    return tc
+
+
+# --------------------------------------------------------------------------------- CLI
+
+
+def ingest(
+    source: Any,
+    store: Any,
+    *,
+    dataset: str | None = None,
+    block: int = 100,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    tall: bool = False,
+    leaf_columns: int | None = None,
+    chunk_rows: int | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    finalize: bool = True,
+    **options: Any,
+) -> dict[str, Any]:
+    """Compress a source into a store on dask: what ``streamsvd ingest`` runs.
+
+    Parameters
+    ----------
+    source, dataset, block
+        As for :func:`tree_compress`.
+    store : str or path-like
+        The basis store (created; continued with ``resume=True``).
+    scheduler : {None, "threads", "local"} or str
+        See :func:`connect`.
+    workers : int, optional
+        Worker processes of a local cluster.
+    tall : bool
+        Keep ``U`` out of core (:func:`tall_compress`); otherwise a tree of in-memory
+        leaves (:func:`tree_compress`).
+    leaf_columns : int, optional
+        Columns per leaf of the tree (ignored with ``tall``).
+    chunk_rows : int, optional
+        Rows per chunk of the tall panels (ignored without ``tall``).
+    resume : bool
+        Continue the store from its recorded source offset.
+    progress : bool
+        Show a progress bar (dask's for the tree, per column for the tall mode).
+    finalize : bool
+        Converge the core at the end and cut to ``max_rank``
+        (:meth:`~streamsvd.StreamCompressor.finalize`, committed), unless the store
+        already is (default).
+    **options
+        Compressor options (``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``,
+        ``sweeps``, ...).
+
+    Returns
+    -------
+    dict
+        The summary ``streamsvd info --json`` prints, plus ``mode``, ``scheduler`` and
+        ``seconds``.
+    """
+    t0 = time.perf_counter()
+    with connect(scheduler, workers=workers) as client:
+        sc: StreamCompressor | TallCompressor
+        if tall:
+            if leaf_columns is not None:
+                raise InputError(
+                    f"`leaf_columns` does not apply to the tall mode; got {leaf_columns!r}. "
+                    "Drop it, or drop `tall` to compress by a tree of leaves."
+                )
+            sc = tall_compress(source, block=block, dataset=dataset, store=store,
+                               resume=resume, chunk_rows=chunk_rows, client=client,
+                               progress=progress, **options)
+        else:
+            if chunk_rows is not None:
+                raise InputError(
+                    f"`chunk_rows` only applies to the tall mode; got {chunk_rows!r}. Pass "
+                    "`tall=True` (--tall) or drop it."
+                )
+            sc = tree_compress(source, block=block, leaf_columns=leaf_columns,
+                               dataset=dataset, client=client, store=store, resume=resume,
+                               progress=progress, **options)
+        try:
+            if finalize and not sc.finalized:
+                sc.finalize(progress=progress)
+            summary = summary_of(sc)
+            summary.update(mode="tall" if tall else "tree", scheduler=scheduler or "threads")
+        finally:
+            sc.close(finalize=False)
+    summary["seconds"] = time.perf_counter() - t0
+    return summary
