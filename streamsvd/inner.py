@@ -540,7 +540,7 @@ def load_inner(path: str | os.PathLike[str]) -> InnerProduct:
             import scipy.io
 
             data = scipy.io.mmread(p)
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError) as exc:  # EOFError: an empty file
         raise InputError(
             f"`inner` file {p} cannot be read as a {suffix} file ({exc}). A .npz file must "
             "hold a sparse matrix written by scipy.sparse.save_npz."

@@ -232,11 +232,6 @@ def test_data_near_1e200_is_ingested_and_summarised_in_finite_figures(tmp_path, 
     assert not re.search(r"\b(inf|nan)\b", out, re.IGNORECASE), out
 
 
-@pytest.mark.xfail(
-    strict=True, raises=EOFError,
-    reason="outside the command line: numpy raises EOFError for an empty .npy, which "
-    "formats.open_file (SOURCE) and inner.load_inner (--inner) do not catch",
-)
 @pytest.mark.parametrize("what", ["SOURCE", "--inner .npy", "--inner .npz"])
 def test_an_empty_file_is_named_in_one_line(tmp_path, npy, capsys, what):
     empty = tmp_path / ("empty.npz" if what.endswith(".npz") else "empty.npy")
