@@ -18,19 +18,6 @@ from test_cli import MODES, WORKTREE, assert_one_line_error, run_cli
 from streamsvd.cli import main
 from streamsvd.cli.reading import open_readonly
 from streamsvd.inner import DiagonalInner
-from streamsvd.testing import with_spectrum
-
-
-@pytest.fixture
-def matrix(rng):
-    return with_spectrum(np.logspace(0, -8, 20), 80, 60, rng)
-
-
-@pytest.fixture
-def npy(tmp_path, matrix):
-    src = tmp_path / "a.npy"
-    np.save(src, matrix)
-    return src
 
 
 def _files(path):
