@@ -23,6 +23,22 @@ def rng():
 
 
 @pytest.fixture
+def matrix(rng):
+    """An 80 x 60 snapshot matrix of rank 20, singular values 1 .. 1e-8."""
+    from streamsvd.testing import with_spectrum
+
+    return with_spectrum(np.logspace(0, -8, 20), 80, 60, rng)
+
+
+@pytest.fixture
+def npy(tmp_path, matrix):
+    """:func:`matrix` saved as ``a.npy``."""
+    src = tmp_path / "a.npy"
+    np.save(src, matrix)
+    return src
+
+
+@pytest.fixture
 def rbs480a_path():
     path = DATA_DIR / "rbs480a.mtx"
     if not path.exists():

@@ -19,7 +19,6 @@ from streamsvd.cli.reading import open_readonly
 from streamsvd.cli.wording import in_cli_words
 from streamsvd.plotting import compressor_figure
 from streamsvd.stream.compressor import StreamCompressor
-from streamsvd.testing import with_spectrum
 
 WORKTREE = Path(__file__).resolve().parents[1]
 EPS = np.finfo(np.float64).eps
@@ -34,18 +33,6 @@ PYTHON_ADVICE = re.compile(
     r"|streamsvd\.\w|Rename the file|pass the array|`(path|source|store|dataset|block|out"
     r"|leaf_columns|chunk_rows|workers|scheduler|tall)`"
 )
-
-
-@pytest.fixture
-def matrix(rng):
-    return with_spectrum(np.logspace(0, -8, 20), 80, 60, rng)
-
-
-@pytest.fixture
-def npy(tmp_path, matrix):
-    src = tmp_path / "a.npy"
-    np.save(src, matrix)
-    return src
 
 
 def run_cli(argv, capsys):
