@@ -1,4 +1,5 @@
-"""zarr from dask's threads: zarr's shared event loop against one loop per core (streamsvd.algebra.panels.zarr_io).
+"""zarr from dask's threads: zarr's shared event loop against one loop per core
+(streamsvd.algebra.panels.zarr_io).
 
 Usage::
 
@@ -9,8 +10,8 @@ Two measurements, each route in its own process, interleaved, medians of ``--rep
 
 * ``tall_compress(source, block=100, max_rank=60, store=..., commit_every=1)`` and
   ``finalize()`` on a zarr array (default: the 200000 x 1000 float64 array of
-  ``bench/outofcore_benchmark.py``, made there), with :mod:`streamsvd.algebra.panels.zarr_io`'s loops and
-  with zarr's own (the module's store check patched to refuse every store, in the child
+  ``bench/outofcore_benchmark.py``, made there), with :mod:`streamsvd.algebra.panels.zarr_io`'s
+  loops and with zarr's own (the module's store check patched to refuse every store, in the child
   only). The passes use raw panels; each commit writes the zarr copy of the new panel,
   which is what the routes differ in (before raw panels, the passes read and wrote zarr
   panels, and this ran without a store);

@@ -39,10 +39,20 @@ from streamsvd.errors import (
 )
 
 if TYPE_CHECKING:
+    from streamsvd.algebra.inner import (
+        DiagonalInner,
+        Euclidean,
+        InnerProduct,
+        MatrixInner,
+        as_inner,
+    )
     from streamsvd.linalg.compress import CompressResult, SweepState, compress
     from streamsvd.linalg.expansion import Expansion
-    from streamsvd.linalg.gram_schmidt import GramSchmidtResult, orthonormalize, orthonormalize_literal
-    from streamsvd.algebra.inner import DiagonalInner, Euclidean, InnerProduct, MatrixInner, as_inner
+    from streamsvd.linalg.gram_schmidt import (
+        GramSchmidtResult,
+        orthonormalize,
+        orthonormalize_literal,
+    )
     from streamsvd.linalg.rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
     from streamsvd.storage import open_storage
     from streamsvd.store import BasisStore, open_store

@@ -15,9 +15,9 @@ import pytest
 import scipy.sparse as sp
 from test_cli import MODES, WORKTREE, assert_one_line_error, run_cli
 
+from streamsvd.algebra.inner import DiagonalInner
 from streamsvd.cli import main
 from streamsvd.cli.reading import open_readonly
-from streamsvd.algebra.inner import DiagonalInner
 
 
 def _files(path):

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 
 import streamsvd as ss
 from streamsvd.engine.bound import Bound
-from streamsvd.parallel.cluster import TallCompressor
 from streamsvd.engine.rows import COND_LIMIT, RowFactor
+from streamsvd.parallel.cluster import TallCompressor
 from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps

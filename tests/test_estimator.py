@@ -11,8 +11,8 @@ import scipy.sparse as sp
 
 import streamsvd as ss
 from streamsvd.errors import SparseInputError
-from streamsvd.sklearn.estimator import NotFittedError, StreamingSVD
 from streamsvd.io.sources import Source
+from streamsvd.sklearn.estimator import NotFittedError, StreamingSVD
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 

@@ -12,9 +12,9 @@ import pytest
 import streamsvd as ss
 from streamsvd.cli import main
 from streamsvd.errors import InputError
-from streamsvd.stream.options import CompressorOptions
 from streamsvd.parallel.cluster import TallCompressor, open_compressor
 from streamsvd.store import open_store
+from streamsvd.stream.options import CompressorOptions
 from streamsvd.testing.matrices import with_spectrum
 
 EPS = np.finfo(np.float64).eps

@@ -12,12 +12,12 @@ import zarr
 from dask.system import CPU_COUNT
 
 from streamsvd import StreamCompressor
-from streamsvd.errors import InputError, NonFiniteError, SourceError
-from streamsvd.stream.ingest import IngestResult, ingest
-from streamsvd.parallel.cluster import tall_compress, tree_compress
-from streamsvd.linalg.rotations import load_kernels_in_background
 from streamsvd._util.scheduling import execute
+from streamsvd.errors import InputError, NonFiniteError, SourceError
 from streamsvd.io.sources import Source, open_source
+from streamsvd.linalg.rotations import load_kernels_in_background
+from streamsvd.parallel.cluster import tall_compress, tree_compress
+from streamsvd.stream.ingest import IngestResult, ingest
 
 EPS = np.finfo(np.float64).eps
 N, M = 37, 23

@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from streamsvd.engine.core import HISTORY_FIELDS
 from streamsvd.cli import main
+from streamsvd.engine.core import HISTORY_FIELDS
 from streamsvd.errors import (
     InputError,
     OptionalDependencyError,
     StoreError,
     StoreLockedError,
 )
-from streamsvd.storage.lockfile import Lease
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
+from streamsvd.storage.lockfile import Lease
 from streamsvd.store import GENERATIONS, LEASE_NAME, POINTER_NAME, BasisStore, open_store
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from streamsvd import StreamCompressor
-from streamsvd.engine import rows as rows_module
 from streamsvd.algebra.memory import MemoryBackend
+from streamsvd.engine import rows as rows_module
+from streamsvd.engine.update import apply_plan, plan_absorb, stage_plan
 from streamsvd.parallel.cluster import TallCompressor, open_compressor
 from streamsvd.parallel.tall import PanelBackend
-from streamsvd.engine.update import apply_plan, plan_absorb, stage_plan
 
 
 def _panels(basis):

@@ -423,8 +423,8 @@ def _counted(method, calls):
 def _bases_and_blocks(rng, n, w, b):
     """Yield ``(basis, inner, X)``: an orthonormal in-memory basis of ``w`` columns and a
     Gaussian block of ``b``, for the Euclidean and a weighted inner product."""
-    from streamsvd.algebra.memory import MemoryBasis
     from streamsvd.algebra.inner import as_inner
+    from streamsvd.algebra.memory import MemoryBasis
 
     for weights in (None, np.linspace(0.5, 2.0, n)):
         inner = as_inner(weights, n)

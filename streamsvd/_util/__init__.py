@@ -1,3 +1,5 @@
-"""Helpers over numpy arrays and the process: validation, scaling, slabs, threads, the allocator, dask scheduling.
+"""Helpers over numpy arrays and the process.
+
+Validation, scaling, slabs, threads, the allocator, dask scheduling.
 """
 

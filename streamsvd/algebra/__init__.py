@@ -1,5 +1,7 @@
-"""The n-sized algebra: inner products, the basis interface and its in-memory implementation
-(:mod:`~streamsvd.algebra.memory`), and the out-of-core one (:mod:`~streamsvd.algebra.panels`).
+"""The n-sized algebra: inner products and the basis, in memory and out of core.
+
+The basis interface and its in-memory implementation live in :mod:`~streamsvd.algebra.memory`,
+the out-of-core one in :mod:`~streamsvd.algebra.panels`.
 """
 
 from streamsvd._util.lazy import lazy_exports

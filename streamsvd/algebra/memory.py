@@ -63,11 +63,11 @@ from typing import Any, Protocol
 import numpy as np
 import scipy.linalg.blas as blas
 
-from streamsvd.linalg.blocks import gram
 from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
-from streamsvd.errors import BrokenStateError
 from streamsvd.algebra.inner import InnerProduct
+from streamsvd.errors import BrokenStateError
+from streamsvd.linalg.blocks import gram
 
 __all__ = [
     "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "DeferredGram", "MEMORY_KIND",

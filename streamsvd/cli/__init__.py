@@ -35,10 +35,10 @@ import sys
 import traceback
 import warnings
 
-from streamsvd.errors import StreamSVDError
 from streamsvd.cli import ingest, reading
 from streamsvd.cli.parsing import CONVERGE, build_parser, locate
 from streamsvd.cli.wording import failed, interrupted
+from streamsvd.errors import StreamSVDError
 
 __all__ = ["CONVERGE", "main"]
 

@@ -17,14 +17,6 @@ import json
 import sys
 from typing import TYPE_CHECKING, Any
 
-from streamsvd.errors import (
-    InputError,
-    NonFiniteError,
-    ShapeMismatchError,
-    SourceError,
-    StoreError,
-    StoreMismatchError,
-)
 from streamsvd.cli.parsing import (
     CONVERGE,
     DEFAULT_BLOCK,
@@ -36,6 +28,14 @@ from streamsvd.cli.parsing import (
     load_inner,
 )
 from streamsvd.cli.reading import open_readonly
+from streamsvd.errors import (
+    InputError,
+    NonFiniteError,
+    ShapeMismatchError,
+    SourceError,
+    StoreError,
+    StoreMismatchError,
+)
 
 if TYPE_CHECKING:  # the storage module imports zarr: only for the annotations
     from streamsvd.storage import Storage
@@ -91,9 +91,9 @@ def _final(args: Any) -> bool:
 
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
-    from streamsvd.stream.ingest import ingest
     from streamsvd.io.sources import open_source
     from streamsvd.stream.compressor import StreamCompressor, summary_of
+    from streamsvd.stream.ingest import ingest
 
     with open_source(args.source, dataset=args.dataset) as src:
         if resume:
@@ -143,8 +143,8 @@ def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
     NaN or infinite entry after it is the one the tall update refused. Returns without
     raising when it finds none (the caller re-raises the update's error).
     """
-    from streamsvd.parallel.cluster import open_compressor
     from streamsvd.io.sources import open_source
+    from streamsvd.parallel.cluster import open_compressor
 
     try:
         with open_compressor(store, mode="r") as sc:

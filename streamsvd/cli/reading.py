@@ -12,9 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from streamsvd.errors import InputError, StoreError, StoreMismatchError
 from streamsvd.cli.parsing import diagonal_as_weights, load_inner
 from streamsvd.cli.printing import print_check, print_info, print_json
+from streamsvd.errors import InputError, StoreError, StoreMismatchError
 
 __all__ = ["check", "export", "info", "open_readonly", "plot"]
 
@@ -36,7 +36,9 @@ def open_readonly(path: Any, *, inner: Any = None) -> Any:
     try:
         return StreamCompressor.open(path, mode="r", inner=inner)
     except StoreMismatchError:
-        from streamsvd.parallel.cluster import open_compressor  # a tall store: dask is needed to read it
+        from streamsvd.parallel.cluster import (
+            open_compressor,  # a tall store: dask is needed to read it
+        )
 
         # a tall store keeps weights: a matrix with only a diagonal is read as such
         return open_compressor(path, mode="r", inner=diagonal_as_weights(inner))

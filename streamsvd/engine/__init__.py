@@ -1,5 +1,7 @@
-"""The one update step, pure: the state, the plans of absorb, add, merge, remove and finalize,
-the core step with its truncation, and the guaranteed error bound.
+"""The one update step, pure.
+
+The state, the plans of absorb, add, merge, remove and finalize, the core step with
+its truncation, and the guaranteed error bound.
 """
 
 from streamsvd._util.lazy import lazy_exports

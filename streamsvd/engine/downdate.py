@@ -49,8 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamsvd.engine.bound import Bound
-from streamsvd.linalg.gram_schmidt import BasisExtension
 from streamsvd.engine.update import Plan, State, StepOptions, _plan
+from streamsvd.linalg.gram_schmidt import BasisExtension
 
 __all__ = [
     "EXACT_BELOW", "Downdate", "Ledger", "bound_after_removal", "downdate", "intervals_add",

@@ -1,6 +1,7 @@
 """The one update step of a compressor (absorb, add, merge), over a basis backend.
 
-State. ``U = Q coords`` with ``Q`` the stored basis (a :class:`~streamsvd.algebra.memory.BasisBackend`,
+State. ``U = Q coords`` with ``Q`` the stored basis (a
+:class:`~streamsvd.algebra.memory.BasisBackend`,
 ``n x w``) and ``coords`` small (``w x p``, the coordinates of ``U`` on ``Q``);
 ``gram = Q^T M Q`` (small) measures orthogonality;
 ``R`` (``k x p``, ``k <= p``) is the core of the right factor: ``V = Y R`` with ``Y``
@@ -45,14 +46,14 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg.lapack import dtrtri
 
-from streamsvd.engine.core import Before, Truncation, UpdateRecord, core_step, r_factor
 from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
+from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
+from streamsvd.engine.core import Before, Truncation, UpdateRecord, core_step, r_factor
+from streamsvd.engine.rows import RightFactor, RowAppend
 from streamsvd.errors import BrokenStateError
 from streamsvd.linalg.gram_schmidt import BasisExtension, extend_basis
-from streamsvd.algebra.inner import InnerProduct
-from streamsvd.engine.rows import RightFactor, RowAppend
 
 __all__ = [
     "COMPACT_PER_COLUMN", "Extents", "Plan", "State", "StepOptions", "apply_plan",

@@ -94,12 +94,10 @@ from typing import Any, cast
 import numpy as np
 from scipy.linalg.lapack import dtrtri
 
-from streamsvd.linalg.blocks import scale_into
-from streamsvd.engine.core import Before, Truncation, UpdateRecord
 from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
-from streamsvd.linalg.gram_schmidt import default_reject_tol
+from streamsvd.engine.core import Before, Truncation, UpdateRecord
 from streamsvd.engine.update import (
     COMPACT_PER_COLUMN,
     Plan,
@@ -109,6 +107,8 @@ from streamsvd.engine.update import (
     gram_orthogonality,
     plan_rows,
 )
+from streamsvd.linalg.blocks import scale_into
+from streamsvd.linalg.gram_schmidt import default_reject_tol
 
 __all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]
 

@@ -1,5 +1,6 @@
-"""Snapshot sources: numpy arrays, ``.npy``, HDF5, zarr and dask arrays, read by blocks, and
-the record of where a store's snapshots came from.
+"""Snapshot sources, read by blocks, and the record of where they came from.
+
+Numpy arrays, ``.npy``, HDF5, zarr and dask arrays.
 """
 
 from streamsvd._util.lazy import lazy_exports

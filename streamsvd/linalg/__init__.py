@@ -1,5 +1,7 @@
-"""The paper's algorithms over arrays: expansions, Algorithm 1 (Gram-Schmidt), the pair
-rotation F (eqs 5-14) and its sweeps, Algorithms 2-3 (compression).
+"""The paper's algorithms over arrays.
+
+Expansions, Algorithm 1 (Gram-Schmidt), the pair rotation F (eqs 5-14) and its
+sweeps, Algorithms 2-3 (compression).
 """
 
 from streamsvd._util.lazy import lazy_exports

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd.engine.core import newton_schulz
 from streamsvd._util.scaling import pow2_exponent, safe_column_norms
 from streamsvd._util.validation import check_choice, check_nonnegative, check_positive_int
+from streamsvd.engine.core import newton_schulz
 from streamsvd.errors import InputError
 from streamsvd.linalg.expansion import Expansion
 from streamsvd.linalg.rotations import RULES, SweepStats, sweep_literal, sweep_until

@@ -10,8 +10,8 @@ import numpy as np
 
 from streamsvd._util.scaling import safe_column_norms
 from streamsvd._util.validation import as_float_array
-from streamsvd.errors import ShapeMismatchError
 from streamsvd.algebra.inner import InnerProduct, as_inner
+from streamsvd.errors import ShapeMismatchError
 
 __all__ = ["Expansion"]
 

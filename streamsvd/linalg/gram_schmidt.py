@@ -32,6 +32,11 @@ import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 
+from streamsvd._util.scaling import pow2_exponent
+from streamsvd._util.validation import as_float_array, check_nonnegative, check_positive_int
+from streamsvd.algebra.inner import InnerProduct, as_inner
+from streamsvd.algebra.memory import BasisBackend, MemoryBasis
+from streamsvd.errors import ShapeMismatchError
 from streamsvd.linalg.blocks import (
     COND_SPLIT,
     ONE_PASS_COND,
@@ -46,12 +51,7 @@ from streamsvd.linalg.blocks import (
     scale_into,
     scaled_norm,
 )
-from streamsvd._util.scaling import pow2_exponent
-from streamsvd._util.validation import as_float_array, check_nonnegative, check_positive_int
-from streamsvd.algebra.memory import BasisBackend, MemoryBasis
-from streamsvd.errors import ShapeMismatchError
 from streamsvd.linalg.expansion import Expansion
-from streamsvd.algebra.inner import InnerProduct, as_inner
 
 __all__ = [
     "BasisExtension",
@@ -184,8 +184,8 @@ def extend_basis(
        along the basis. It is subtracted (a second pass; Giraud et al. 2005: twice is
        enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
        is returned in ``cross_gram``, the new block of the basis Gram, where the compressor's
-       orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.engine.update`) accounts for
-       it.
+       orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.engine.update`) accounts
+       for it.
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
        in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to

@@ -1,7 +1,8 @@
 """The compiled kernels of the rotation sweeps (:mod:`streamsvd.linalg.rotations`), by numba.
 
 Kept apart so that importing the package does not import numba (a third of a second):
-the first sweep imports this module, or :func:`streamsvd.linalg.rotations.load_kernels_in_background`
+the first sweep imports this module, or
+:func:`streamsvd.linalg.rotations.load_kernels_in_background`
 does it in a thread while a driver reads its first blocks.
 """
 
@@ -38,7 +39,10 @@ def rotation_tangent(wjj: float, wii: float, wij: float, jacobi: bool) -> float:
 
 @numba.njit(cache=True)
 def insertion_sort(order: np.ndarray, q: int, nrm2: np.ndarray) -> None:
-    # stable sort of order[:q] by decreasing nrm2 (nearly sorted after each pass: O(q))
+    """Sort ``order[:q]`` by decreasing ``nrm2``, stably, in place.
+
+    Nearly sorted after each pass of a sweep, so ``O(q)``.
+    """
     for a in range(1, q):
         key = order[a]
         val = nrm2[key]
@@ -61,8 +65,11 @@ def sweep_rows(
     tol: float,
     out: np.ndarray,
 ) -> int:
-    # One sweep of Algorithm 3 on the rows of Rt (one row per term, the core vector r_i)
-    # and of Qt (the accumulated rotation of each term). order[:q] maps positions to rows.
+    """Run one sweep of Algorithm 3 on the rows of ``Rt`` and ``Qt``; return the terms left.
+
+    ``Rt`` holds one row per term (the core vector ``r_i``), ``Qt`` the accumulated
+    rotation of each term; ``order[:q]`` maps positions to rows.
+    """
     k = Rt.shape[1]
     pq = Qt.shape[1]
     sum_a2 = 0.0

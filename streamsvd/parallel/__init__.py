@@ -1,5 +1,7 @@
-"""Scale-out on dask: the tree of leaves (:func:`tree_compress`), the tall mode
-(:class:`TallCompressor`, :func:`tall_compress`), and opening a compressor on a cluster.
+"""Scale-out on dask.
+
+The tree of leaves (:func:`tree_compress`), the tall mode (:class:`TallCompressor`,
+:func:`tall_compress`), and opening a compressor on a cluster.
 """
 
 from streamsvd._util.lazy import lazy_exports

@@ -35,17 +35,17 @@ from collections.abc import Iterator
 from typing import Any, cast
 
 from streamsvd._util.malloc import keep_freed_memory
+from streamsvd._util.scheduling import execute
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.memory import MEMORY_KIND
 from streamsvd.errors import InputError, ShapeMismatchError, StoreMismatchError
-from streamsvd.stream.ingest import ingest as ingest_blocks
+from streamsvd.io.provenance import SourceRecord
 from streamsvd.parallel.tall import KIND, TallCompressor
 from streamsvd.parallel.tree import COMPRESSOR_OPTIONS, SourceSpec, tree_compress
-from streamsvd.io.provenance import SourceRecord
-from streamsvd._util.scheduling import execute
 from streamsvd.storage import open_storage
 from streamsvd.store import open_store
 from streamsvd.stream.compressor import StreamCompressor, summary_of
+from streamsvd.stream.ingest import ingest as ingest_blocks
 
 __all__ = [
     "COMPRESSOR_OPTIONS",

@@ -43,12 +43,17 @@ from typing import Any, cast
 import numpy as np
 
 from streamsvd._util.scaling import safe_column_norms
-from streamsvd._util.validation import as_float_array, check_finite, check_positive_int, first_non_finite
-from streamsvd.algebra.memory import BasisBackend
-from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
-from streamsvd.algebra.inner import DiagonalInner, InnerProduct
-from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd._util.scheduling import check_client, execute
+from streamsvd._util.validation import (
+    as_float_array,
+    check_finite,
+    check_positive_int,
+    first_non_finite,
+)
+from streamsvd.algebra.inner import DiagonalInner, InnerProduct
+from streamsvd.algebra.memory import BasisBackend
+from streamsvd.algebra.panels.basis import PanelBasis
+from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
 from streamsvd.io.sources import LazyBlock
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.stream.compressor import StreamCompressor

@@ -37,19 +37,19 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from streamsvd._util.malloc import keep_freed_memory
+from streamsvd._util.scheduling import blas_threads_per_task, check_client, execute, local_get
 from streamsvd._util.validation import check_positive_int
+from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBackend
 from streamsvd.errors import BrokenStateError, InputError, ShapeMismatchError, StoreError
-from streamsvd.stream.ingest import ingest
-from streamsvd.algebra.inner import as_inner
-from streamsvd.stream.options import TREE_OPTIONS as COMPRESSOR_OPTIONS
-from streamsvd.stream.options import CompressorOptions
 from streamsvd.io.provenance import SourceRecord
-from streamsvd.linalg.rotations import load_kernels_in_background
-from streamsvd._util.scheduling import blas_threads_per_task, check_client, execute, local_get
 from streamsvd.io.sources import Source, open_source, open_zarr_url
+from streamsvd.linalg.rotations import load_kernels_in_background
 from streamsvd.storage import is_url, open_storage
 from streamsvd.stream.compressor import StreamCompressor
+from streamsvd.stream.ingest import ingest
+from streamsvd.stream.options import TREE_OPTIONS as COMPRESSOR_OPTIONS
+from streamsvd.stream.options import CompressorOptions
 
 __all__ = ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"]
 
@@ -228,7 +228,7 @@ def _merge_pair(
 
 
 def check_options(options: dict[str, Any], n: int) -> dict[str, Any]:
-    """Validate a tree's compressor options (:class:`~streamsvd.stream.options.CompressorOptions`)."""
+    """Validate a tree's compressor options (:class:`~streamsvd.stream.CompressorOptions`)."""
     unknown = sorted(set(options) - set(COMPRESSOR_OPTIONS))
     if unknown:
         raise InputError(

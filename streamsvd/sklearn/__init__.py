@@ -1,5 +1,4 @@
-"""A scikit-learn estimator over the stream: :class:`StreamingSVD`.
-"""
+"""A scikit-learn estimator over the stream: :class:`StreamingSVD`."""
 
 from streamsvd._util.lazy import lazy_exports
 

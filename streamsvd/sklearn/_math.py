@@ -26,8 +26,8 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from streamsvd._util.scaling import safe_column_norms
-from streamsvd.linalg.compress import fix_signs
 from streamsvd.algebra.inner import InnerProduct
+from streamsvd.linalg.compress import fix_signs
 
 __all__ = [
     "Batch",

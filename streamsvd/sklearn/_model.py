@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from streamsvd.sklearn import _math as _pca_math
 from streamsvd._util.validation import as_float_array, check_finite
 from streamsvd.errors import InputError, ShapeMismatchError
+from streamsvd.sklearn import _math as _pca_math
 
 __all__ = [
     "FittedPCA",

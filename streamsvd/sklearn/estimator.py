@@ -19,6 +19,16 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from streamsvd._util.validation import (
+    check_choice,
+    check_forget,
+    check_nonnegative,
+    check_positive_int,
+)
+from streamsvd.algebra.inner import InnerProduct, as_inner
+from streamsvd.errors import InputError, SparseInputError
+from streamsvd.io.sources import Source
+from streamsvd.linalg.rotations import RULES
 from streamsvd.sklearn import _math as _pca_math
 from streamsvd.sklearn._model import (
     FittedPCA,
@@ -27,13 +37,8 @@ from streamsvd.sklearn._model import (
     check_samples,
     features_error,
 )
-from streamsvd._util.validation import check_choice, check_forget, check_nonnegative, check_positive_int
-from streamsvd.errors import InputError, SparseInputError
-from streamsvd.stream.ingest import ingest
-from streamsvd.algebra.inner import InnerProduct, as_inner
-from streamsvd.linalg.rotations import RULES
-from streamsvd.io.sources import Source
 from streamsvd.stream.compressor import StreamCompressor
+from streamsvd.stream.ingest import ingest
 
 __all__ = ["NotFittedError", "StreamingSVD"]
 

@@ -1,8 +1,8 @@
 """Where a basis store lives: a local directory or an object store, as keys and bytes.
 
 A basis store (:mod:`streamsvd.store`) and the row panels of the tall mode
-(:mod:`streamsvd.algebra.panels.basis`) speak to a *storage*: a root under which ``/``-separated keys
-name small objects (the pointer, the lock or lease, JSON metadata) and zarr arrays
+(:mod:`streamsvd.algebra.panels.basis`) speak to a *storage*: a root under which ``/``-separated
+keys name small objects (the pointer, the lock or lease, JSON metadata) and zarr arrays
 (opened through :meth:`LocalStorage.zarr_store` / :meth:`ObjectStorage.zarr_store`, a
 zarr v3 store over the same root). :func:`open_storage` turns what the user passed into
 one:

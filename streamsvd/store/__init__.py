@@ -132,7 +132,6 @@ with an expiry after which a dead writer's lease is taken over
 from __future__ import annotations
 
 from streamsvd.storage.lockfile import LOCK_NAME
-from streamsvd.store.segments import Appended
 from streamsvd.store.create import check_creatable
 from streamsvd.store.fence import CRASH_POINTS, crash_point
 from streamsvd.store.format import (
@@ -148,6 +147,7 @@ from streamsvd.store.format import (
 )
 from streamsvd.store.handle import BasisStore, open_store
 from streamsvd.store.reading import CheckReport, check_store
+from streamsvd.store.segments import Appended
 
 __all__ = [
     "CRASH_POINTS",

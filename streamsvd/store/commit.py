@@ -27,7 +27,6 @@ import zarr.codecs
 from zarr.storage import MemoryStore
 
 from streamsvd.errors import InputError, StoreError, StoreLockedError
-from streamsvd.store.segments import Appended, Piece, pack, plan_appended, plan_whole
 from streamsvd.storage import Storage, remote_errors
 from streamsvd.store import collector
 from streamsvd.store import fence as _fence
@@ -46,6 +45,7 @@ from streamsvd.store.format import (
     root_record,
     unreadable,
 )
+from streamsvd.store.segments import Appended, Piece, pack, plan_appended, plan_whole
 
 logger = logging.getLogger(__name__)
 

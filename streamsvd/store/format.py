@@ -23,8 +23,8 @@ import numpy as np
 
 from streamsvd._util.validation import check_finite, check_positive_int
 from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError
-from streamsvd.storage.lockfile import LOCK_NAME
 from streamsvd.storage import LocalStorage, Storage, remote_errors
+from streamsvd.storage.lockfile import LOCK_NAME
 
 FORMAT = "streamsvd-basis"
 """Value of the root attribute ``format`` of every basis store."""
@@ -42,7 +42,8 @@ GENERATIONS = "generations"
 MARKER_NAME = "committed.json"
 """Written into a generation after the pointer named it: the generation was committed."""
 PANELS = "panels"
-"""Where a tall compressor keeps its basis beside the generations (:mod:`streamsvd.algebra.panels.files`),
+"""Where a tall compressor keeps its basis beside the generations
+(:mod:`streamsvd.algebra.panels.files`),
 written before the commits that list it, also before the first one (a store's creation)."""
 
 GEN_RE = re.compile(r"^g(\d{8})$")

@@ -20,7 +20,6 @@ from typing import Any, Literal
 import numpy as np
 
 from streamsvd.errors import InputError, StoreError
-from streamsvd.store.segments import Appended, Piece
 from streamsvd.storage import Storage, open_storage
 from streamsvd.store import collector
 from streamsvd.store.commit import Writer, plan_commit
@@ -36,6 +35,7 @@ from streamsvd.store.format import (
     read_root,
 )
 from streamsvd.store.reading import current_doc, load_generation, read_current
+from streamsvd.store.segments import Appended, Piece
 
 logger = logging.getLogger("streamsvd.store")
 

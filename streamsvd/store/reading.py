@@ -19,7 +19,6 @@ import numpy as np
 import zarr
 
 from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError, StreamSVDError
-from streamsvd.store.segments import assemble, digest
 from streamsvd.storage import Storage
 from streamsvd.store.format import (
     POINTER_NAME,
@@ -36,6 +35,7 @@ from streamsvd.store.format import (
     read_root,
     read_root_attrs,
 )
+from streamsvd.store.segments import assemble, digest
 
 logger = logging.getLogger(__name__)
 
@@ -302,7 +302,9 @@ def _check_opens(storage: Storage, kind: Any, report: CheckReport) -> None:
     compressor, and only its checksums are verified). A store that needs its inner
     product given to open (an earlier version's that does not keep it) is no problem.
     """
-    from streamsvd.parallel.cluster import compressor_class  # the compressors are built on the store
+    from streamsvd.parallel.cluster import (
+        compressor_class,  # the compressors are built on the store
+    )
 
     cls = compressor_class(kind)
     if cls is None:

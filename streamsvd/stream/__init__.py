@@ -1,5 +1,7 @@
-"""The streaming compressor (:class:`StreamCompressor`) and its parts: its options, its
-lifecycle over a store, its window, its read-only view, and the one ingestion driver.
+"""The streaming compressor and its parts.
+
+:class:`StreamCompressor`, its options, its lifecycle over a store, its window, its
+read-only view, and the one ingestion driver.
 """
 
 from streamsvd._util.lazy import lazy_exports

@@ -14,7 +14,8 @@ commit that are unchanged:
   columns added since are zero in those rows;
 * ``history``, one row per update, only appended;
 * the inner product's data (``inner_weights``, ``inner_matrix`` or the CSR arrays
-  ``inner_indptr``, ``inner_indices``, ``inner_data``; :func:`streamsvd.algebra.inner.inner_arrays`),
+  ``inner_indptr``, ``inner_indices``, ``inner_data``;
+  :func:`streamsvd.algebra.inner.inner_arrays`),
   written by the first commit and kept unchanged by every later one.
 
 The small state (``coords``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the
@@ -37,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamsvd.engine.core import HISTORY_FIELDS, UpdateRecord, history_array
-from streamsvd.store.segments import Appended
 from streamsvd.engine.update import Extents
+from streamsvd.store.segments import Appended
 
 __all__ = ["ASSUMED_RATE", "AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]
 

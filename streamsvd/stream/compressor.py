@@ -53,22 +53,13 @@ from typing import Any
 import numpy as np
 import scipy.linalg.blas as blas
 
-from streamsvd.engine.core import UpdateRecord, r_factor
 from streamsvd._util.threads import check_threads
 from streamsvd._util.validation import as_float_array, check_choice, check_positive_int
+from streamsvd.algebra.inner import InnerProduct, as_inner, check_same_inner, inner_arrays
 from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend, MemoryBasis
 from streamsvd.engine.bound import Bound
-from streamsvd.errors import InputError
-from streamsvd.linalg.expansion import Expansion
-from streamsvd.stream.view import ExpansionView
-from streamsvd.algebra.inner import InnerProduct, as_inner, check_same_inner, inner_arrays
-from streamsvd.stream.options import CompressorOptions, option_properties
-from streamsvd.io.provenance import SourceRecord
-from streamsvd.linalg.rotations import RULES
+from streamsvd.engine.core import UpdateRecord, r_factor
 from streamsvd.engine.rows import RowFactor
-from streamsvd.stream.lifecycle import StoreLifecycle
-from streamsvd.stream.persistence import StreamStore
-from streamsvd.stream.window import Removals
 from streamsvd.engine.update import (
     State,
     plan_absorb,
@@ -77,6 +68,15 @@ from streamsvd.engine.update import (
     plan_merge,
 )
 from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
+from streamsvd.errors import InputError
+from streamsvd.io.provenance import SourceRecord
+from streamsvd.linalg.expansion import Expansion
+from streamsvd.linalg.rotations import RULES
+from streamsvd.stream.lifecycle import StoreLifecycle
+from streamsvd.stream.options import CompressorOptions, option_properties
+from streamsvd.stream.persistence import StreamStore
+from streamsvd.stream.view import ExpansionView
+from streamsvd.stream.window import Removals
 
 __all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
 

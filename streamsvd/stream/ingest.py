@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from streamsvd.linalg.rotations import load_kernels_in_background
 from streamsvd.io.sources import Source
+from streamsvd.linalg.rotations import load_kernels_in_background
 
 __all__ = ["IngestResult", "ingest"]
 

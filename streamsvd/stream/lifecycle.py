@@ -16,18 +16,18 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd.engine.core import UpdateRecord
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
-from streamsvd.engine.downdate import Ledger
-from streamsvd.errors import StoreError
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.stream.options import CompressorOptions
+from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
+from streamsvd.engine.core import UpdateRecord
+from streamsvd.engine.downdate import Ledger
+from streamsvd.engine.update import Plan, State, apply_plan
+from streamsvd.errors import StoreError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.storage import open_storage
+from streamsvd.stream.options import CompressorOptions
 from streamsvd.stream.persistence import StreamStore, open_stream_store, restore_state
-from streamsvd.engine.update import Plan, State, apply_plan
 
 __all__ = ["StoreLifecycle"]
 

@@ -16,8 +16,8 @@ import numbers
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the numerical modules load when options are validated, not imported
-    from streamsvd.engine.core import Truncation
     from streamsvd.algebra.inner import InnerProduct
+    from streamsvd.engine.core import Truncation
     from streamsvd.engine.update import StepOptions
 
 __all__ = [

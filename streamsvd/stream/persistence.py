@@ -26,15 +26,15 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd.engine.core import UpdateRecord, record_from_row
-from streamsvd.engine.bound import Bound
-from streamsvd.stream.commits import CommitSchedule, CommitTracker
-from streamsvd.engine.downdate import intervals_add
-from streamsvd.errors import StoreError, StoreFormatError, StoreMismatchError
 from streamsvd.algebra.inner import InnerProduct, as_inner, inner_from_arrays
+from streamsvd.engine.bound import Bound
+from streamsvd.engine.core import UpdateRecord, record_from_row
+from streamsvd.engine.downdate import intervals_add
+from streamsvd.engine.update import Plan, State, stage_plan
+from streamsvd.errors import StoreError, StoreFormatError, StoreMismatchError
 from streamsvd.store import BasisStore, open_store
 from streamsvd.store.format import StoreState
-from streamsvd.engine.update import Plan, State, stage_plan
+from streamsvd.stream.commits import CommitSchedule, CommitTracker
 
 __all__ = [
     "LAYOUT", "LAYOUT_WITH_REMOVALS", "StreamStore", "open_stream_store",

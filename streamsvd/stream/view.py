@@ -13,16 +13,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from streamsvd.engine.core import UpdateRecord
 from streamsvd._util.scaling import safe_column_norms, safe_norm
-from streamsvd.linalg.compress import fix_signs
+from streamsvd.engine.core import UpdateRecord
 from streamsvd.errors import InputError
+from streamsvd.linalg.compress import fix_signs
 from streamsvd.linalg.expansion import Expansion
 
 if TYPE_CHECKING:
     from streamsvd.algebra.inner import InnerProduct
-    from streamsvd.stream.options import CompressorOptions
     from streamsvd.engine.update import State
+    from streamsvd.stream.options import CompressorOptions
 
 __all__ = ["ExpansionView"]
 

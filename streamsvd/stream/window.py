@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd.engine.core import UpdateRecord
 from streamsvd.engine.bound import Bound
+from streamsvd.engine.core import UpdateRecord
 from streamsvd.engine.downdate import (
     Ledger,
     bound_after_removal,
@@ -29,10 +29,10 @@ from streamsvd.engine.downdate import (
     intervals_skip,
     plan_remove,
 )
+from streamsvd.engine.update import Plan, State, StepOptions
 from streamsvd.errors import InputError
 from streamsvd.stream.options import CompressorOptions
 from streamsvd.stream.persistence import LAYOUT, LAYOUT_WITH_REMOVALS
-from streamsvd.engine.update import Plan, State, StepOptions
 
 __all__ = ["Removals"]
 

@@ -1,5 +1,4 @@
-"""The basis out of core: panels chunked by rows, written once each, used by dask.
-"""
+"""The basis out of core: panels chunked by rows, written once each, used by dask."""
 
 from streamsvd._util.lazy import lazy_exports
 

@@ -7,8 +7,8 @@ store: :mod:`streamsvd.storage`): in a local directory a raw row-major file, whi
 passes use, and, once a commit lists it, a zarr copy with checksums beside it, which a
 reopened store reads; in an object store a zarr array (:mod:`streamsvd.algebra.panels.files`
 keeps them). Every product with them (``Q^T M X``, ``X - Q K``, ``[Q, Y] G``,
-``Q^T M Y``) is a dask graph over the row chunks (:mod:`streamsvd.algebra.panels.row_chunks`), run on
-the threaded scheduler or on a ``distributed`` cluster whose workers reach the directory
+``Q^T M Y``) is a dask graph over the row chunks (:mod:`streamsvd.algebra.panels.row_chunks`), run
+on the threaded scheduler or on a ``distributed`` cluster whose workers reach the directory
 or the object store (a panel pickles as its path, or as its zarr store: a URL and its
 ``storage_options``). The basis is never in memory; a block is read by row chunks
 within the Gram path's pass (:meth:`PanelBasis.block_products`), while the exact
@@ -42,13 +42,13 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd.algebra.panels import tasks as panel_tasks
-from streamsvd.errors import StoreFormatError
 from streamsvd.algebra.inner import InnerProduct
+from streamsvd.algebra.panels import tasks as panel_tasks
 from streamsvd.algebra.panels.files import PanelFiles
 from streamsvd.algebra.panels.row_chunks import RowChunks, io_target
-from streamsvd.storage import LocalStorage, ObjectStorage
 from streamsvd.algebra.panels.zarr_io import Region
+from streamsvd.errors import StoreFormatError
+from streamsvd.storage import LocalStorage, ObjectStorage
 
 __all__ = ["PanelBasis"]
 

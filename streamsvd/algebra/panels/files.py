@@ -1,9 +1,9 @@
 """The files of a basis's panels: ``<root>/panels/<name>``, created, opened, reused, deleted.
 
-:class:`PanelFiles` keeps the panels of a :class:`~streamsvd.algebra.panels.basis.PanelBasis` where its
-root says (:mod:`streamsvd.storage`). In a local directory a panel is a raw row-major
-file (:class:`~streamsvd.algebra.panels.raw_array.RawArray`), which the passes read and write, and once
-a commit lists it, a zarr copy with checksums beside it (the panel is then *sealed*),
+:class:`PanelFiles` keeps the panels of a :class:`~streamsvd.algebra.panels.basis.PanelBasis` where
+its root says (:mod:`streamsvd.storage`). In a local directory a panel is a raw row-major
+file (:class:`~streamsvd.algebra.panels.raw_array.RawArray`), which the passes read and write, and
+once a commit lists it, a zarr copy with checksums beside it (the panel is then *sealed*),
 which a reopened store reads. In an object store a panel is a zarr array. A raw file
 that nothing refers to any more is kept, up to :data:`SPARES` of them, for the next
 panel of its shape and dtype to be written over it.
@@ -17,8 +17,8 @@ from typing import Any, cast
 
 import numpy as np
 
-from streamsvd.errors import StoreError
 from streamsvd.algebra.panels.raw_array import RawArray
+from streamsvd.errors import StoreError
 from streamsvd.storage import LocalStorage, ObjectStorage
 from streamsvd.store.format import PANELS
 

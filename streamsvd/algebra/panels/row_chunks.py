@@ -1,7 +1,7 @@
 """The tall mode's dask arrays by row chunks, and the passes over them.
 
-:class:`RowChunks` shows the panels of a :class:`~streamsvd.algebra.panels.basis.PanelBasis` (kept by
-:class:`~streamsvd.algebra.panels.files.PanelFiles`) and its in-memory blocks to dask as arrays
+:class:`RowChunks` shows the panels of a :class:`~streamsvd.algebra.panels.basis.PanelBasis` (kept
+by :class:`~streamsvd.algebra.panels.files.PanelFiles`) and its in-memory blocks to dask as arrays
 chunked by the basis's rows, and maps a task of :mod:`streamsvd.algebra.panels.tasks` over those
 chunks: a *pass*, one task per row chunk, whose shares of the small products a reduction
 sums. Every graph runs through :func:`streamsvd._util.scheduling.execute`, on the threaded
@@ -17,10 +17,10 @@ from typing import Any, cast
 
 import numpy as np
 
+from streamsvd._util.scheduling import execute
 from streamsvd.algebra.inner import DiagonalInner, InnerProduct
 from streamsvd.algebra.panels.files import PanelFiles
 from streamsvd.algebra.panels.raw_array import RawArray, RowView
-from streamsvd._util.scheduling import execute
 from streamsvd.algebra.panels.zarr_io import Region
 
 __all__ = ["RowChunks", "io_target"]
