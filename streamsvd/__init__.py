@@ -123,9 +123,11 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def exec_module(self, module: types.ModuleType) -> None:
         home = importlib.import_module(f"{__name__}.{_MOVED[module.__name__.rpartition('.')[2]]}")
-        module.__doc__ = f"Moved to :mod:`{home.__name__}`."
-        module.__all__ = list(getattr(home, "__all__", ()))
-        module.__getattr__ = lambda name: getattr(home, name)  # type: ignore[method-assign]
+        vars(module).update(
+            __doc__=f"Moved to :mod:`{home.__name__}`.",
+            __all__=list(getattr(home, "__all__", ())),
+            __getattr__=lambda name: getattr(home, name),
+        )
 
 
 sys.meta_path.insert(0, _MovedModules())

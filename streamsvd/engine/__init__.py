@@ -19,7 +19,6 @@ _EXPORTS = {
     "error_budget": "core",
     "Downdate": "downdate",
     "Ledger": "downdate",
-    "downdate": "downdate",
     "plan_remove": "downdate",
     "RightFactor": "rows",
     "RowAppend": "rows",
