@@ -65,9 +65,9 @@ import scipy.linalg.blas as blas
 
 from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
+from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.errors import BrokenStateError
-from streamsvd.linalg.blocks import gram
 
 __all__ = [
     "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "DeferredGram", "MEMORY_KIND",

@@ -1,6 +1,7 @@
 """The BLAS-3 kernels of block Gram-Schmidt (:func:`streamsvd.linalg.gram_schmidt.extend_basis`).
 
-Scaling a block by powers of two, ``M``-products and Gram matrices, CholeskyQR in place,
+Scaling a block by powers of two, ``M``-products (the Gram matrices and ``M``-norms come
+from :mod:`streamsvd.algebra.blas`), CholeskyQR in place,
 the rounds that orthonormalise a nearly collinear residual (SVQB with re-measured
 tails), and the column-by-column rejection rule on the residual's small coefficients.
 Every function works on arrays; the basis is reached only through
@@ -17,6 +18,7 @@ import scipy.linalg.blas as blas
 
 from streamsvd._util.scaling import column_exponents
 from streamsvd._util.slabs import copy_by_row_slabs
+from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
 
 if TYPE_CHECKING:
@@ -33,26 +35,6 @@ COND_SPLIT = 2.0**-40
 ONE_PASS_COND = 16.0
 # a projection that leaves less than this share of a column's norm is made again (DGKS)
 _REPROJECT = 0.5
-
-
-def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
-    """``M``-norms of the columns of an already scaled block."""
-    MX = X if inner.is_euclidean else inner.apply(X)
-    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
-
-
-def gram(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:
-    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product).
-
-    ``MX`` is ``M X`` when the caller has it already.
-    """
-    if inner.is_euclidean:
-        # numpy makes X^T X a rank-k update (syrk) and fills in the lower triangle
-        Xf = np.asfortranarray(X)
-        G = Xf.T @ Xf
-        return 0.5 * (G + G.T)
-    G = X.T @ (inner.apply(X) if MX is None else MX)
-    return 0.5 * (G + G.T)
 
 
 def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -34,6 +34,7 @@ import scipy.linalg.lapack
 
 from streamsvd._util.scaling import pow2_exponent
 from streamsvd._util.validation import as_float_array, check_nonnegative, check_positive_int
+from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct, as_inner
 from streamsvd.algebra.memory import BasisBackend, MemoryBasis
 from streamsvd.errors import ShapeMismatchError
@@ -44,7 +45,6 @@ from streamsvd.linalg.blocks import (
     cholesky_qr_in_place,
     column_rule,
     complement,
-    gram,
     orthonormalize_in_rounds,
     place_directions,
     right_solve,

@@ -1,0 +1,33 @@
+"""Gram matrices and ``M``-norms of a block of columns, the two products every layer shares.
+
+The algebra (:class:`~streamsvd.algebra.memory.MemoryBasis`) and the BLAS-3 passes of
+block Gram-Schmidt (:mod:`streamsvd.linalg.blocks`) both measure blocks with them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from streamsvd.algebra.inner import InnerProduct
+
+__all__ = ["gram", "m_norms"]
+
+
+def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M``-norms of the columns of an already scaled block."""
+    MX = X if inner.is_euclidean else inner.apply(X)
+    return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
+
+
+def gram(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:
+    """``X^T M X`` (symmetric; a rank-k update for the Euclidean product).
+
+    ``MX`` is ``M X`` when the caller has it already.
+    """
+    if inner.is_euclidean:
+        # numpy makes X^T X a rank-k update (syrk) and fills in the lower triangle
+        Xf = np.asfortranarray(X)
+        G = Xf.T @ Xf
+        return 0.5 * (G + G.T)
+    G = X.T @ (inner.apply(X) if MX is None else MX)
+    return 0.5 * (G + G.T)
