@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from streamsvd.cli import main as cli
-from streamsvd.engine.core import HISTORY_FIELDS
+from streamsvd.engine.record import HISTORY_FIELDS
 from streamsvd.storage import open_storage
 from streamsvd.store import CRASH_POINTS, POINTER_NAME, check_store, open_store
 from streamsvd.testing.damage import GENERATION_DAMAGE, damage_generation

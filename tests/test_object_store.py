@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from streamsvd.cli import main
-from streamsvd.engine.core import HISTORY_FIELDS
+from streamsvd.engine.record import HISTORY_FIELDS
 from streamsvd.errors import (
     InputError,
     OptionalDependencyError,

@@ -50,7 +50,8 @@ from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import Before, Truncation, UpdateRecord, core_step, r_factor
+from streamsvd.engine.core import Before, Truncation, core_step, r_factor
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RightFactor, RowAppend
 from streamsvd.errors import BrokenStateError
 from streamsvd.linalg.gram_schmidt import BasisExtension, extend_basis

@@ -97,7 +97,8 @@ from scipy.linalg.lapack import dtrtri
 from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import Before, Truncation, UpdateRecord
+from streamsvd.engine.core import Before, Truncation
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import (
     COMPACT_PER_COLUMN,
     Plan,

@@ -1,4 +1,10 @@
-"""Compression of an expansion to its SVD by rotation sweeps (Algorithms 2 and 3)."""
+"""Compression of an expansion to its SVD by rotation sweeps (Algorithms 2 and 3).
+
+The module also holds the two small steps the engine's core step
+(:func:`streamsvd.engine.core.core_step`) shares with the sweeps: the Newton-Schulz step that
+brings accumulated rotations back to orthonormal columns, and the preconditioning of the
+terms by the core's right singular vectors.
+"""
 
 from __future__ import annotations
 
@@ -12,17 +18,38 @@ import numpy as np
 
 from streamsvd._util.scaling import pow2_exponent, safe_column_norms
 from streamsvd._util.validation import check_choice, check_nonnegative, check_positive_int
-from streamsvd.engine.core import newton_schulz
 from streamsvd.errors import InputError
 from streamsvd.linalg.expansion import Expansion
 from streamsvd.linalg.rotations import RULES, SweepStats, sweep_literal, sweep_until
 
-__all__ = ["CompressResult", "SweepState", "compress", "fix_signs"]
+__all__ = ["CompressResult", "SweepState", "compress", "fix_signs", "newton_schulz"]
 
 logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 METHODS = ("fast", "literal")
+
+
+def newton_schulz(T: np.ndarray) -> np.ndarray:
+    """Return ``T (3 I - T^T T) / 2``: one Newton-Schulz step towards orthonormal columns.
+
+    Accumulated rotations drift from orthogonality by about ``sqrt(rotations) eps``; one
+    step brings nearly orthonormal columns back to ``eps``.
+    """
+    return T @ (1.5 * np.eye(T.shape[1]) - 0.5 * (T.T @ T))
+
+
+def _precondition(Rt: np.ndarray, Qt: np.ndarray) -> None:
+    """Rotate the terms onto the right singular vectors of the core, in place.
+
+    The core ``Rt^T`` (``k x p``) is decomposed by LAPACK (``O(k p^2)``); the terms
+    rotated by its right singular vectors are orthogonal to working accuracy relative to
+    the largest, so that the Jacobi sweeps that follow converge in one or two sweeps
+    (they restore the small terms' relative accuracy) instead of tens.
+    """
+    W = np.linalg.svd(Rt.T, full_matrices=True)[2]  # rows: right singular vectors
+    Rt[...] = W @ Rt
+    Qt[...] = W @ Qt
 
 
 @dataclass(frozen=True)

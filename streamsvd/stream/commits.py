@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamsvd.engine.core import HISTORY_FIELDS, UpdateRecord, history_array
+from streamsvd.engine.record import HISTORY_FIELDS, UpdateRecord, history_array
 from streamsvd.engine.update import Extents
 from streamsvd.store.segments import Appended
 

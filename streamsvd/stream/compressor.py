@@ -58,7 +58,8 @@ from streamsvd._util.validation import as_float_array, check_choice, check_posit
 from streamsvd.algebra.inner import InnerProduct, as_inner, check_same_inner, inner_arrays
 from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend, MemoryBasis
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import UpdateRecord, r_factor
+from streamsvd.engine.core import r_factor
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.update import (
     State,

@@ -20,8 +20,8 @@ from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
-from streamsvd.engine.core import UpdateRecord
 from streamsvd.engine.downdate import Ledger
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import Plan, State, apply_plan
 from streamsvd.errors import StoreError
 from streamsvd.io.provenance import SourceRecord

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from streamsvd._util.scaling import safe_column_norms, safe_norm
-from streamsvd.engine.core import UpdateRecord
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.errors import InputError
 from streamsvd.linalg.compress import fix_signs
 from streamsvd.linalg.expansion import Expansion

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import UpdateRecord
 from streamsvd.engine.downdate import (
     Ledger,
     bound_after_removal,
@@ -29,6 +28,7 @@ from streamsvd.engine.downdate import (
     intervals_skip,
     plan_remove,
 )
+from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import Plan, State, StepOptions
 from streamsvd.errors import InputError
 from streamsvd.stream.options import CompressorOptions
