@@ -94,14 +94,17 @@ _SUBPACKAGES = frozenset({
 })
 
 # module paths of the flat layout before the layers, kept for one release as aliases of
-# their new homes (``import streamsvd.sources`` is ``streamsvd.io.sources``)
-_MOVED = {
+# their new homes (``import streamsvd.sources`` reads ``streamsvd.io.sources``); a module
+# split in the move names its homes in order, and its alias reads each name from the
+# first home that has it
+_MOVED: dict[str, str | tuple[str, ...]] = {
     "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
     "expansion": "linalg.expansion", "gram_schmidt": "linalg.gram_schmidt",
     "inner": "algebra.inner", "locks": "storage.lockfile", "panels": "algebra.panels.basis",
     "parallel_tall": "parallel.tall", "parallel_tree": "parallel.tree",
     "provenance": "io.provenance", "rotations": "linalg.rotations", "rows": "engine.rows",
-    "sources": "io.sources", "update": "engine.update",
+    "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
+    "update": "engine.update",
 }
 
 
@@ -122,12 +125,27 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         """Use the default module."""
 
     def exec_module(self, module: types.ModuleType) -> None:
-        home = importlib.import_module(f"{__name__}.{_MOVED[module.__name__.rpartition('.')[2]]}")
+        homes = [importlib.import_module(f"{__name__}.{path}")
+                 for path in _homes(module.__name__.rpartition(".")[2])]
+
+        def read(name: str) -> Any:
+            for home in homes:
+                if hasattr(home, name):
+                    return getattr(home, name)
+            raise AttributeError(f"module {module.__name__!r} has no attribute {name!r}")
+
+        names = [name for home in homes for name in getattr(home, "__all__", ())]
         vars(module).update(
-            __doc__=f"Moved to :mod:`{home.__name__}`.",
-            __all__=list(getattr(home, "__all__", ())),
-            __getattr__=lambda name: getattr(home, name),
+            __doc__="Moved to " + ", ".join(f":mod:`{home.__name__}`" for home in homes) + ".",
+            __all__=list(dict.fromkeys(names)),
+            __getattr__=read,
         )
+
+
+def _homes(old: str) -> tuple[str, ...]:
+    """Return the new homes of an old module path (one, or several for a split module)."""
+    homes = _MOVED[old]
+    return (homes,) if isinstance(homes, str) else homes
 
 
 sys.meta_path.insert(0, _MovedModules())
@@ -140,8 +158,11 @@ def __getattr__(name: str) -> Any:
         value = getattr(importlib.import_module(f".{module}", __name__), name)
         globals()[name] = value  # later look-ups do not come here again
         return value
-    if name in _SUBPACKAGES or name in _MOVED:
-        return importlib.import_module(f".{_MOVED.get(name, name)}", __name__)
+    if name in _MOVED:  # the new home, or the alias of a module split in the move
+        homes = _homes(name)
+        return importlib.import_module(f".{homes[0] if len(homes) == 1 else name}", __name__)
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

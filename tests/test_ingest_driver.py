@@ -14,7 +14,8 @@ from dask.system import CPU_COUNT
 from streamsvd import StreamCompressor
 from streamsvd._util.scheduling import execute
 from streamsvd.errors import InputError, NonFiniteError, SourceError
-from streamsvd.io.sources import Source, open_source
+from streamsvd.io.open import open_source
+from streamsvd.io.sources import Source
 from streamsvd.linalg.rotations import load_kernels_in_background
 from streamsvd.parallel.cluster import tall_compress, tree_compress
 from streamsvd.stream.ingest import IngestResult, ingest

@@ -509,7 +509,7 @@ def test_reader_whose_generation_is_collected_retries_from_the_new_pointer(s3, m
 
 def test_sources_at_urls(s3, rng, tmp_path, monkeypatch):
     from streamsvd.errors import SourceError
-    from streamsvd.io.sources import open_source
+    from streamsvd.io.open import open_source
 
     A = rng.standard_normal((20, 30))
     _write_zarr(f"{s3}/a.zarr", A)

@@ -783,7 +783,7 @@ def test_tall_next_block_that_fails_is_reported_by_its_own_update(rng, caplog):
     before it, bit for bit."""
     import logging
 
-    from streamsvd.io.sources import open_source
+    from streamsvd.io.open import open_source
     from streamsvd.stream.ingest import ingest as ingest_blocks
 
     A = low_rank(rng, n=2000, m=80, rank=20, noise=1e-6)

@@ -7,7 +7,8 @@ import pytest
 import zarr
 
 from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
-from streamsvd.io.sources import Source, open_source
+from streamsvd.io.open import open_source
+from streamsvd.io.sources import Source
 
 N, M = 9, 23
 
@@ -209,7 +210,7 @@ def test_dask_blocks_are_computed_one_at_a_time(A):
 def test_read_ahead_fills_a_dropped_block_again_and_never_one_still_held():
     """A block the caller dropped is handed to a later read to be filled again; a block
     the caller still holds (in a list, as a view, or as its loop variable) never is."""
-    from streamsvd.io.sources import read_ahead
+    from streamsvd.io.readahead import read_ahead
 
     spares = []
 

@@ -91,7 +91,7 @@ def _final(args: Any) -> bool:
 
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
-    from streamsvd.io.sources import open_source
+    from streamsvd.io.open import open_source
     from streamsvd.stream.compressor import StreamCompressor, summary_of
     from streamsvd.stream.ingest import ingest
 
@@ -143,7 +143,7 @@ def _locate_non_finite(args: Any, store: Storage, block: int) -> None:
     NaN or infinite entry after it is the one the tall update refused. Returns without
     raising when it finds none (the caller re-raises the update's error).
     """
-    from streamsvd.io.sources import open_source
+    from streamsvd.io.open import open_source
     from streamsvd.parallel.cluster import open_compressor
 
     try:
@@ -258,8 +258,8 @@ def _compressor_options(args: Any, mode: str, *, resume: bool, inner: Any
 
 def _source_record(args: Any) -> Any:
     """Open SOURCE (checking it) and return its record."""
+    from streamsvd.io.open import open_source
     from streamsvd.io.provenance import SourceRecord
-    from streamsvd.io.sources import open_source
 
     source, dataset = getattr(args, "source_given", (args.source, args.dataset))
     with open_source(args.source, dataset=args.dataset) as src:

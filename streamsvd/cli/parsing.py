@@ -217,7 +217,7 @@ def _add_storage_option(parser: argparse.ArgumentParser) -> None:
 
 def locate(args: Any) -> None:
     """Turn STORE into a storage and a SOURCE URL into its zarr array (with the options)."""
-    from streamsvd.io.sources import open_zarr_url
+    from streamsvd.io.formats import open_zarr_url
     from streamsvd.storage import is_url, open_storage
 
     options = _storage_options(args)

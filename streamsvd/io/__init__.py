@@ -7,12 +7,11 @@ from streamsvd._util.lazy import lazy_exports
 
 # public name -> the submodule that defines it (imported on first access)
 _EXPORTS = {
-    "LazyBlock": "sources",
     "Source": "sources",
-    "open_source": "sources",
-    "open_zarr_url": "sources",
+    "open_source": "open",
     "OpenedFile": "formats",
     "open_file": "formats",
+    "open_zarr_url": "formats",
     "SourceRecord": "provenance",
 }
 __all__ = sorted(_EXPORTS)

@@ -61,7 +61,7 @@ class SourceRecord:
         Parameters
         ----------
         source : str, os.PathLike, h5py.Dataset or array_like
-            What was passed to :func:`~streamsvd.io.sources.open_source`.
+            What was passed to :func:`~streamsvd.io.open.open_source`.
         dataset : str or None
             The ``dataset`` passed with it.
         shape : tuple of int

@@ -1,7 +1,7 @@
 """Block iterators over snapshot sources (columns are snapshots).
 
-:func:`open_source` wraps an in-memory or on-disk ``n x m`` snapshot matrix in a
-:class:`Source`, which reads column blocks as float64 arrays one at a time:
+:func:`~streamsvd.io.open.open_source` wraps an in-memory or on-disk ``n x m`` snapshot
+matrix in a :class:`Source`, which reads column blocks as float64 arrays one at a time:
 
 * a numpy array (or anything :func:`numpy.asarray` turns into a real 2-D array);
 * a ``.npy`` file, memory-mapped;
@@ -21,8 +21,9 @@ formats.
 
 ``Source.blocks`` is the one block reader of the package (the command line, the tall
 mode and the tree leaves all read through it, driven by :func:`streamsvd.stream.ingest.ingest`).
-For the tall mode it yields each block unread, as a :class:`LazyBlock` whose row chunks
-the update's dask pass reads and checks (``rows=``); otherwise
+For the tall mode it yields each block unread, as a
+:class:`~streamsvd.algebra.panels.lazy.LazyBlock` whose row chunks the update's dask pass
+reads and checks (``rows=``); otherwise
 a background thread reads the next blocks while the caller works on the current one,
 through a bounded queue (``depth`` blocks ahead, one by default, so at most two blocks
 are in memory), and each block of the range is read exactly once. That hides the read
@@ -40,26 +41,25 @@ float32 values exactly as stored; any other dtype is read as float64.
 from __future__ import annotations
 
 import logging
-import os
-import queue
-import sys
-import threading
 import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
-from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
 
 import numpy as np
 
-from streamsvd._util.slabs import copy_by_row_slabs
-from streamsvd._util.validation import check_positive_int, first_non_finite
-from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
-from streamsvd.io.formats import no_dataset, open_file, open_zarr_url
-from streamsvd.storage import is_url
+from streamsvd._util.validation import check_positive_int
+from streamsvd.algebra.panels.lazy import LazyBlock
+from streamsvd.errors import InputError, ShapeMismatchError
+from streamsvd.io.readahead import (
+    _check_finite,
+    _checked_chunk,
+    _fill,
+    _read_failed,
+    read_ahead,
+)
 
-__all__ = ["LazyBlock", "Source", "open_source", "open_zarr_url"]
+__all__ = ["Source"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,10 +67,10 @@ logger = logging.getLogger(__name__)
 class Source:
     """An ``n x m`` snapshot matrix read by column blocks.
 
-    Build one with :func:`open_source`. Columns are snapshots: ``n`` is the size of one
-    snapshot and ``m`` the number of snapshots. Every read returns a new column-major
-    array of dtype :attr:`block_dtype` that does not share memory with the underlying
-    data.
+    Build one with :func:`~streamsvd.io.open.open_source`. Columns are snapshots: ``n`` is
+    the size of one snapshot and ``m`` the number of snapshots. Every read returns a new
+    column-major array of dtype :attr:`block_dtype` that does not share memory with the
+    underlying data.
 
     Parameters
     ----------
@@ -186,9 +186,9 @@ class Source:
         """Read columns ``start:stop`` into a column-major array, by slabs of rows.
 
         ``out`` is a block of an earlier read that nobody holds any more (see
-        :func:`read_ahead`), filled again when it has the block's shape, dtype and
-        layout; otherwise a new array is made. A slab is a whole number of the data's row
-        chunks, about 8 MiB, so that a read never holds the block twice in the data's
+        :func:`~streamsvd.io.readahead.read_ahead`), filled again when it has the block's
+        shape, dtype and layout; otherwise a new array is made. A slab is a whole number of
+        the data's row chunks, about 8 MiB, so that a read never holds the block twice in the data's
         layout (a dask array, or data one chunk tall, is read whole). Each slab is checked
         for NaN and infinite entries while it is in the cache; returns the block and
         whether every slab was finite.
@@ -259,7 +259,8 @@ class Source:
         prefetch : bool
             Read ahead in a background thread while the caller works on the current
             block; a block that the caller no longer refers to when it asks for the next
-            one is filled again by a later read (:func:`read_ahead`).
+            one is filled again by a later read
+            (:func:`~streamsvd.io.readahead.read_ahead`).
         depth : int
             Blocks read ahead with ``prefetch`` (>= 1): at most ``depth + 1`` blocks are
             in memory, the caller's included.
@@ -332,96 +333,6 @@ class Source:
         return f"Source({self.description}, n={self.n}, m={self.m}, dtype={self.dtype})"
 
 
-# sys.getrefcount of a block that only the generator's own name refers to (the count
-# includes the call's argument)
-_UNREFERENCED = 2
-
-
-def read_ahead(
-    read: Callable[[int, int, np.ndarray | None], np.ndarray],
-    ranges: list[tuple[int, int]],
-    depth: int,
-) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(a, read(a, b, spare))`` for each range, read by a background thread.
-
-    The thread reads at most ``depth`` ranges ahead of the one the caller holds (a
-    semaphore of ``depth + 1`` permits, one given back each time the caller asks for the
-    next block); an exception of ``read`` is raised to the caller when it asks for that
-    range, after every range before it was yielded. Closing the generator stops the
-    thread (after the read in progress) and waits for it.
-
-    A block that nobody refers to any more when the caller asks for the next one (the
-    caller dropped it, as :func:`streamsvd.stream.ingest.ingest` does) is handed to a later
-    read as ``spare``, to be filled again (``None`` when there is none): the memory of a
-    new block is zeroed by the kernel as it is first written. A block the caller still
-    holds, or any view of it, is never reused (its reference count says so).
-    """
-    if not ranges:
-        return
-    done: queue.SimpleQueue[tuple[int, np.ndarray | None, BaseException | None]] = (
-        queue.SimpleQueue())
-    permits = threading.Semaphore(depth + 1)
-    stopping = threading.Event()
-    spares: queue.SimpleQueue[np.ndarray] = queue.SimpleQueue()
-
-    def reader() -> None:
-        for a, b in ranges:
-            permits.acquire()
-            if stopping.is_set():
-                return
-            try:
-                # the spare is not named here: a name would keep it referenced
-                done.put((a, read(a, b, None if spares.empty() else spares.get()), None))
-            except BaseException as exc:  # handed to the caller, at this block
-                done.put((a, None, exc))
-                return
-
-    thread = threading.Thread(target=reader, name="streamsvd-reader", daemon=True)
-    thread.start()
-    try:
-        for _ in ranges:
-            a, X, exc = done.get()
-            if exc is not None:
-                raise exc
-            yield a, cast(np.ndarray, X)
-            if sys.getrefcount(X) == _UNREFERENCED:
-                spares.put(X)
-            del X
-            permits.release()
-    finally:
-        stopping.set()
-        permits.release()
-        thread.join()
-
-
-@dataclass(frozen=True)
-class LazyBlock:
-    """Columns ``first:first + b`` of a source, read by row chunks when a product needs them.
-
-    ``data`` is a dask array (``n x b``, float32 or float64, chunked by rows) whose tasks
-    read and check the source; :class:`~streamsvd.algebra.panels.basis.PanelBasis` absorbs it in one
-    pass over its row chunks, and :meth:`failed` names the columns when a read fails.
-    """
-
-    data: Any
-    first: int
-    description: str
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """``(n, b)``."""
-        return cast(tuple[int, int], tuple(self.data.shape))
-
-    def failed(self, exc: BaseException) -> SourceError:
-        """Return the error that reports a failed read of these columns."""
-        a, b = self.first, self.first + self.shape[1]
-        return SourceError(
-            f"reading columns {a}:{b} (offset {a}) of {self.description} failed: "
-            f"{type(exc).__name__}: {exc}. The basis is unchanged and a store holds its "
-            f"last commit; fix the cause and resume from offset {a}."
-        )
-
-
 class _ChunkReader:
     """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked.
 
@@ -452,66 +363,7 @@ class _ChunkReader:
         return out
 
 
-def _read_failed(exc: Exception, start: int, stop: int, description: str) -> SourceError:
-    """Return the error that reports a failed read of columns ``start:stop``."""
-    return SourceError(
-        f"reading columns {start}:{stop} (offset {start}) of {description} failed: "
-        f"{type(exc).__name__}: {exc}. Check that the data is readable and resume from "
-        f"offset {start}."
-    )
-
-
-def _checked_chunk(part: np.ndarray, start: int, n: int, description: str,
-                   block_info: dict | None = None) -> np.ndarray:
-    """Check a chunk of a dask source's columns from ``start`` (``block_info``: its rows)."""
-    row0 = 0 if block_info is None else int(block_info[0]["array-location"][0][0])
-    _check_finite(part, start, row0, n, description)
-    return part
-
-
-def _check_finite(block: np.ndarray, start: int, row0: int, n: int, description: str) -> None:
-    """Raise :class:`NonFiniteError` naming the first bad entry in source coordinates.
-
-    ``block`` holds columns ``start:start + b`` of rows ``row0:`` of a source of ``n``
-    rows; the first bad entry is the first in column order (the earliest snapshot),
-    reported by its row and its column in the whole source, not by its index inside
-    the block.
-    """
-    bad = first_non_finite(block)
-    if bad is None:
-        return
-    row, col, count = bad
-    rows = "" if row0 == 0 and block.shape[0] == n else (
-        f" rows {row0}:{row0 + block.shape[0]} of")
-    raise NonFiniteError(
-        f"`source` must be finite; {description} holds {float(block[row, col])} "
-        f"at column {start + col}, row {row0 + row} (counted from 0; {count} NaN or "
-        f"infinite entries in{rows} columns {start}:{start + block.shape[1]}). Repair or "
-        "remove that snapshot."
-    )
-
-
 _READ_BYTES = 1 << 23  # rows read at a time from the data (8 MiB)
-
-
-def _fill(out: np.ndarray, data: Any, r0: int, start: int, stop: int, *,
-          compute: bool = False) -> None:
-    """Fill ``out`` with rows ``r0:r0 + len(out)``, columns ``start:stop``, of ``data``.
-
-    A zarr (v3) array of ``out``'s dtype decodes each chunk straight into ``out``
-    (column-major), where indexing would decode into a row-major slab copied again (20%
-    of the read time, and a slab of transients, on a 200000 x 1000 float64 array);
-    other data are indexed (``compute``: a dask slice) and copied by row slabs,
-    converting their dtype.
-    """
-    rows = slice(r0, r0 + out.shape[0])
-    if type(data).__module__.startswith("zarr") and np.dtype(data.dtype) == out.dtype:
-        from zarr.core.buffer.cpu import NDBuffer
-
-        data.get_basic_selection((rows, slice(start, stop)), out=NDBuffer.from_numpy_array(out))
-        return
-    part = data[rows, start:stop]
-    copy_by_row_slabs(out, part.compute() if compute else part)
 
 
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
@@ -541,104 +393,3 @@ def _check_index(value: Any, name: str, m: int) -> int:
             "Pass a column offset inside the source."
         )
     return int(value)
-
-
-def _is_dask_array(obj: Any) -> bool:
-    module = type(obj).__module__ or ""
-    if not module.startswith("dask"):
-        return False
-    import dask.array as da
-
-    return isinstance(obj, da.Array)
-
-
-def _is_h5py_dataset(obj: Any) -> bool:
-    if not (type(obj).__module__ or "").startswith("h5py"):
-        return False
-    import h5py
-
-    return isinstance(obj, h5py.Dataset)
-
-
-def _is_zarr_array(obj: Any) -> bool:
-    if not (type(obj).__module__ or "").startswith("zarr"):
-        return False
-    import zarr
-
-    return isinstance(obj, zarr.Array)
-
-
-def open_source(
-    obj: Any, *, dataset: str | None = None, storage_options: Any = None
-) -> Source:
-    """Wrap a snapshot matrix (columns are snapshots) in a :class:`Source`.
-
-    Parameters
-    ----------
-    obj : array_like, str, os.PathLike, h5py.Dataset, zarr.Array, dask array or Source
-        A real ``n x m`` matrix: an in-memory array, the path of a ``.npy`` file
-        (memory-mapped), of an HDF5 file (``.h5``, ``.hdf5``), of a zarr array or group
-        (a ``.zarr`` path or a zarr directory), or an open h5py dataset, zarr array or
-        dask array, or the URL of a zarr array or group (``s3://bucket/run.zarr``). A
-        :class:`Source` is returned as is.
-    dataset : str, optional
-        Name of the dataset in an HDF5 file or of the array in a zarr group; may be
-        omitted when there is exactly one.
-    storage_options : dict, optional
-        Options of the fsspec file system of a URL (``s3://``: ``key``, ``secret``,
-        ``endpoint_url``, ...); not accepted with anything else.
-
-    Returns
-    -------
-    Source
-        Close it (or use it as a context manager) to release a file it opened.
-
-    Raises
-    ------
-    SourceError
-        When the file does not exist, cannot be opened, or has no such dataset.
-    InputError
-        When the extension is unknown, ``dataset`` is needed or misplaced, or the data
-        is not a real 2-D matrix.
-    """
-    if dataset is not None and not isinstance(dataset, str):
-        raise InputError(f"`dataset` must be a str naming a dataset; got {dataset!r}.")
-    if is_url(obj):
-        arr = open_zarr_url(obj, dataset=dataset, storage_options=storage_options)
-        name = f" '{dataset.strip('/')}'" if dataset else ""
-        return Source(arr, f"zarr array{name} at {obj}")
-    if storage_options is not None:
-        raise InputError(
-            f"`storage_options` only apply to a URL source (s3://..., file://...); got "
-            f"{storage_options!r} with a {type(obj).__name__}. Drop them."
-        )
-    if isinstance(obj, Source):
-        no_dataset(dataset, "a Source")
-        return obj
-    if isinstance(obj, str | os.PathLike):
-        opened = open_file(Path(obj), dataset)
-        return Source(opened.data, opened.description, on_close=opened.close)
-    if _is_dask_array(obj):
-        no_dataset(dataset, "a dask array")
-        return Source(obj, f"dask array of shape {obj.shape}", compute=True)
-    if _is_h5py_dataset(obj):
-        no_dataset(dataset, "an h5py dataset")
-        return Source(obj, f"HDF5 dataset '{obj.name}' in {obj.file.filename}")
-    if _is_zarr_array(obj):
-        no_dataset(dataset, "a zarr array")
-        return Source(obj, f"zarr array {obj.store_path}")
-    no_dataset(dataset, f"a {type(obj).__name__}")
-    if hasattr(obj, "toarray") and not isinstance(obj, np.ndarray):
-        raise InputError(
-            f"`source` must be a dense array; got a sparse matrix of shape "
-            f"{getattr(obj, 'shape', '?')}. Convert it with `.toarray()`."
-        )
-    try:
-        arr = obj if isinstance(obj, np.ndarray) else np.asarray(obj)
-    except (TypeError, ValueError) as exc:
-        raise InputError(
-            f"`source` must be a real 2-D array (n x m); {type(obj).__name__} cannot be "
-            f"converted to one ({exc}). Pass a numpy array, a file path or a dask array."
-        ) from None
-    kind = "memmap" if isinstance(arr, np.memmap) else "array"
-    return Source(arr, f"numpy {kind} of shape {arr.shape}")

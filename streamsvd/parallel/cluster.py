@@ -18,7 +18,7 @@ address). Results do not depend on the scheduler, nor on the chunking of the sou
 beyond rounding.
 
 Sources. A numpy array, a ``.npy``/HDF5/zarr path, an h5py dataset, a zarr array or any
-dask array (see :func:`~streamsvd.io.sources.open_source`). The tall mode reads its blocks
+dask array (see :func:`~streamsvd.io.open.open_source`). The tall mode reads its blocks
 in this process, the tree's leaves where they run, both through the one block reader
 (:meth:`~streamsvd.io.sources.Source.blocks`: the next block read in a background thread
 while the current one is absorbed, each block once) driven by

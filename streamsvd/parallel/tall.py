@@ -53,8 +53,8 @@ from streamsvd._util.validation import (
 from streamsvd.algebra.inner import DiagonalInner, InnerProduct
 from streamsvd.algebra.memory import BasisBackend
 from streamsvd.algebra.panels.basis import PanelBasis
+from streamsvd.algebra.panels.lazy import LazyBlock
 from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError
-from streamsvd.io.sources import LazyBlock
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.stream.compressor import StreamCompressor
 
@@ -178,9 +178,9 @@ class PanelBackend:
         return backend, self.copied(basis, backend.new_basis(basis.n, basis.inner))
 
     def load(self, columns: Any, *, rows: int, first: int) -> Any:
-        """Return a checked block: a dask array becomes a :class:`~streamsvd.io.sources.LazyBlock`.
+        """Return a checked block: a dask array becomes a :class:`~.lazy.LazyBlock`.
 
-        A dask array (or a source's :class:`~streamsvd.io.sources.LazyBlock`) is not read
+        A dask array (or a source's :class:`~streamsvd.algebra.panels.lazy.LazyBlock`) is not read
         here: the update reads it by row chunks (on the cluster when there is one), each
         chunk checked for NaN and infinite entries; anything else is checked and
         converted in memory. ``first`` is the block's source offset (named when a read
@@ -349,7 +349,7 @@ class TallCompressor(StreamCompressor):
     def expect(self, columns: Any) -> None:
         """Name the block that will follow the one the coming :meth:`absorb` is given.
 
-        A block read from its source (a :class:`~streamsvd.io.sources.LazyBlock`, as
+        A block read from its source (a :class:`~streamsvd.algebra.panels.lazy.LazyBlock`, as
         :func:`~streamsvd.stream.ingest.ingest` hands them out) is then read by the coming
         update's last pass over the panels, which writes its scratch copy and forms its
         products with the new basis: its own update then makes one pass over the panels

@@ -42,8 +42,10 @@ from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBackend
 from streamsvd.errors import BrokenStateError, InputError, ShapeMismatchError, StoreError
+from streamsvd.io.formats import open_zarr_url
+from streamsvd.io.open import open_source
 from streamsvd.io.provenance import SourceRecord
-from streamsvd.io.sources import Source, open_source, open_zarr_url
+from streamsvd.io.sources import Source
 from streamsvd.linalg.rotations import load_kernels_in_background
 from streamsvd.storage import is_url, open_storage
 from streamsvd.stream.compressor import StreamCompressor
@@ -116,7 +118,7 @@ class SourceSpec:
 
     @classmethod
     def of(cls, source: Any, *, dataset: str | None = None) -> SourceSpec:
-        """Check ``source`` (as :func:`~streamsvd.io.sources.open_source` does) and describe it."""
+        """Check ``source`` (as :func:`~streamsvd.io.open.open_source` does) and describe it."""
         if isinstance(source, Source):
             raise InputError(
                 "`source` must be an array, a path, an h5py dataset or a zarr/dask array; "
@@ -307,7 +309,7 @@ def tree_compress(
     ----------
     source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
         An ``n x m`` snapshot matrix (columns are snapshots), as accepted by
-        :func:`~streamsvd.io.sources.open_source`. Each leaf reads its own columns, one block
+        :func:`~streamsvd.io.open.open_source`. Each leaf reads its own columns, one block
         at a time, where it runs: paths are reopened by every task (on a cluster they must
         be visible to the workers), dask arrays are computed block by block.
     block : int

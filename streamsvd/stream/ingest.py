@@ -73,7 +73,7 @@ def ingest(
     Parameters
     ----------
     source : Source
-        The snapshots (see :func:`streamsvd.io.sources.open_source`).
+        The snapshots (see :func:`streamsvd.io.open.open_source`).
     compressor : StreamCompressor or TallCompressor
         Anything with ``absorb(X, source_offset=...)`` and ``source_offset``.
     start : int, optional
@@ -94,8 +94,8 @@ def ingest(
         <streamsvd.io.sources.Source.blocks>`).
     rows : int, optional
         Hand each block to the compressor unread, as a
-        :class:`~streamsvd.io.sources.LazyBlock` of chunks of this many rows (the tall mode,
-        whose update reads it chunk by chunk); ``depth`` then does not apply, and a
+        :class:`~streamsvd.algebra.panels.lazy.LazyBlock` of chunks of this many rows (the
+        tall mode, whose update reads it chunk by chunk); ``depth`` then does not apply, and a
         compressor with an ``expect`` method is given each block one update ahead
         (:meth:`TallCompressor.expect <streamsvd.parallel.TallCompressor.expect>`).
     progress : bool

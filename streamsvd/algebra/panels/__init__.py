@@ -6,6 +6,7 @@ from streamsvd._util.lazy import lazy_exports
 _EXPORTS = {
     "PanelBasis": "basis",
     "PanelFiles": "files",
+    "LazyBlock": "lazy",
     "RawArray": "raw_array",
     "RowView": "raw_array",
     "RowChunks": "row_chunks",

@@ -197,7 +197,7 @@ class PanelBasis:
 
         One pass over the row chunks computes both (``project`` is not needed), one task
         per chunk (:func:`~streamsvd.algebra.panels.tasks.chunk_products`). A
-        :class:`~streamsvd.io.sources.LazyBlock` is read once, chunk by chunk, each chunk
+        :class:`~streamsvd.algebra.panels.lazy.LazyBlock` is read once, chunk by chunk, each chunk
         written to a scratch copy (in the source's dtype: float32 stays float32) by the
         task that uses it in float64, so the ``n x b`` block is never in memory; an
         in-memory block is used where it is.
@@ -207,8 +207,8 @@ class PanelBasis:
         it, :meth:`~streamsvd.algebra.panels.files.PanelFiles.new`), a zarr panel in an object
         store. A failed read raises the block's :class:`~streamsvd.errors.SourceError`.
         """
+        from streamsvd.algebra.panels.lazy import LazyBlock
         from streamsvd.errors import StreamSVDError
-        from streamsvd.io.sources import LazyBlock
 
         ahead, self._read_ahead = self._read_ahead, None
         if ahead is not None:
@@ -247,10 +247,10 @@ class PanelBasis:
     def expect(self, X: Any) -> None:
         """Name ``X``, the next update's block, for :meth:`compact_with_block` to read.
 
-        Only a :class:`~streamsvd.io.sources.LazyBlock` of ``n`` rows is read ahead (its
+        Only a :class:`~streamsvd.algebra.panels.lazy.LazyBlock` of ``n`` rows is read ahead (its
         source is read once either way); anything else is ignored.
         """
-        from streamsvd.io.sources import LazyBlock
+        from streamsvd.algebra.panels.lazy import LazyBlock
 
         self._expected = X if isinstance(X, LazyBlock) and X.shape[0] == self.n else None
 
