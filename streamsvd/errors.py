@@ -59,7 +59,7 @@ class BrokenStateError(StreamSVDError, RuntimeError):
 
     Only a compressor whose basis compacts in place (the leaves and merges of a tree) can
     be left so; a store it writes keeps its last commit. Raised as well when a basis whose
-    Gram was left to measure (:class:`streamsvd.engine.update.State`) is found not positive
+    Gram was left to measure (:class:`streamsvd.engine.state.State`) is found not positive
     definite, its rounding beyond what its update checked (never observed).
     """
 

@@ -8,7 +8,8 @@ import pytest
 from streamsvd import StreamCompressor
 from streamsvd.algebra.memory import MemoryBackend
 from streamsvd.engine import rows as rows_module
-from streamsvd.engine.update import apply_plan, plan_absorb, stage_plan
+from streamsvd.engine.state import apply_plan, stage_plan
+from streamsvd.engine.update import plan_absorb
 from streamsvd.parallel.cluster import TallCompressor, open_compressor
 from streamsvd.parallel.tall import PanelBackend
 

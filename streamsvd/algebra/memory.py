@@ -21,7 +21,7 @@ operations (:class:`BasisAlgebra`; how a planned basis is switched to and commit
   leaves the Gram of the columns it writes there to the next update, whose
   ``joint_products(X)`` copies the block beside ``Q`` and measures the Gram of ``[Q, X]``
   whole, ``Q^T M Q`` with it, in one product (``measure_gram()`` measures ``Q^T M Q``
-  alone for whoever reads the basis before; :class:`~streamsvd.engine.update.State`); its
+  alone for whoever reads the basis before; :class:`~streamsvd.engine.state.State`); its
   ``products_beside(X)`` copies a narrow block beside ``Q`` and returns ``X^T M X`` and
   ``MQ^T X`` in one product, so that the update may keep the block as stored columns
   (``accept``) instead of compacting;

@@ -49,7 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.update import Plan, State, StepOptions, _plan
+from streamsvd.engine.state import Plan, State, StepOptions
+from streamsvd.engine.update import _plan
 from streamsvd.linalg.gram_schmidt import BasisExtension
 
 __all__ = [

@@ -19,13 +19,13 @@ needs, and the update can be the method of snapshots, as pyMOR's HAPOD does:
   (orthonormal) with the core ``R = Lambda_k^(1/2) L``.
 * an in-memory basis (:attr:`~streamsvd.algebra.memory.MemoryBasis.defers_gram`) measures ``H'``
   one update later instead: the state keeps ``coords = I``, ``R = Lambda_k^(1/2)`` and a
-  pending Gram (:class:`~streamsvd.engine.update.State`); a next block at most half as wide as
+  pending Gram (:class:`~streamsvd.engine.state.State`); a next block at most half as wide as
   the basis is copied beside ``Q'`` and the Gram of ``[Q', X]``, ``H'`` with it, is one
   product, the compaction one more (on the synthetic stream of
   ``bench/hapod_benchmark.py``: 14 to 17% less time at blocks of 10, the same digits); a
   wider one is staged as it is and ``H'`` measured alone (:func:`_products`). Whatever
   reads the state
-  before measures ``H'`` aside (:meth:`~streamsvd.engine.update.State.settled`), so the digits
+  before measures ``H'`` aside (:meth:`~streamsvd.engine.state.State.settled`), so the digits
   of the stream do not depend on it. The update's recorded orthogonality is then the one
   the Gram of ``[Q, X]`` predicts for ``U = Q'``, ``||W_k^T Phi W_k Lambda_k^(-1) - I||``
   (its Frobenius norm, an upper bound of the 2-norm, when below 1/4; the compaction's
@@ -99,15 +99,8 @@ from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before, Truncation
 from streamsvd.engine.record import UpdateRecord
-from streamsvd.engine.update import (
-    COMPACT_PER_COLUMN,
-    Plan,
-    State,
-    StepOptions,
-    Writes,
-    gram_orthogonality,
-    plan_rows,
-)
+from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
+from streamsvd.engine.update import COMPACT_PER_COLUMN, plan_rows
 from streamsvd.linalg.blocks import scale_into
 from streamsvd.linalg.gram_schmidt import default_reject_tol
 
@@ -390,7 +383,7 @@ def _products(state: State, Y: Any, *, project: bool
               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Stage the block ``Y``; return ``Y^T M Y``, ``MQ^T Y`` and the basis's Gram ``H``.
 
-    A pending Gram (:class:`~streamsvd.engine.update.State`) is measured here: for a block at
+    A pending Gram (:class:`~streamsvd.engine.state.State`) is measured here: for a block at
     most half as wide as the basis in one product with it
     (:meth:`~streamsvd.algebra.memory.MemoryBasis.joint_products`), which holds the block beside
     the basis in both of its buffers (``2 n b`` more numbers: 32 MB for 10 columns at

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamsvd.engine.record import HISTORY_FIELDS, UpdateRecord, history_array
-from streamsvd.engine.update import Extents
+from streamsvd.engine.state import Extents
 from streamsvd.store.segments import Appended
 
 __all__ = ["ASSUMED_RATE", "AUTO", "COMMIT_OVERHEAD", "CommitSchedule", "CommitTracker"]

@@ -61,8 +61,8 @@ from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import r_factor
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
+from streamsvd.engine.state import State
 from streamsvd.engine.update import (
-    State,
     plan_absorb,
     plan_add,
     plan_finalize,

@@ -22,7 +22,7 @@ from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
 from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
-from streamsvd.engine.update import Plan, State, apply_plan
+from streamsvd.engine.state import Plan, State, apply_plan
 from streamsvd.errors import StoreError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.storage import open_storage

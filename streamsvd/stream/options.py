@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # the numerical modules load when options are validated, not imported
     from streamsvd.algebra.inner import InnerProduct
     from streamsvd.engine.core import Truncation
-    from streamsvd.engine.update import StepOptions
+    from streamsvd.engine.state import StepOptions
 
 __all__ = [
     "STREAMING_SHARE",
@@ -169,7 +169,7 @@ class CompressorOptions:
 
     def step_options(self, inner: InnerProduct) -> StepOptions:
         """Return the options of the update step (:mod:`streamsvd.engine.update`) in ``inner``."""
-        from streamsvd.engine.update import StepOptions
+        from streamsvd.engine.state import StepOptions
 
         assert self.reject_tol is not None and self.reorth_tol is not None
         return StepOptions(

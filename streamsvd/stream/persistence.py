@@ -30,7 +30,7 @@ from streamsvd.algebra.inner import InnerProduct, as_inner, inner_from_arrays
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.downdate import intervals_add
 from streamsvd.engine.record import UpdateRecord, record_from_row
-from streamsvd.engine.update import Plan, State, stage_plan
+from streamsvd.engine.state import Plan, State, stage_plan
 from streamsvd.errors import StoreError, StoreFormatError, StoreMismatchError
 from streamsvd.store import BasisStore, open_store
 from streamsvd.store.format import StoreState

@@ -21,7 +21,7 @@ from streamsvd.linalg.expansion import Expansion
 
 if TYPE_CHECKING:
     from streamsvd.algebra.inner import InnerProduct
-    from streamsvd.engine.update import State
+    from streamsvd.engine.state import State
     from streamsvd.stream.options import CompressorOptions
 
 __all__ = ["ExpansionView"]

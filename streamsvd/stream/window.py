@@ -29,7 +29,7 @@ from streamsvd.engine.downdate import (
     plan_remove,
 )
 from streamsvd.engine.record import UpdateRecord
-from streamsvd.engine.update import Plan, State, StepOptions
+from streamsvd.engine.state import Plan, State, StepOptions
 from streamsvd.errors import InputError
 from streamsvd.stream.options import CompressorOptions
 from streamsvd.stream.persistence import LAYOUT, LAYOUT_WITH_REMOVALS
