@@ -104,7 +104,7 @@ _MOVED: dict[str, str | tuple[str, ...]] = {
     "parallel_tall": "parallel.tall", "parallel_tree": "parallel.tree",
     "provenance": "io.provenance", "rotations": "linalg.rotations", "rows": "engine.rows",
     "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
-    "update": "engine.update",
+    "update": ("engine.update", "engine.state"),
 }
 
 
