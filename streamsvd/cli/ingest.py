@@ -92,8 +92,9 @@ def _final(args: Any) -> bool:
 def _ingest_memory(args: Any, store: Storage, block: int, options: dict[str, Any], *,
                    resume: bool, record: Any) -> dict[str, Any]:
     from streamsvd.io.open import open_source
-    from streamsvd.stream.compressor import StreamCompressor, summary_of
+    from streamsvd.stream.compressor import StreamCompressor
     from streamsvd.stream.ingest import ingest
+    from streamsvd.stream.summary import summary_of
 
     with open_source(args.source, dataset=args.dataset) as src:
         if resume:

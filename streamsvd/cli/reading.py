@@ -46,7 +46,7 @@ def open_readonly(path: Any, *, inner: Any = None) -> Any:
 
 def info(args: Any) -> int:
     """Run ``streamsvd info``: the store's summary, as text or ``--json``."""
-    from streamsvd.stream.compressor import summary_of
+    from streamsvd.stream.summary import summary_of
 
     with open_readonly(args.store, inner=load_inner(args)) as sc:
         summary = summary_of(sc)

@@ -44,8 +44,9 @@ from streamsvd.parallel.tall import KIND, TallCompressor
 from streamsvd.parallel.tree import COMPRESSOR_OPTIONS, SourceSpec, tree_compress
 from streamsvd.storage import open_storage
 from streamsvd.store import open_store
-from streamsvd.stream.compressor import StreamCompressor, summary_of
+from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.stream.ingest import ingest as ingest_blocks
+from streamsvd.stream.summary import summary_of
 
 __all__ = [
     "COMPRESSOR_OPTIONS",

@@ -10,7 +10,7 @@ from streamsvd._util.lazy import lazy_exports
 _EXPORTS = {
     "StreamCompressor": "compressor",
     "UpdateRecord": "compressor",
-    "summary_of": "compressor",
+    "summary_of": "summary",
     "CompressorOptions": "options",
     "STREAMING_SHARE": "options",
     "StreamStore": "persistence",

@@ -42,23 +42,16 @@ re-orthonormalised through the Cholesky factor of that small Gram
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import functools
-import sys
 import time
-from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
-import scipy.linalg.blas as blas
 
 from streamsvd._util.threads import check_threads
-from streamsvd._util.validation import as_float_array, check_choice, check_positive_int
-from streamsvd.algebra.inner import InnerProduct, as_inner, check_same_inner, inner_arrays
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend, MemoryBasis
-from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import r_factor
+from streamsvd._util.validation import check_positive_int
+from streamsvd.algebra.inner import InnerProduct, as_inner, inner_arrays
+from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.state import State
@@ -72,14 +65,15 @@ from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
 from streamsvd.errors import InputError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.linalg.expansion import Expansion
-from streamsvd.linalg.rotations import RULES
 from streamsvd.stream.lifecycle import StoreLifecycle
+from streamsvd.stream.operands import _final_options, _increment, _merge_operand, _merge_options
 from streamsvd.stream.options import CompressorOptions, option_properties
 from streamsvd.stream.persistence import StreamStore
+from streamsvd.stream.summary import _sweep_bar
 from streamsvd.stream.view import ExpansionView
 from streamsvd.stream.window import Removals
 
-__all__ = ["StreamCompressor", "UpdateRecord", "summary_of"]
+__all__ = ["StreamCompressor", "UpdateRecord"]
 
 
 
@@ -194,16 +188,10 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
     """
 
     def __init__(
-        self,
-        n: int,
-        *,
-        inner: Any = None,
-        store: Any = None,
+        self, n: int, *, inner: Any = None, store: Any = None,
         source_record: SourceRecord | None = None,
-        storage_options: dict[str, Any] | None = None,
-        threads: int | None = 1,
-        backend: Backend | None = None,
-        **options: Any,
+        storage_options: dict[str, Any] | None = None, threads: int | None = 1,
+        backend: Backend | None = None, **options: Any,
     ) -> None:
         self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
         self._backend: Backend = MemoryBackend() if backend is None else backend
@@ -346,14 +334,10 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         cut in the root's :meth:`finalize`, as pyMOR's ``dist_vectorarray_hapod`` does.
         """
         t0 = time.perf_counter()
-        op = _merge_operand(other, n=self.n, inner=self.inner,
+        op = _merge_operand(other, StreamCompressor, n=self.n, inner=self.inner,
                             keep_rows=self._state.rows is not None)
         prior = self._state.bound.combine(op.bound)
-        opts = self._opts
-        if not spend_target:
-            opts = dataclasses.replace(
-                opts, truncation=dataclasses.replace(opts.truncation, target=None)
-            )
+        opts = _merge_options(self._opts, spend_target=spend_target)
         s = self._state
         return self._run(
             lambda: plan_merge_by_gram(s, op.Q, op.coordinates(), op.R, op.Y, op.m, prior,
@@ -381,12 +365,7 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         again starts the sweeps over from it.
         """
         t0 = time.perf_counter()
-        cap = check_positive_int(max_rank, "max_rank", allow_none=True)
-        opts = dataclasses.replace(
-            self._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
-            truncation=self.options.truncation(
-                max_rank=self.max_rank if cap is None else cap, share=1.0),
-        )
+        opts = _final_options(self, rule=rule, max_rank=max_rank)
         with _sweep_bar(self.rank, progress) as on_sweep:
             record = self._run(
                 lambda: plan_finalize(self._state, opts, t0=t0, on_sweep=on_sweep),
@@ -394,126 +373,3 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
             )
         self._warn_if_target_missed()
         return record
-
-    # ------------------------------------------------------------------ internals
-
-
-@dataclasses.dataclass(frozen=True)
-class _MergeOperand:
-    """What :meth:`StreamCompressor.merge` absorbs: ``U_o V_o^T`` with ``U_o = Q Z``.
-
-    ``Q`` is the other expansion's basis, ``Z`` its coordinates (None when ``Q`` holds the
-    left vectors themselves), ``R`` the core (``V_o = Y R``), ``Y`` the orthonormal right
-    factor (None when the right vectors are not kept), ``m`` the number of snapshots and
-    ``bound`` the error bound the other expansion carries.
-    """
-
-    Q: np.ndarray
-    Z: np.ndarray | None
-    R: np.ndarray
-    Y: np.ndarray | None
-    m: int
-    bound: Bound
-
-    def coordinates(self) -> np.ndarray:
-        """Return ``Z`` (the identity when ``Q`` holds the left vectors)."""
-        return np.eye(self.Q.shape[1]) if self.Z is None else self.Z
-
-    def left_vectors(self) -> np.ndarray:
-        """Return ``U_o = Q Z`` (column-major when formed here)."""
-        if self.Z is None:
-            return self.Q
-        if self.Q.shape[1] == 0 or self.Z.shape[1] == 0:
-            return np.zeros((self.Q.shape[0], self.Z.shape[1]), order="F")
-        return blas.dgemm(1.0, self.Q, self.Z)
-
-
-def _merge_operand(
-    other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
-) -> _MergeOperand:
-    """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
-
-    ``other`` is checked first: a compressor or an expansion of snapshots of size ``n``
-    in the inner product ``inner``. A compressor's basis in memory is used as it is; a
-    basis elsewhere (panels) gives its left vectors.
-    """
-    if not isinstance(other, StreamCompressor | Expansion):
-        raise InputError(
-            f"`other` must be a StreamCompressor or an Expansion; got {type(other).__name__}."
-        )
-    if other.n != n:
-        raise InputError(f"`other` must have snapshots of size {n}; got {other.n}.")
-    check_same_inner(inner, other.inner, "other")
-    if isinstance(other, StreamCompressor):
-        o = other._state
-        if keep_rows and o.rows is None:
-            raise InputError(
-                "`other` keeps no right vectors (`right_vectors=False`) but this "
-                "compressor does; merge compressors created alike."
-            )
-        Y_o = o.rows.value() if keep_rows and o.rows is not None else None
-        coords, _, R = o.settled()
-        if isinstance(o.basis, MemoryBasis):
-            return _MergeOperand(o.basis.Q, coords, R, Y_o, o.m, o.bound)
-        return _MergeOperand(o.basis.lincomb(coords), None, R, Y_o, o.m, o.bound)
-    U_o, V_o = np.array(other.U, order="F"), np.array(other.V)
-    if not keep_rows:
-        return _MergeOperand(U_o, None, r_factor(V_o), None, V_o.shape[0], Bound())
-    Y_o, R_o = np.linalg.qr(V_o)
-    return _MergeOperand(U_o, None, R_o, Y_o, V_o.shape[0], Bound())
-
-
-def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Check the arguments of :meth:`StreamCompressor.add`; return them as arrays."""
-    s = sc._state
-    if s.rows is None:
-        raise InputError(
-            "`add` needs the right vectors, and this StreamCompressor keeps none "
-            "(`right_vectors=False`); create it with `right_vectors=True`."
-        )
-    Uk = as_float_array(U_k, "U_k", ndim=2, rows=sc.n)
-    m = s.m if (s.m or s.rank) else None
-    Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
-    if coefficients is not None:
-        return Uk, Vk, as_float_array(coefficients, "coefficients", ndim=2, rows=s.m,
-                                      cols=s.rank)
-    if Uk.shape[1] == 0:
-        raise InputError(
-            f"`U_k` must have at least one column (or pass `coefficients`); got shape "
-            f"{Uk.shape}."
-        )
-    return Uk, Vk, None
-
-
-def summary_of(sc: StreamCompressor) -> dict[str, Any]:
-    """Return what ``streamsvd info --json`` prints of a compressor (JSON-able)."""
-    return {
-        "store": sc.store_path, "n": sc.n, "n_seen": sc.n_seen, "rank": sc.rank,
-        "source_offset": sc.source_offset, "updates": len(sc.history),
-        "finalized": sc.finalized, "error_bound": sc.error_bound,
-        "discarded_norm": sc.discarded_norm, "orthogonality": sc.orthogonality_error(),
-        "error_in_measure": sc.error_in_measure, "target_met": sc.target_met,
-        "target_missed_by": sc.target_missed_by,
-        "n_absorbed": sc.n_absorbed, "removed": sc.removed.tolist(),
-        "options": sc.options.as_dict(), "inner": repr(sc.inner),
-        "source": None if sc.source_record is None else sc.source_record.to_attrs(),
-        "amplitudes_head": sc.amplitudes[:10].tolist(),
-    }
-
-
-@contextlib.contextmanager
-def _sweep_bar(rank: int, show: bool) -> Iterator[Callable[[int, float], None] | None]:
-    """Yield the ``on_sweep`` callback of a progress bar of the final sweeps (or None)."""
-    if not show:
-        yield None
-        return
-    from tqdm import tqdm
-
-    with tqdm(desc=f"final sweeps ({rank} terms)", unit="sweep", file=sys.stderr,
-              dynamic_ncols=True) as bar:
-        def on_sweep(done: int, max_cosine: float) -> None:
-            bar.set_postfix(max_cosine=f"{max_cosine:.1e}", refresh=False)
-            bar.update(done - bar.n)
-
-        yield on_sweep

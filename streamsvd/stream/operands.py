@@ -1,0 +1,143 @@
+"""What an update of the stream is given: its operand, and the options of its step.
+
+:func:`_merge_operand` checks what :meth:`StreamCompressor.merge
+<streamsvd.stream.compressor.StreamCompressor.merge>` is given and returns it as a
+:class:`_MergeOperand` (basis, coordinates, core, right factor, bound);
+:func:`_increment` checks the arguments of :meth:`StreamCompressor.add
+<streamsvd.stream.compressor.StreamCompressor.add>`; :func:`_merge_options` and
+:func:`_final_options` are the step options of a merge and of :meth:`StreamCompressor.finalize
+<streamsvd.stream.compressor.StreamCompressor.finalize>`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any, cast
+
+import numpy as np
+import scipy.linalg.blas as blas
+
+from streamsvd._util.validation import as_float_array, check_choice, check_positive_int
+from streamsvd.algebra.inner import InnerProduct, check_same_inner
+from streamsvd.algebra.memory import MemoryBasis
+from streamsvd.engine.bound import Bound
+from streamsvd.engine.core import r_factor
+from streamsvd.errors import InputError
+from streamsvd.linalg.expansion import Expansion
+from streamsvd.linalg.rotations import RULES
+
+if TYPE_CHECKING:
+    from streamsvd.engine import StepOptions
+    from streamsvd.stream.compressor import StreamCompressor
+
+__all__: list[str] = []
+
+
+@dataclasses.dataclass(frozen=True)
+class _MergeOperand:
+    """What :meth:`StreamCompressor.merge` absorbs: ``U_o V_o^T`` with ``U_o = Q Z``.
+
+    ``Q`` is the other expansion's basis, ``Z`` its coordinates (None when ``Q`` holds the
+    left vectors themselves), ``R`` the core (``V_o = Y R``), ``Y`` the orthonormal right
+    factor (None when the right vectors are not kept), ``m`` the number of snapshots and
+    ``bound`` the error bound the other expansion carries.
+    """
+
+    Q: np.ndarray
+    Z: np.ndarray | None
+    R: np.ndarray
+    Y: np.ndarray | None
+    m: int
+    bound: Bound
+
+    def coordinates(self) -> np.ndarray:
+        """Return ``Z`` (the identity when ``Q`` holds the left vectors)."""
+        return np.eye(self.Q.shape[1]) if self.Z is None else self.Z
+
+    def left_vectors(self) -> np.ndarray:
+        """Return ``U_o = Q Z`` (column-major when formed here)."""
+        if self.Z is None:
+            return self.Q
+        if self.Q.shape[1] == 0 or self.Z.shape[1] == 0:
+            return np.zeros((self.Q.shape[0], self.Z.shape[1]), order="F")
+        return blas.dgemm(1.0, self.Q, self.Z)
+
+
+def _merge_operand(
+    other: Any, compressor: type[StreamCompressor], *, n: int, inner: InnerProduct,
+    keep_rows: bool,
+) -> _MergeOperand:
+    """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
+
+    ``other`` is checked first: a compressor (an instance of ``compressor``, the class
+    :class:`StreamCompressor`) or an expansion of snapshots of size ``n`` in the inner
+    product ``inner``. A compressor's basis in memory is used as it is; a
+    basis elsewhere (panels) gives its left vectors.
+    """
+    if not isinstance(other, compressor | Expansion):
+        raise InputError(
+            f"`other` must be a StreamCompressor or an Expansion; got {type(other).__name__}."
+        )
+    if other.n != n:
+        raise InputError(f"`other` must have snapshots of size {n}; got {other.n}.")
+    check_same_inner(inner, other.inner, "other")
+    if isinstance(other, compressor):
+        o = other._state
+        if keep_rows and o.rows is None:
+            raise InputError(
+                "`other` keeps no right vectors (`right_vectors=False`) but this "
+                "compressor does; merge compressors created alike."
+            )
+        Y_o = o.rows.value() if keep_rows and o.rows is not None else None
+        coords, _, R = o.settled()
+        if isinstance(o.basis, MemoryBasis):
+            return _MergeOperand(o.basis.Q, coords, R, Y_o, o.m, o.bound)
+        return _MergeOperand(o.basis.lincomb(coords), None, R, Y_o, o.m, o.bound)
+    expansion = cast(Expansion, other)  # what is not a compressor
+    U_o, V_o = np.array(expansion.U, order="F"), np.array(expansion.V)
+    if not keep_rows:
+        return _MergeOperand(U_o, None, r_factor(V_o), None, V_o.shape[0], Bound())
+    Y_o, R_o = np.linalg.qr(V_o)
+    return _MergeOperand(U_o, None, R_o, Y_o, V_o.shape[0], Bound())
+
+
+def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Check the arguments of :meth:`StreamCompressor.add`; return them as arrays."""
+    s = sc._state
+    if s.rows is None:
+        raise InputError(
+            "`add` needs the right vectors, and this StreamCompressor keeps none "
+            "(`right_vectors=False`); create it with `right_vectors=True`."
+        )
+    Uk = as_float_array(U_k, "U_k", ndim=2, rows=sc.n)
+    m = s.m if (s.m or s.rank) else None
+    Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
+    if coefficients is not None:
+        return Uk, Vk, as_float_array(coefficients, "coefficients", ndim=2, rows=s.m,
+                                      cols=s.rank)
+    if Uk.shape[1] == 0:
+        raise InputError(
+            f"`U_k` must have at least one column (or pass `coefficients`); got shape "
+            f"{Uk.shape}."
+        )
+    return Uk, Vk, None
+
+
+def _merge_options(opts: StepOptions, *, spend_target: bool) -> StepOptions:
+    """Return the step options of a merge: ``opts``, without the target unless it is spent."""
+    if spend_target:
+        return opts
+    return dataclasses.replace(
+        opts, truncation=dataclasses.replace(opts.truncation, target=None)
+    )
+
+
+def _final_options(sc: StreamCompressor, *, rule: str, max_rank: int | None) -> StepOptions:
+    """Return the step options of :meth:`StreamCompressor.finalize` (checking its arguments)."""
+    cap = check_positive_int(max_rank, "max_rank", allow_none=True)
+    return dataclasses.replace(
+        sc._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
+        truncation=sc.options.truncation(
+            max_rank=sc.max_rank if cap is None else cap, share=1.0),
+    )
