@@ -628,7 +628,7 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
     """Interrupted after its block was copied beside the basis, an update leaves the
     stored width, the expansion and the store as they were; the next absorb of the same
     block keeps it."""
-    import streamsvd.engine.update_gram as update_gram
+    import streamsvd.engine.gram_path as gram_path
 
     n = 400
     A = with_spectrum(np.logspace(0, -6, 100), n, 120, rng)
@@ -645,7 +645,7 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
             raise KeyboardInterrupt
 
         with monkeypatch.context() as mp:
-            mp.setattr(update_gram, "dtrtri", interrupt)
+            mp.setattr(gram_path, "dtrtri", interrupt)  # in _kept_factors
             with pytest.raises(KeyboardInterrupt):
                 sc.absorb(A[:, j : j + 2])
         assert sc._state.basis.width == width and sc.n_seen == j

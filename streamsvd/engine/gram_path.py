@@ -1,0 +1,214 @@
+"""When an update may go through a Gram matrix: the Gram path's conditions and helpers.
+
+The tuning constants of the path, the rounding allowance of ``Phi`` and the checks that
+send an update to the exact path (:func:`_path_applies`, :func:`_refused_before_block`,
+:func:`_compaction_pays`, :func:`_room`), the choice to keep a narrow block beside the
+basis (:func:`_keeps_block`, :func:`_kept_factors`) and the products of a block with the
+basis (:func:`_products`). They serve :mod:`streamsvd.engine.update_gram`, which plans
+the update; the method and why it is safe are on the theory page ``docs/theory/gram-path.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, cast
+
+import numpy as np
+from scipy.linalg.lapack import dtrtri
+
+from streamsvd._util.scaling import pow2_exponent
+from streamsvd.algebra.memory import BasisBackend, DeferredGram
+from streamsvd.engine.core import Truncation
+from streamsvd.engine.state import Plan, State, StepOptions
+from streamsvd.linalg.gram_schmidt import default_reject_tol
+
+__all__ = [
+    "GRAM_MEASURES", "_ALLOWANCE_SHARE", "_COMPACTION_RATIO", "_EPS", "_JOINT_MAX_SHARE",
+    "_KEEP_MAX_SHARE", "_KEEP_MAX_WIDTH", "_MAX_DRIFT", "_MAX_SPREAD", "_ROUNDING_LAMBDA",
+    "_SAFE_HIGH", "_SAFE_LOW", "_SMALLEST_KEPT", "_allowance", "_cancellation_energy",
+    "_compaction_pays", "_declined", "_drift", "_keeps_block", "_kept_factors",
+    "_path_applies", "_products", "_refused_before_block", "_room", "_times", "_times_left",
+]
+
+_EPS = float(np.finfo(np.float64).eps)
+GRAM_MEASURES = ("relative", "mean_l2")
+_ALLOWANCE_SHARE = 0.01  # of the growth of the (squared) budget in this update
+_ROUNDING_LAMBDA = 4.0  # Higham and Mary's constant of the probabilistic model
+_SMALLEST_KEPT = 64.0  # kept eigenvalues above this many times their rounding
+_MAX_DRIFT = 0.25  # largest ||H' - I|| of the new basis
+_MAX_SPREAD = 900  # largest spread of the block's binary exponents
+_COMPACTION_RATIO = 4.0  # largest compaction flops over the exact path's products
+_JOINT_MAX_SHARE = 0.5  # widest block, over the basis's width, copied beside a pending one
+_KEEP_MAX_SHARE = 4  # a block kept beside the basis is at most 1/4 as wide as the terms
+_KEEP_MAX_WIDTH = 2  # and the stored width stays within twice the terms
+# squared column norms within which the block is used unscaled (no product of its
+# entries can overflow or lose digits to underflow in the Gram)
+_SAFE_LOW, _SAFE_HIGH = 2.0**-600, 2.0**600
+
+
+def _allowance(energy: float, size: int, n: int) -> float:
+    """Return the bound on the rounding of ``trace(Phi) = energy`` (``Phi`` of order ``size``)."""
+    return _ROUNDING_LAMBDA * (math.sqrt(size * n) + size) * _EPS * energy
+
+
+def _drift(H: np.ndarray) -> float:
+    """Return ``||H - I||_2``, or its upper bound ``||H - I||_F`` when that is small."""
+    E = H - np.eye(H.shape[0])
+    frobenius = float(np.linalg.norm(E))
+    if frobenius <= _MAX_DRIFT:
+        return frobenius
+    return float(np.max(np.abs(np.linalg.eigvalsh(E))))
+
+
+def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bool:
+    """Whether a ``mean_l2`` target refuses the update whatever the block holds.
+
+    The rounding allowance grows with ``||F||^2 >= ||R||^2`` while the growth of the
+    budget (``b (share target)^2``) does not depend on the block: when the energy already
+    absorbed alone exceeds the share, the block's ``M`` product and Gram are not made.
+    """
+    if trunc.target is None or trunc.measure != "mean_l2" or state.R.size == 0:
+        return False
+    e = pow2_exponent(state.R)
+    if abs(e) > _MAX_SPREAD // 2:  # 4^e outside the range: left to the checks that follow
+        return False
+    old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
+    room = (trunc.share * trunc.target) ** 2 * math.ldexp(float(b), -2 * e)
+    return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
+
+
+def _path_applies(opts: StepOptions, n: int) -> bool:
+    """Whether the options let an update take this path at all.
+
+    Not when nothing is cut but by ``eps`` and ``rtol``, which act after the rule's
+    sweeps (the paper's Algorithm 3), or nothing at all (every digit is the user's), and
+    not with a ``reject_tol`` above the default ``n eps``: residuals that weak are
+    rejected one by one on the exact path, as the user asked, where this path would
+    keep a term the rule keeps.
+    """
+    trunc = opts.truncation
+    if trunc.target is None and trunc.max_rank is None:
+        return False
+    return opts.reject_tol <= default_reject_tol(n)
+
+
+def _declined(basis: BasisBackend) -> Plan | None:
+    """Drop what the basis staged for this path; None sends the update to the exact path."""
+    basis.discard_planned()
+    return None
+
+
+def _compaction_pays(w: int, b: int, keep: int) -> bool:
+    """Whether writing ``keep`` columns from ``w + b`` costs at most 4x the exact path.
+
+    The exact path's products cost about ``3 w b + 2 b^2`` per row; a narrow block takes
+    it, appending its directions and compacting only when that pays.
+    """
+    return (w + b) * keep <= _COMPACTION_RATIO * (3 * w * b + 2 * b * b)
+
+
+def _room(
+    trunc: Truncation, cut: np.ndarray, block_energy: float, added: int, top: int
+) -> float:
+    """Return the energy (scaled by ``4^-top``) the rounding allowance is measured against.
+
+    With a ``relative`` or ``mean_l2`` target: the growth of the squared streaming budget
+    in this update (the energy appended, ``block_energy``, or the number of snapshots
+    appended, ``added``, times ``(share target)^2``); otherwise the energy this update
+    cuts (``cut``: the eigenvalues not kept).
+    """
+    if trunc.target is not None and trunc.measure in GRAM_MEASURES:
+        share_eps = trunc.share * trunc.target
+        if trunc.measure == "mean_l2":
+            return share_eps**2 * math.ldexp(float(added), -2 * top)
+        return share_eps**2 * block_energy
+    return float(np.sum(cut))
+
+
+def _keeps_block(w: int, b: int, keep: int) -> bool:
+    """Whether an update may store a block of ``b`` columns instead of compacting.
+
+    For a block at most a quarter as wide as the ``keep`` terms, while the stored width
+    stays within twice ``keep``: writing ``keep`` columns from ``w + b`` then costs more
+    than the wider projections the stored block adds until the next compaction.
+    """
+    return _KEEP_MAX_SHARE * b <= keep and w + b <= _KEEP_MAX_WIDTH * keep
+
+
+def _kept_factors(G: np.ndarray, predicted: np.ndarray, B: np.ndarray, *, tol: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """Return ``(coords, L, B, orthogonality)`` for a block kept beside the basis, or None.
+
+    ``U = [Q, Y] G`` has the Gram ``G^T B G = Wk^T Phi Wk``, ``predicted`` here
+    (symmetric), ``B`` the Gram of ``[Q, Y]`` (measured: the block's columns are stored
+    as they are); with ``predicted = L L^T``, ``U = [Q, Y] coords``, ``coords = G
+    L^(-T)``. Forming ``U``
+    rounds each column ``u_k`` by about ``lambda sqrt(w) eps sum_i ||q_i|| |coords_ik|``
+    (``q_i`` the stored columns, ``w`` of them), more than ``eps`` when the columns
+    cancel, and ``L`` carries the rounding of ``predicted`` (about ``eps lambda_1 /
+    lambda_k``, which a compaction's measured Gram would remove): None when either
+    exceeds ``tol`` (``reorth_tol``), so that ``U`` is orthonormal to the tolerance the
+    exact path keeps.
+    """
+    drift = _drift(predicted)
+    if drift > tol:
+        return None
+    L = np.linalg.cholesky(predicted)
+    coords = G @ dtrtri(L, lower=1)[0].T  # G L^{-T}
+    norms = np.sqrt(np.maximum(np.diag(B), 0.0))
+    rounding = (_ROUNDING_LAMBDA * math.sqrt(B.shape[0]) * _EPS
+                * float(np.max(norms @ np.abs(coords))))
+    orthogonality = drift + 2.0 * rounding
+    if orthogonality > tol:
+        return None
+    return coords, L, B, orthogonality
+
+
+def _cancellation_energy(H: np.ndarray, S: np.ndarray, Zq: np.ndarray,
+                         Zb: np.ndarray) -> float:
+    """Return ``sum_i B_ii ||Z_i||^2``, ``B`` the Gram of ``[Q, Y]``, ``Z_i`` the rows of ``Z``.
+
+    The rounding of ``B`` is relative to its diagonal (``|dB_ij| <~ gamma sqrt(B_ii
+    B_jj)``), so that of ``Phi = Z^T B Z`` is relative to this sum. It is ``trace(Phi)``
+    when ``[Q, Y] Z`` has orthonormal columns ``Q`` and a block of orthogonal columns, and
+    larger when ``Z`` combines stored columns that cancel (blocks kept beside the basis).
+    """
+    zb2 = Zb * Zb if Zb.ndim == 1 else np.sum(Zb * Zb, axis=1)
+    return float(np.diag(H) @ np.sum(Zq * Zq, axis=1) + np.diag(S) @ zb2)
+
+
+def _times(A: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """Return ``A Z``, ``Z`` a matrix or a diagonal given by its entries (1-D)."""
+    return A * Z if Z.ndim == 1 else A @ Z
+
+
+def _times_left(Z: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Return ``Z A``, ``Z`` a matrix or a diagonal given by its entries (1-D)."""
+    return Z[:, np.newaxis] * A if Z.ndim == 1 else Z @ A
+
+
+def _products(state: State, Y: Any, *, project: bool
+              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Stage the block ``Y``; return ``Y^T M Y``, ``MQ^T Y`` and the basis's Gram ``H``.
+
+    A pending Gram (:class:`~streamsvd.engine.state.State`) is measured here: for a block at
+    most half as wide as the basis in one product with it
+    (:meth:`~streamsvd.algebra.memory.MemoryBasis.joint_products`), which holds the block beside
+    the basis in both of its buffers (``2 n b`` more numbers: 32 MB for 10 columns at
+    n = 200000); a wider block, where the product gains less (5 to 7% at 100 columns on
+    a basis of 70, against 14 to 17% at 10) for more memory (320 MB at n = 200000), is
+    staged as it is and the Gram measured alone. Otherwise the Gram is the state's, and
+    ``MQ^T Y`` is None unless ``project``.
+    """
+    basis = cast(DeferredGram, state.basis)
+    if state.gram is not None:
+        if (basis.defers_gram and isinstance(Y, np.ndarray)
+                and _keeps_block(basis.width, Y.shape[1], state.rank)):
+            return (*basis.products_beside(Y), state.gram)
+        S, C = basis.block_products(Y, project=project)
+        return S, C, state.gram
+    if Y.shape[1] <= _JOINT_MAX_SHARE * basis.width:
+        return basis.joint_products(Y)
+    H = basis.measure_gram()
+    S, C = basis.block_products(Y, project=project)
+    return S, C, H
