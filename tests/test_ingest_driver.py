@@ -301,7 +301,7 @@ def test_a_dask_chunk_is_computed_once_per_block_read(rng, monkeypatch):
     # a tree leaf reads its window of a dask source by slabs of whole dask chunks, even
     # when a slab of the reader's size holds fewer rows than a chunk
     import streamsvd.io.sources
-    from streamsvd.parallel.tree import SourceSpec
+    from streamsvd.parallel.spec import SourceSpec
 
     monkeypatch.setattr(streamsvd.io.sources, "_READ_BYTES", 4 * 5 * 8)  # 4 rows of 5 columns
 

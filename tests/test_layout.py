@@ -14,9 +14,11 @@ LAYERS = ["algebra", "algebra.panels", "engine", "io", "linalg", "parallel", "sk
 OLD_PATHS = {"basis": "algebra.memory", "bound": "engine.bound",
              "estimator": "sklearn.estimator",
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
-             "parallel_tree": "parallel.tree", "gram_schmidt": "linalg.gram_schmidt"}
+             "parallel_tree": ("parallel.tree", "parallel.spec"),
+             "gram_schmidt": "linalg.gram_schmidt"}
 # the public names of the flat modules split in the move: their aliases still read them
-OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"]}
+OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
+             "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"]}
 
 
 def test_every_public_name_of_the_package_resolves():

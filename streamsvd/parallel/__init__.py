@@ -20,7 +20,7 @@ _EXPORTS = {
     "KIND": "tall",
     "PanelBackend": "tall",
     "TallCompressor": "tall",
-    "SourceSpec": "tree",
+    "SourceSpec": "spec",
     "tree_compress": "tree",
 }
 __all__ = sorted(_EXPORTS)
