@@ -101,7 +101,7 @@ _MOVED: dict[str, str | tuple[str, ...]] = {
     "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
     "expansion": "linalg.expansion", "gram_schmidt": "linalg.gram_schmidt",
     "inner": "algebra.inner", "locks": "storage.lockfile", "panels": "algebra.panels.basis",
-    "parallel_tall": "parallel.tall",
+    "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
     "parallel_tree": ("parallel.tree", "parallel.spec"),
     "provenance": "io.provenance", "rotations": "linalg.rotations", "rows": "engine.rows",
     "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),

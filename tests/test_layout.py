@@ -15,10 +15,12 @@ OLD_PATHS = {"basis": "algebra.memory", "bound": "engine.bound",
              "estimator": "sklearn.estimator",
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
              "parallel_tree": ("parallel.tree", "parallel.spec"),
+             "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
              "gram_schmidt": "linalg.gram_schmidt"}
 # the public names of the flat modules split in the move: their aliases still read them
 OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
-             "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"]}
+             "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"],
+             "parallel_tall": ["DEFAULT_CHUNK_ROWS", "KIND", "PanelBackend", "TallCompressor"]}
 
 
 def test_every_public_name_of_the_package_resolves():

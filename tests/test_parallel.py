@@ -502,7 +502,7 @@ def test_tall_block_is_read_by_row_chunks_and_never_whole(rng, tmp_path, monkeyp
     """With a cut, a block of a zarr source is read row chunk by row chunk within the
     update's pass: no task holds it whole, it is never loaded into memory, and the result
     is the in-memory stream's."""
-    from streamsvd.parallel.tall import PanelBackend
+    from streamsvd.algebra.panels.backend import PanelBackend
 
     n, rows, b = 4000, 250, 20
     A = low_rank(rng, n=n, m=60, rank=20, noise=1e-6)

@@ -7,11 +7,11 @@ import pytest
 
 from streamsvd import StreamCompressor
 from streamsvd.algebra.memory import MemoryBackend
+from streamsvd.algebra.panels.backend import PanelBackend
 from streamsvd.engine import rows as rows_module
 from streamsvd.engine.state import apply_plan, stage_plan
 from streamsvd.engine.update import plan_absorb
 from streamsvd.parallel.cluster import TallCompressor, open_compressor
-from streamsvd.parallel.tall import PanelBackend
 
 
 def _panels(basis):

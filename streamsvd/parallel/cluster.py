@@ -38,10 +38,11 @@ from streamsvd._util.malloc import keep_freed_memory
 from streamsvd._util.scheduling import execute
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.memory import MEMORY_KIND
+from streamsvd.algebra.panels.backend import KIND
 from streamsvd.errors import InputError, ShapeMismatchError, StoreMismatchError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.parallel.spec import SourceSpec
-from streamsvd.parallel.tall import KIND, TallCompressor
+from streamsvd.parallel.tall import TallCompressor
 from streamsvd.parallel.tree import COMPRESSOR_OPTIONS, tree_compress
 from streamsvd.storage import open_storage
 from streamsvd.store import open_store

@@ -173,7 +173,7 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
     backend : Backend, optional
         Where the n-sized factor lives (:class:`~streamsvd.algebra.memory.MemoryBackend`, the
-        default; :class:`~streamsvd.parallel.tall.PanelBackend` keeps it in panels on disk,
+        default; :class:`~streamsvd.algebra.panels.backend.PanelBackend` keeps it in panels on disk,
         as :class:`~streamsvd.parallel.TallCompressor` builds it).
     threads : int or None
         BLAS threads of an update (default 1; ``None`` leaves the BLAS as it is set).

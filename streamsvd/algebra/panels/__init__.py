@@ -4,6 +4,9 @@ from streamsvd._util.lazy import lazy_exports
 
 # public name -> the submodule that defines it (imported on first access)
 _EXPORTS = {
+    "DEFAULT_CHUNK_ROWS": "backend",
+    "KIND": "backend",
+    "PanelBackend": "backend",
     "PanelBasis": "basis",
     "PanelFiles": "files",
     "LazyBlock": "lazy",
