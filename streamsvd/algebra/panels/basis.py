@@ -37,17 +37,15 @@ so a process or worker killed at any instant leaves the last commit readable.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from streamsvd.algebra.inner import InnerProduct
+from streamsvd.algebra.panels import staging
 from streamsvd.algebra.panels import tasks as panel_tasks
 from streamsvd.algebra.panels.files import PanelFiles
 from streamsvd.algebra.panels.row_chunks import RowChunks, io_target
-from streamsvd.algebra.panels.zarr_io import Region
-from streamsvd.errors import StoreFormatError
 from streamsvd.storage import LocalStorage, ObjectStorage
 
 __all__ = ["PanelBasis"]
@@ -111,24 +109,6 @@ class PanelBasis:
         """Columns the basis can hold without growing: panels are added, never grown."""
         return np.iinfo(np.int64).max
 
-    def _seal(self, names: list[str]) -> None:
-        """Write a zarr copy of each raw panel of ``names`` that has none (for a commit).
-
-        The copy lies in the panel's own directory, beside the raw file, which the
-        passes go on using; both go when the panel is deleted.
-        """
-        import dask.array as da
-
-        todo = self.files.unsealed(names)
-        if not todo:
-            return
-        self.rows.compute([
-            da.store(self.rows.panel(name), Region(self.files.zarr_copy(name)), lock=False,
-                     compute=False)
-            for name in todo
-        ])
-        self.files.sealed.update(todo)
-
     def _write(self, data: Any) -> tuple[str, int]:
         """Write an ``n x c`` numpy or dask array as a new panel; return its name and width."""
         import dask.array as da
@@ -171,11 +151,6 @@ class PanelBasis:
         """Return the first ``r`` workspace columns and their ``M`` image."""
         assert self._ws is not None and self._mws is not None
         return self._ws[:, :r], self._mws[:, :r]
-
-    def stage_new(self, r: int) -> None:
-        """Write the first ``r`` workspace columns as a new panel (before any commit)."""
-        if r:
-            self._staged_new = self._write(self.planned_new(r)[0])
 
     def accept(self, r: int) -> None:
         """Append the staged panel to the stored columns."""
@@ -338,27 +313,6 @@ class PanelBasis:
         """Return the stored panels as dask arrays of their row chunks (not concatenated)."""
         return [self.rows.panel(name) for name in self.panels]
 
-    def swap(self, p: int) -> None:
-        """Make the panel written by :meth:`compact_planned` the stored basis."""
-        assert self._staged_compact is not None and self._staged_compact[1] == p
-        name, _ = self._staged_compact
-        self._retired += [old for old in self.panels if old != name]
-        self.panels, self.widths = ([name], [p]) if p else ([], [])
-        self._staged_compact, self._ws, self._mws = None, None, None
-        self._drop_block()
-        self.compactions += 1
-        logger.info("compacted the basis to one panel of width %d", p)
-
-    def discard_planned(self) -> None:
-        """Remove the panels an abandoned plan wrote (and the next block it read ahead)."""
-        self._expected = None
-        self._drop_read_ahead()
-        for staged in (self._staged_new, self._staged_compact):
-            if staged is not None and staged[0]:
-                self.files.delete(staged[0])
-        self._staged_new = self._staged_compact = None
-        self._drop_block()
-
     def _drop_block(self) -> None:
         """Forget the staged block; keep its raw scratch copy for the next block, or remove it.
 
@@ -386,76 +340,17 @@ class PanelBasis:
         return Q @ G
 
     # ------------------------------------------------------------------ persistence
-    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
-        """Return what a commit writes: no array, the planned list of panels.
-
-        Each raw panel of the list gets its zarr copy first (:meth:`_seal`), so a commit
-        only ever lists panels that a reopened store can read and check.
-        """
-        if compacted:
-            assert self._staged_compact is not None
-            name, p = self._staged_compact
-            panels, widths = ([name], [p]) if p else ([], [])
-        elif r:
-            assert self._staged_new is not None
-            panels = self.panels + [self._staged_new[0]]
-            widths = self.widths + [self._staged_new[1]]
-        else:
-            panels, widths = list(self.panels), list(self.widths)
-        self._seal(panels)
-        return {}, {"panels": panels, "widths": widths, "chunk_rows": self.chunk_rows}
-
-    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
-        """Load the list of panels a commit wrote, checking each panel's shape."""
-        self.panels = [str(p) for p in attrs["panels"]]
-        self.widths = [int(w) for w in attrs["widths"]]
-        for name, width in zip(self.panels, self.widths, strict=True):
-            z = self.files.open(name)
-            if z.shape != (self.n, width):
-                raise StoreFormatError(
-                    f"`path` {self.root} is damaged: panel {name} has shape {z.shape}, "
-                    f"expected {(self.n, width)}. Restore the store from a copy."
-                )
-
-    def adopt(self, other: PanelBasis) -> None:
-        """Hold a copy of ``other``'s stored columns, written as one panel of this root."""
-        Q = other.rows.stacked(other.panels)
-        if Q is None:
-            self.panels, self.widths = [], []
-            return
-        name, width = self._write(self.rows.rows_of(Q))
-        self.panels, self.widths = [name], [width]
-
-    def release(self, committed: Sequence[dict]) -> None:
-        """Let go of the panels a compaction replaced that none of these commits refers to.
-
-        Only panels this basis wrote and replaced go, so a work directory shared with
-        other data is safe; without a store the replaced basis goes at once. A raw file
-        that no commit ever listed is kept for the next compaction to write over
-        (:meth:`~streamsvd.algebra.panels.files.PanelFiles.let_go`), the others are deleted.
-        """
-        live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
-        keep = [name for name in self._retired if name in live]
-        for name in self._retired:
-            if name not in live:
-                self.files.let_go(name)
-        self._retired = keep
-
-    def drop_scratch(self) -> None:
-        """Remove the raw files kept to be written over (made again when needed)."""
-        self._drop_read_ahead()
-        self.files.drop_spares()
-
-    def collect(self, committed: Sequence[dict]) -> None:
-        """Delete the panels that neither the state nor these commits' attributes refer to."""
-        live = set(self.panels).union(*(attrs.get("panels", ()) for attrs in committed))
-        live.update(spare.name for spare in self.files.spares)
-        if self._read_ahead is not None:
-            live.add(self._read_ahead.scratch)
-        for entry in self.files.listed():
-            if entry not in live:
-                logger.debug("removing unreferenced panel %s of %s", entry, self.root)
-                self.files.delete(entry)
+    # the staging of a commit (:mod:`streamsvd.algebra.panels.staging`), bound as methods
+    swap = staging.swap
+    discard_planned = staging.discard_planned
+    commit_arrays = staging.commit_arrays
+    restore = staging.restore
+    adopt = staging.adopt
+    release = staging.release
+    collect = staging.collect
+    stage_new = staging.stage_new
+    drop_scratch = staging.drop_scratch
+    _seal = staging._seal
 
 
 class _ReadAhead:
