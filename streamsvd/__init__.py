@@ -99,7 +99,8 @@ _SUBPACKAGES = frozenset({
 # first home that has it
 _MOVED: dict[str, str | tuple[str, ...]] = {
     "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
-    "expansion": "linalg.expansion", "gram_schmidt": "linalg.gram_schmidt",
+    "expansion": "linalg.expansion",
+    "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
     "inner": "algebra.inner", "locks": "storage.lockfile", "panels": "algebra.panels.basis",
     "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
     "parallel_tree": ("parallel.tree", "parallel.spec"),

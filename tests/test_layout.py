@@ -16,7 +16,7 @@ OLD_PATHS = {"basis": "algebra.memory", "bound": "engine.bound",
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
              "parallel_tree": ("parallel.tree", "parallel.spec"),
              "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
-             "gram_schmidt": "linalg.gram_schmidt"}
+             "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend")}
 # the public names of the flat modules split in the move: their aliases still read them
 OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
              "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"],

@@ -20,7 +20,7 @@ from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.memory import BasisBackend, DeferredGram
 from streamsvd.engine.core import Truncation
 from streamsvd.engine.state import Plan, State, StepOptions
-from streamsvd.linalg.gram_schmidt import default_reject_tol
+from streamsvd.linalg.extend import default_reject_tol
 
 __all__ = [
     "GRAM_MEASURES", "_ALLOWANCE_SHARE", "_COMPACTION_RATIO", "_EPS", "_JOINT_MAX_SHARE",

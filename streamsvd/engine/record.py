@@ -54,7 +54,7 @@ class UpdateRecord:
         that writes a new one): 2 for an absorb by the snapshots' Gram
         (:mod:`streamsvd.engine.update_gram`), 2 to 4 for the exact path on a well-conditioned
         block, more for nearly collinear blocks (rounds of
-        :func:`streamsvd.linalg.gram_schmidt.extend_basis`).
+        :func:`streamsvd.linalg.extend.extend_basis`).
     """
 
     kind: str

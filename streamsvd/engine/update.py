@@ -47,7 +47,7 @@ from streamsvd.engine.state import (
     Writes,
     gram_orthogonality,
 )
-from streamsvd.linalg.gram_schmidt import BasisExtension, extend_basis
+from streamsvd.linalg.extend import BasisExtension, extend_basis
 
 __all__ = [
     "COMPACT_PER_COLUMN", "plan_absorb", "plan_add", "plan_finalize", "plan_merge",

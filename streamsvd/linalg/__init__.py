@@ -9,10 +9,10 @@ from streamsvd._util.lazy import lazy_exports
 # public name -> the submodule that defines it (imported on first access)
 _EXPORTS = {
     "Expansion": "expansion",
-    "BasisExtension": "gram_schmidt",
+    "BasisExtension": "extend",
+    "default_reject_tol": "extend",
+    "extend_basis": "extend",
     "GramSchmidtResult": "gram_schmidt",
-    "default_reject_tol": "gram_schmidt",
-    "extend_basis": "gram_schmidt",
     "orthonormalize": "gram_schmidt",
     "orthonormalize_literal": "gram_schmidt",
     "PairDynamics": "rotations",

@@ -1,4 +1,4 @@
-"""The BLAS-3 kernels of block Gram-Schmidt (:func:`streamsvd.linalg.gram_schmidt.extend_basis`).
+"""The BLAS-3 kernels of block Gram-Schmidt (:func:`streamsvd.linalg.extend.extend_basis`).
 
 Scaling a block by powers of two, ``M``-products (the Gram matrices and ``M``-norms come
 from :mod:`streamsvd.algebra.blas`), CholeskyQR in place,

@@ -11,6 +11,9 @@ Two implementations:
   more than half is projected again (the Kahan-Parlett / DGKS criterion), up to four
   passes, so that a small accepted residual is orthogonal to working accuracy.
 
+Both extend the basis block by block with :func:`~streamsvd.linalg.extend.extend_basis`
+(module :mod:`streamsvd.linalg.extend`), the step every update of a compressor takes.
+
 Rejection rule: after both passes, the column ``x_k`` (``M``-norm ``nu_k`` before
 projection) leaves the residual ``r_k``; the direction is kept when
 
@@ -36,296 +39,21 @@ from streamsvd._util.scaling import pow2_exponent
 from streamsvd._util.validation import as_float_array, check_nonnegative, check_positive_int
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct, as_inner
-from streamsvd.algebra.memory import BasisBackend, MemoryBasis
+from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.errors import ShapeMismatchError
-from streamsvd.linalg.blocks import (
-    COND_SPLIT,
-    ONE_PASS_COND,
-    apply_into,
-    cholesky_qr_in_place,
-    column_rule,
-    complement,
-    orthonormalize_in_rounds,
-    place_directions,
-    right_solve,
-    scale_into,
-    scaled_norm,
-)
 from streamsvd.linalg.expansion import Expansion
+from streamsvd.linalg.extend import default_reject_tol, extend_basis
 
 __all__ = [
-    "BasisExtension",
     "GramSchmidtResult",
-    "default_reject_tol",
-    "extend_basis",
     "orthonormalize",
     "orthonormalize_literal",
 ]
 
 _EPS = np.finfo(np.float64).eps
-# a residual that kept more than this of its component along the basis (relative to its
-# own norm) is projected a second time; a smaller one is measured and kept in the basis
-# Gram, where the compressor's orthogonality check accounts for it
-_LOSS_MAX = 2.0**-26
 # a basis whose Gram departs from the identity by more than this times n eps is
 # orthonormalised by its Cholesky factor (as the compressors' reorth_tol)
 _REORTH = 10.0
-
-
-def default_reject_tol(n: int) -> float:
-    """Return the default rejection threshold ``n * eps`` (relative to a column's norm)."""
-    return max(n, 1) * _EPS
-
-
-@dataclass(frozen=True)
-class BasisExtension:
-    """How a block ``X`` (``n x b``) decomposes on a basis ``Q G`` extended by new directions.
-
-    ``X = Q G coeffs + Q_new R_new + Res``, where ``Q_new`` (``n x r``) sits in the basis
-    backend's workspace (accepted by the caller with ``basis.accept(r)``) and ``Res`` is
-    the rejected part, ``M``-orthogonal to ``Q_new``: ``Res = T F D`` with
-    ``D = diag(2^e)`` the columns' scalings, ``F = rejected_map`` and ``T`` (never
-    formed) of Gram ``T^T M T = rejected_gram``.
-
-    Attributes
-    ----------
-    coeffs : ndarray, shape (q, b)
-        Coefficients on the existing basis ``Q G``.
-    R_new : ndarray, shape (r, b)
-        Coefficients on the new directions.
-    accepted : ndarray of bool, shape (b,)
-        Whether each column brought a new direction (the rule of :func:`extend_basis`).
-    rejected_gram : ndarray, shape (k, k)
-    rejected_map : ndarray, shape (k, b)
-    exponents : ndarray of int, shape (b,)
-        The columns' power-of-two scalings ``e``.
-    block_norm : float
-        ``||X||_M`` (Frobenius in ``M``) of the block, overflow-safe.
-    cross_gram : ndarray, shape (w, r)
-        ``(M Q)^T Q_new`` over every stored column: the new block of the basis Gram.
-    gram_new : ndarray, shape (r, r)
-        ``Q_new^T M Q_new``.
-    passes : int
-        Products of an ``n``-sized block with the stored basis (projections and
-        subtractions): what an update costs.
-    """
-
-    coeffs: np.ndarray
-    R_new: np.ndarray
-    accepted: np.ndarray
-    rejected_gram: np.ndarray
-    rejected_map: np.ndarray
-    exponents: np.ndarray
-    block_norm: float
-    cross_gram: np.ndarray
-    gram_new: np.ndarray
-    passes: int = 0
-
-    @classmethod
-    def empty(cls, q: int, w: int) -> BasisExtension:
-        """Return the extension by a block of no column."""
-        return cls(
-            coeffs=np.zeros((q, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
-            rejected_gram=np.zeros((0, 0)), rejected_map=np.zeros((0, 0)),
-            exponents=np.zeros(0, dtype=np.int64), block_norm=0.0, cross_gram=np.zeros((w, 0)),
-            gram_new=np.zeros((0, 0)),
-        )
-
-    @property
-    def rank(self) -> int:
-        """Number of new directions ``r``."""
-        return int(self.R_new.shape[0])
-
-    @property
-    def rejected(self) -> int:
-        """Number of columns that brought no new direction."""
-        return int(np.count_nonzero(~self.accepted))
-
-    def rejected_norm(self, V: np.ndarray | None = None) -> float:
-        """Return ``||Res V^T||_F`` in the inner product ``M``, exactly and overflow-safe.
-
-        ``V`` (``rows x b``) holds the right vectors of the block's columns (``V_k`` of an
-        increment, the core of an expansion); ``None`` stands for distinct columns of
-        their own (a block of snapshots), where the norm is ``||Res||_F``.
-        """
-        F = self.rejected_map
-        if F.size == 0:
-            return 0.0
-        e = self.exponents
-        shift = int(e.max())
-        DF = np.ldexp(F, (e - shift)[np.newaxis, :]).T  # (b, k): D F^T, scaled
-        if V is not None:
-            ev = pow2_exponent(V)
-            DF = np.ldexp(V, -ev) @ DF
-            shift += ev
-        top = pow2_exponent(DF)
-        DF = np.ldexp(DF, -top)
-        energy = float(np.sum(self.rejected_gram * (DF.T @ DF)))
-        return math.ldexp(math.sqrt(max(energy, 0.0)), shift + top)
-
-
-def extend_basis(
-    basis: BasisBackend,
-    G: np.ndarray | None,
-    X: np.ndarray,
-    *,
-    inner: InnerProduct,
-    reject_tol: float,
-    reference: np.ndarray | None = None,
-    basis_gram: np.ndarray | None = None,
-) -> BasisExtension:
-    """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
-
-    The columns are first scaled by exact powers of two (entries from the subnormal range
-    to 1e308 neither overflow nor underflow). Then:
-
-    1. **One projection** on the basis, ``Z = Y - Q G (G^T Q^T M Y)``, and one product
-       ``(M Q)^T Z`` over every stored column, which measures what the projection left
-       along the basis. It is subtracted (a second pass; Giraud et al. 2005: twice is
-       enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
-       is returned in ``cross_gram``, the new block of the basis Gram, where the compressor's
-       orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.engine.update`) accounts
-       for it.
-    2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
-       ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
-       in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to
-       working accuracy for ``cond(Z) <= 2^20``). Otherwise (nearly collinear snapshots,
-       the common case of time steps) the well-conditioned top of the spectrum is
-       orthonormalised as ``Z W Lambda^(-1/2)`` and one CholeskyQR pass (SVQB,
-       Stathopoulos and Wu 2002), and the rest ``Z W_t`` is measured again on the
-       vectors, projected twice on the basis and on the directions found, and treated in
-       a further round (each round resolves six more decades of the spectrum). A
-       direction too small to bring any column to the rejection threshold (below
-       ``reject_tol * ref_k / (2 sqrt(b))`` in every column ``k``) is set aside as
-       rejected without a further round.
-    3. **The rejection rule, column by column**, on the small coefficients ``Rz`` of the
-       residual on its orthonormal directions: in column order, a column is accepted
-       when its residual after the directions of the columns accepted before it exceeds
-       ``reject_tol * ref_k`` (``ref_k`` its ``M``-norm, or ``reference``), so nothing
-       below the threshold is ever normalised. The rejected part is orthogonal to the
-       kept directions in those coordinates, and its energy (with that of the directions
-       set aside, from the Gram of the measured vectors) is exact.
-
-    Parameters
-    ----------
-    basis : BasisBackend
-        The stored basis; the new directions are left in its workspace.
-    G : ndarray, shape (w, q), or None
-        The basis is ``Q G`` (``M``-orthonormal); ``None``: the basis is ``Q``.
-    X : ndarray, shape (n, b)
-        Finite block; not modified.
-    inner : InnerProduct
-    reject_tol : float
-        Relative rejection threshold.
-    reference : ndarray, shape (b,), optional
-        The norm each column's residual is compared with; default the column's own
-        ``M``-norm. Columns with a zero reference carry nothing and are rejected.
-    basis_gram : ndarray, shape (w, w), optional
-        ``Q^T M Q``, when the caller keeps it (saves measuring ``cross_gram`` again after
-        a second projection).
-    """
-    n, b = X.shape
-    w = basis.width
-    q = w if G is None else G.shape[1]
-    Y, MY = basis.workspace(b)
-    exps = scale_into(X, Y)[0]
-    C = np.zeros((q, b))
-    passes = 0
-    if w:
-        C += basis.project(Y, G)
-        basis.subtract(Y, G, C)
-        passes += 2
-    Z = Y
-    cross0 = basis.project(Z, None) if w else np.zeros((0, b))
-    passes += 1 if w else 0
-    MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
-    if w:
-        along = cross0 if G is None else G.T @ cross0
-        loss = np.sqrt(np.einsum("ij,ij->j", along, along))
-        if np.any(loss > _LOSS_MAX * np.sqrt(np.maximum(np.diag(S), 0.0))):
-            basis.subtract(Z, G, along)
-            C += along
-            passes += 1
-            if basis_gram is None:
-                cross0 = basis.project(Z, None)
-                passes += 1
-            else:
-                cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
-            MZ = apply_into(Z, MY, inner)
-            S = gram(Z, inner, MZ)
-    # the columns' M-norms: the part along the (orthonormal) basis and the residual's
-    nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
-    ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
-    lam = np.linalg.eigvalsh(S)[::-1] if b else np.zeros(0)
-    well = b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
-    floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    if well:
-        # the common case: Z = Q_z L^T in place, Rz = L^T triangular
-        Rz, cross_z, more = cholesky_qr_in_place(basis, Z, MZ, S, lam, cross0, inner)
-        passes += more
-        parts = [Z]
-    else:
-        parts, Rz, floor, more = orthonormalize_in_rounds(basis, G, Z, S, C, inner, reject_tol, ref)
-        passes += more
-    accepted, Wacc = column_rule(Rz, ref, reject_tol)
-    s, r = Rz.shape[0], Wacc.shape[1]
-    keep = None if r == s else Wacc
-    R_new = Rz if keep is None else Wacc.T @ Rz
-    maps, grams = [], []
-    if r < s:
-        # the rejected part in the directions' coordinates, orthogonal to the kept ones
-        maps.append(complement(Wacc, s).T @ Rz)
-        grams.append(np.eye(s - r))
-    for T, MT, F in floor:
-        maps.append(F)
-        Gt = T.T @ MT
-        grams.append(0.5 * (Gt + Gt.T))
-    if well:
-        cross = cross_z if keep is None else cross_z @ keep
-        gram_new = np.eye(r)
-        if keep is not None:
-            place_directions(Z @ keep, Y, MY, inner, None if inner.is_euclidean else MZ @ keep)
-    else:
-        # the new directions (Q_z, or Q_z Wacc) written to the front of the workspace,
-        # which the residual no longer needs
-        Qn = Y[:, :r]
-        start = 0
-        for i, part in enumerate(parts):
-            width = part.shape[1]
-            if keep is None:
-                Qn[:, start : start + width] = part
-            elif i == 0:
-                np.matmul(part, keep[:width], out=Qn)
-            else:
-                Qn += part @ keep[start : start + width]
-            start += width
-        if not inner.is_euclidean:
-            MY[:, :r] = inner.apply(Qn)
-        gram_new = gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
-        if r and np.max(np.abs(gram_new - np.eye(r))) > ONE_PASS_COND * r * _EPS:
-            # the rounds' directions are orthonormal to a few eps each; one CholeskyQR
-            # pass over all of them makes the block orthonormal as a whole
-            L = np.linalg.cholesky(gram_new)
-            right_solve(Qn, L)
-            R_new = L.T @ R_new
-            if not inner.is_euclidean:
-                MY[:, :r] = inner.apply(Qn)
-            gram_new = np.eye(r)
-        cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
-        passes += 1 if w and r else 0
-    return BasisExtension(
-        coeffs=np.ldexp(C, exps[np.newaxis, :]),
-        R_new=np.ldexp(R_new, exps[np.newaxis, :]),
-        accepted=accepted,
-        rejected_gram=scipy.linalg.block_diag(*grams) if grams else np.zeros((0, 0)),
-        rejected_map=np.vstack(maps) if maps else np.zeros((0, b)),
-        exponents=exps,
-        block_norm=scaled_norm(nu, exps),
-        cross_gram=cross,
-        gram_new=gram_new,
-        passes=passes,
-    )
 
 
 @dataclass(frozen=True)
