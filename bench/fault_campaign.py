@@ -58,7 +58,7 @@ WRAPPER = r"""
 import os, signal, sys
 point, sig, nth, lease = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
 argv = sys.argv[sys.argv.index("--") + 1:]
-import streamsvd.storage.lockfile as locks, streamsvd.storage as storage
+import streamsvd.storage.lease as locks, streamsvd.storage as storage
 import streamsvd.store.fence as fence
 if lease > 0:
     storage.ObjectStorage.lock = lambda self, key: locks.Lease(self, key, seconds=lease)

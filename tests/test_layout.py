@@ -16,11 +16,13 @@ OLD_PATHS = {"basis": "algebra.memory", "bound": "engine.bound",
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
              "parallel_tree": ("parallel.tree", "parallel.spec"),
              "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
-             "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend")}
+             "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
+             "locks": ("storage.lockfile", "storage.lease")}
 # the public names of the flat modules split in the move: their aliases still read them
 OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
              "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"],
-             "parallel_tall": ["DEFAULT_CHUNK_ROWS", "KIND", "PanelBackend", "TallCompressor"]}
+             "parallel_tall": ["DEFAULT_CHUNK_ROWS", "KIND", "PanelBackend", "TallCompressor"],
+             "locks": ["LEASE_SECONDS", "FileLock", "Lease"]}
 
 
 def test_every_public_name_of_the_package_resolves():

@@ -31,7 +31,7 @@ from streamsvd.errors import (
     StoreLockedError,
 )
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
-from streamsvd.storage.lockfile import Lease
+from streamsvd.storage.lease import Lease
 from streamsvd.store import GENERATIONS, LEASE_NAME, POINTER_NAME, BasisStore, open_store
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum

@@ -19,8 +19,8 @@ one:
   and, on S3 since 2020, every read after the ``PUT`` returned gets the new one). Writing
   needs *conditional* writes (``If-None-Match: *`` to create an object only if absent,
   ``If-Match: <ETag>`` to replace it only if unchanged), which the writer lease
-  (:class:`streamsvd.storage.lockfile.Lease`) and the pointer switch use; they are implemented for
-  ``s3://`` (through s3fs); other fsspec protocols can be read but not written.
+  (:class:`streamsvd.storage.lease.Lease`) and the pointer switch use; they are implemented
+  for ``s3://`` (through s3fs); other fsspec protocols can be read but not written.
 
 An object store needs the optional packages of the ``s3`` extra
 (``pip install 'streamsvd[s3]'``); a missing one is reported by name.

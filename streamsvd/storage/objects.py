@@ -244,8 +244,8 @@ class ObjectStorage:
         )
 
     def lock(self, key: str) -> Any:
-        """Return the :class:`~streamsvd.storage.lockfile.Lease` of the object ``key``."""
-        from streamsvd.storage.lockfile import Lease
+        """Return the :class:`~streamsvd.storage.lease.Lease` of the object ``key``."""
+        from streamsvd.storage.lease import Lease
 
         return Lease(self, key)
 

@@ -126,7 +126,7 @@ this host and no longer runs (its pid is gone, or its ``flock`` is released, whi
 covers a reused pid) is stale and is taken over with a logged warning. In an object
 store the lock is a lease, ``writer.lease``, created and renewed by conditional writes,
 with an expiry after which a dead writer's lease is taken over
-(:class:`streamsvd.storage.lockfile.Lease`). Readers (mode ``"r"``) never take the lock.
+(:class:`streamsvd.storage.lease.Lease`). Readers (mode ``"r"``) never take the lock.
 """
 
 from __future__ import annotations
