@@ -1,5 +1,9 @@
 #!/usr/bin/env bash
-# Set up a virtualenv with the project and its test extras, then run the test suite.
+# Set up a virtualenv with the project and its test extras, then run a tier of the tests:
+#   bash scripts/test.sh          the fast tier (-m "not slow"; hypothesis profile "fast")
+#   bash scripts/test.sh --slow   the slow tier: end-to-end work (profile "ci")
+#   bash scripts/test.sh --all    both tiers (profile "ci"), on two processes (pytest-xdist)
+# Further arguments pass through to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -8,5 +12,14 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -e ".[test,fem]"
-export HYPOTHESIS_PROFILE=${HYPOTHESIS_PROFILE:-ci}
+tier=fast
+case "${1:-}" in
+    --slow) tier=slow; shift ;;
+    --all) tier=all; shift ;;
+esac
+case "$tier" in
+    fast) export HYPOTHESIS_PROFILE=${HYPOTHESIS_PROFILE:-fast}; set -- -m "not slow" "$@" ;;
+    slow) export HYPOTHESIS_PROFILE=${HYPOTHESIS_PROFILE:-ci}; set -- -m slow "$@" ;;
+    all) export HYPOTHESIS_PROFILE=${HYPOTHESIS_PROFILE:-ci}; set -- -n 2 "$@" ;;
+esac
 exec .venv/bin/python -m pytest "$@"
