@@ -51,7 +51,7 @@ away or recomputed on failure should be made so (the leaves and merges of
 A compressor does not choose its basis class: it is given a :class:`Backend`, which
 makes its basis and says what that choice implies (the kind of store it writes, how a
 copy gets its own basis, how a block reaches memory). :class:`MemoryBackend` is the
-default; :class:`streamsvd.parallel.tall.PanelBackend` keeps the basis in panels on disk.
+default; :class:`streamsvd.algebra.panels.backend.PanelBackend` keeps the basis in panels on disk.
 """
 
 from __future__ import annotations

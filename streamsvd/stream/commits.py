@@ -7,7 +7,7 @@ commit that are unchanged:
 
 * ``Q`` (and ``MQ`` for a non-Euclidean inner product), by columns: the columns of the
   previous commit are unchanged unless the basis was compacted since
-  (the compactions counted in :class:`~streamsvd.engine.update.Extents` moved, or the plan
+  (the compactions counted in :class:`~streamsvd.engine.state.Extents` moved, or the plan
   compacts), when it is written anew;
 * ``V0``, by rows: the rows of the previous commit are unchanged unless the factor was
   rebased or replaced since (the rewrites of the extents moved, or the plan replaces it); the
@@ -152,7 +152,7 @@ class CommitTracker:
     ) -> dict[str, Appended]:
         """Return the appended arrays of a commit on top of generation ``generation``.
 
-        ``extents`` are the current state's (:meth:`streamsvd.engine.update.State.extents`);
+        ``extents`` are the current state's (:meth:`streamsvd.engine.state.State.extents`);
         ``basis`` holds the planned basis arrays (``Q``, ``MQ``), ``compact`` whether
         the plan compacts it; ``V0`` the planned rows, ``replaced`` whether the plan
         replaces them; ``history`` the records including the planned one; ``inner`` the

@@ -5,7 +5,7 @@ far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each u
 
 1. decomposes the new left vectors on the basis and orthonormalises their residual at
    BLAS-3 speed, rejecting directions below ``reject_tol``
-   (:func:`streamsvd.linalg.gram_schmidt.extend_basis`);
+   (:func:`streamsvd.linalg.extend.extend_basis`);
 2. runs ``sweeps`` rotation sweeps of the paper (Algorithm 2, rule ``"paper"`` or
    ``"jacobi"``) on a small core;
 3. truncates the terms that fail ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` or

@@ -47,7 +47,7 @@ __all__ = [
 # V0 are dead: a version that reads 4 only would take them for live ones)
 LAYOUT = 4
 LAYOUT_WITH_REMOVALS = 5
-# added to either when the small state's Gram is pending (streamsvd.engine.update.State: its
+# added to either when the small state's Gram is pending (streamsvd.engine.state.State: its
 # coords the identity, its Gram not stored): a version that reads 4 and 5 only would take
 # the basis for orthonormal, where it is so only to about eps lambda_1 / lambda_k
 PENDING_GRAM = 2
@@ -115,7 +115,7 @@ def _committed_parts(state: State, plan: Plan | None, source_offset: int) -> tup
 
     The basis's arrays and attributes, the rows of ``Y`` (``(V0, Vp)`` or None), whether
     the basis was compacted and ``Y`` replaced, and the small state. Staging the plan
-    writes its new columns and rows (:func:`streamsvd.engine.update.stage_plan`).
+    writes its new columns and rows (:func:`streamsvd.engine.state.stage_plan`).
     """
     if plan is None:
         basis, basis_attrs = state.basis.commit_arrays(0, compacted=False)
