@@ -14,13 +14,14 @@ import logging
 
 from .errors import ContactError, ConvergenceError, ProblemError, SolverOptionError
 from .globalstage import default_search_direction, indicator
-from .latin import METHODS, IterationState, LatinResult, solve
+from .latin import METHODS, solve
 from .local import local_stage
 from .mesh import Mesh
 from .pgd import indicator_metric
 from .post import LawCheck, SVDModes, check_laws, mac, optimal_rank, svd_modes
 from .problem import Problem, billet, block
 from .reference import ReferenceResult, reference_solve
+from .result import IterationState, LatinResult
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 

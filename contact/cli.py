@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-from .latin import IterationState
+from .result import IterationState
 
 __all__ = ["main"]
 

@@ -19,9 +19,9 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FixedLocator
 
 from .fem import element_strains
-from .latin import LatinResult
 from .post import SVDModes
 from .problem import Problem
+from .result import LatinResult
 
 __all__ = ["fig5_convergence", "fig6_svd", "fig7_space_modes", "fig_mac", "save"]
 

@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .latin import TRUNC_PER_TOL, IterationState, LatinResult, solve
+from .latin import TRUNC_PER_TOL, solve
 from .local import local_stage
 from .pgd import indicator_metric
 from .post import check_laws, svd_modes
 from .problem import billet
 from .reference import reference_solve
+from .result import IterationState, LatinResult
 
 __all__ = ["billet_study"]
 
