@@ -36,7 +36,8 @@ import traceback
 import warnings
 
 from streamsvd.cli import ingest, reading
-from streamsvd.cli.parsing import CONVERGE, build_parser, locate
+from streamsvd.cli.parsing import build_parser, locate
+from streamsvd.cli.types import CONVERGE
 from streamsvd.cli.wording import failed, interrupted
 from streamsvd.errors import StreamSVDError
 

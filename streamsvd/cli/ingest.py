@@ -18,9 +18,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from streamsvd.cli.parsing import (
-    CONVERGE,
     DEFAULT_BLOCK,
-    DEFAULT_COMMIT_EVERY,
     DEFAULT_OVERSAMPLING,
     DEFAULT_RULE,
     DEFAULT_SWEEPS,
@@ -28,6 +26,7 @@ from streamsvd.cli.parsing import (
     load_inner,
 )
 from streamsvd.cli.reading import open_readonly
+from streamsvd.cli.types import CONVERGE, DEFAULT_COMMIT_EVERY
 from streamsvd.errors import (
     InputError,
     NonFiniteError,

@@ -13,18 +13,28 @@ Only the standard library is imported here (see :mod:`streamsvd.cli`).
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import re
 from typing import Any, NoReturn
 
 from streamsvd._version import __version__
+from streamsvd.cli.types import (
+    CONVERGE,
+    DEFAULT_COMMIT_EVERY,
+    commit_every,
+    forget,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    scheduler,
+    storage_option,
+    sweeps,
+    threads,
+)
 from streamsvd.errors import InputError
 
 __all__ = [
-    "CONVERGE",
     "DEFAULT_BLOCK",
-    "DEFAULT_COMMIT_EVERY",
     "DEFAULT_OVERSAMPLING",
     "DEFAULT_RULE",
     "DEFAULT_SWEEPS",
@@ -34,15 +44,10 @@ __all__ = [
     "locate",
 ]
 
-#: The ``--sweeps`` value that sweeps every update until no pair rotates.
-CONVERGE = "converge"
-
 # the defaults of `streamsvd ingest` (an option left out parses as None)
 DEFAULT_BLOCK = 100
 DEFAULT_RULE = "paper"
 DEFAULT_SWEEPS = 1
-#: Commits timed to take about a tenth of the time (``streamsvd.stream.commits.AUTO``).
-DEFAULT_COMMIT_EVERY = "auto"
 DEFAULT_OVERSAMPLING = 10
 #: The ``--final-sweeps`` values: converge the core at the end, or leave it as streamed.
 _FINAL_SWEEPS = (CONVERGE, "none")
@@ -104,86 +109,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"streamsvd: error: {message} (see `{self.prog} --help`).\n")
 
 
-def _number(text: str, kind: type, low: float, expected: str) -> Any:
-    """Parse ``text`` as a finite ``kind`` (int or float) at least ``low``, for argparse."""
-    try:
-        value = kind(text)
-    except ValueError:
-        value = None
-    if value is None or not math.isfinite(value) or value < low:
-        raise argparse.ArgumentTypeError(f"must be {expected}; got {text!r}")
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    return int(_number(text, int, 0, "an integer >= 0"))
-
-
-def _positive_int(text: str) -> int:
-    return int(_number(text, int, 1, "a positive integer"))
-
-
-def _nonnegative_float(text: str) -> float:
-    return float(_number(text, float, 0.0, "a finite number >= 0"))
-
-
-def _positive_float(text: str) -> float:
-    value = float(_number(text, float, 0.0, "a positive number"))
-    if value == 0.0:
-        raise argparse.ArgumentTypeError(f"must be a positive number; got {text!r}")
-    return value
-
-
-def _forget(text: str) -> float:
-    value = float(_number(text, float, 0.0, "a number in (0, 1]"))
-    if not 0.0 < value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a number in (0, 1]; got {text!r}")
-    return value
-
-
-def _commit_every(text: str) -> int | str:
-    if text == DEFAULT_COMMIT_EVERY:
-        return text
-    return int(_number(text, int, 1, "a positive number of updates per commit, or "
-                       f"'{DEFAULT_COMMIT_EVERY}'"))
-
-
-def _threads(text: str) -> int | str:
-    if text == "all":
-        return text
-    return _positive_int(text)
-
-
-def _sweeps(text: str) -> int | str:
-    if text == CONVERGE:
-        return CONVERGE
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(
-            f"must be a positive number of sweeps per update, or '{CONVERGE}' to sweep "
-            f"until no pair rotates; got {text!r}"
-        )
-    return value
-
-
-def _storage_option(text: str) -> tuple[str, Any]:
-    """``KEY=VALUE``: VALUE as JSON when it parses (true, 3, "x"), else as the text."""
-    key, sep, value = text.partition("=")
-    if not sep or not key.strip() or any(not part for part in key.strip().split(".")):
-        raise argparse.ArgumentTypeError(
-            f"must be KEY=VALUE (for example endpoint_url=http://localhost:9000 or "
-            f"client_kwargs.region_name=eu-west-1); got {text!r}"
-        )
-    try:
-        parsed: Any = json.loads(value)
-    except ValueError:
-        parsed = value
-    return key.strip(), parsed
-
-
 def _storage_options(args: Any) -> dict[str, Any] | None:
     """Return the ``--storage-option`` pairs as a dict (a dotted KEY nests), or None."""
     pairs = getattr(args, "storage_option", None)
@@ -207,7 +132,7 @@ def _storage_options(args: Any) -> dict[str, Any] | None:
 
 def _add_storage_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--storage-option", metavar="KEY=VALUE", type=_storage_option, action="append",
+        "--storage-option", metavar="KEY=VALUE", type=storage_option, action="append",
         help="option of the object store of an s3:// (or other fsspec) URL, for SOURCE and "
         "STORE alike, such as endpoint_url=URL, key=ID, secret=S, anon=true; a dotted KEY "
         "nests (client_kwargs.region_name=R); repeatable (default: none; the AWS_* "
@@ -268,15 +193,6 @@ def diagonal_as_weights(inner: Any) -> Any:
     return DiagonalInner(mat.diagonal()) if nonzero == inner.n else inner
 
 
-def _scheduler(text: str) -> str:
-    if not text.strip():
-        raise argparse.ArgumentTypeError(
-            "must be 'threads', 'local' or a scheduler address such as tcp://HOST:8786; "
-            "got ''"
-        )
-    return text
-
-
 def build_parser() -> argparse.ArgumentParser:
     """Return the parser of the ``streamsvd`` command and its five commands."""
     ap = _Parser(
@@ -306,16 +222,16 @@ def build_parser() -> argparse.ArgumentParser:
     ing.add_argument("--dataset", metavar="NAME",
                      help="dataset of an HDF5 file or array of a zarr group (default: the "
                      "only one there)")
-    ing.add_argument("--block", metavar="B", type=_positive_int,
+    ing.add_argument("--block", metavar="B", type=positive_int,
                      help=f"snapshots (columns) absorbed per update (default: {DEFAULT_BLOCK})")
     tol = ing.add_mutually_exclusive_group()
-    tol.add_argument("--eps", metavar="E", type=_nonnegative_float,
+    tol.add_argument("--eps", metavar="E", type=nonnegative_float,
                      help="absolute cut: drop the terms with ||v_i|| < E, in the units of "
                      "the data (default: 0, no cut)")
-    tol.add_argument("--rtol", metavar="R", type=_nonnegative_float,
+    tol.add_argument("--rtol", metavar="R", type=nonnegative_float,
                      help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
                      "none; not with --eps)")
-    tol.add_argument("--target-error", metavar="T", type=_positive_float,
+    tol.add_argument("--target-error", metavar="T", type=positive_float,
                      help="keep the fewest terms whose guaranteed error bound is at most T, "
                      "a positive number, in --error-measure (default: none; not with --eps "
                      "or --rtol)")
@@ -327,17 +243,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="share of the --target-error budget spent while streaming, the "
                      "rest by the final cut (default: 0.436 = sqrt(1 - 0.9^2), pyMOR "
                      "HAPOD's split at omega = 0.9)")
-    ing.add_argument("--max-rank", metavar="K", type=_positive_int,
+    ing.add_argument("--max-rank", metavar="K", type=positive_int,
                      help="keep K terms in the end: K + --oversampling while streaming, "
                      "cut to K by the final sweeps (default: no limit)")
-    ing.add_argument("--window", metavar="W", type=_positive_int,
+    ing.add_argument("--window", metavar="W", type=positive_int,
                      help="keep the W most recent snapshots: each block removes exactly "
                      "those that fall out, in memory and --tall; the tree mode refuses it "
                      "(default: keep all)")
-    ing.add_argument("--forget", metavar="G", type=_forget,
+    ing.add_argument("--forget", metavar="G", type=forget,
                      help="forgetting factor in (0, 1]: each snapshot is weighted by G to "
                      "the number absorbed after it, in memory and --tall (default: 1, none)")
-    ing.add_argument("--oversampling", metavar="P", type=_nonnegative_int,
+    ing.add_argument("--oversampling", metavar="P", type=nonnegative_int,
                      help="extra terms kept while streaming with --max-rank; 0 cuts to K "
                      f"at every update (default: {DEFAULT_OVERSAMPLING})")
     ing.add_argument("--rule", choices=("paper", "jacobi"),
@@ -345,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "(v_j|v_i)/(v_j|v_j) (eq. 5, linear convergence), 'jacobi' by the angle "
                      "that zeroes the pair's coupling (one-sided Jacobi, quadratic "
                      f"convergence) (default: {DEFAULT_RULE})")
-    ing.add_argument("--sweeps", metavar=f"N|{CONVERGE}", type=_sweeps,
+    ing.add_argument("--sweeps", metavar=f"N|{CONVERGE}", type=sweeps,
                      help="rotation sweeps per update: a positive integer, or "
                      f"'{CONVERGE}' to sweep until no pair rotates (an incremental SVD) "
                      f"(default: {DEFAULT_SWEEPS})")
@@ -354,10 +270,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "(Jacobi rule) and cut by --eps/--rtol/--max-rank, so that STORE holds "
                      "the SVD of what was absorbed; 'none': keep the streamed expansion "
                      f"(default: {CONVERGE})")
-    ing.add_argument("--threads", metavar="N", type=_threads,
+    ing.add_argument("--threads", metavar="N", type=threads,
                      help="BLAS threads of an update, or 'all' for the BLAS's own setting "
                      "(default: 1, never much slower, and much faster on a busy machine)")
-    ing.add_argument("--commit-every", metavar=f"C|{DEFAULT_COMMIT_EVERY}", type=_commit_every,
+    ing.add_argument("--commit-every", metavar=f"C|{DEFAULT_COMMIT_EVERY}", type=commit_every,
                      help="when the updates are committed to STORE, in memory and with "
                      f"--tall: every C updates, or with '{DEFAULT_COMMIT_EVERY}' whenever "
                      "the commits so far plus one more as long as the last take at most a "
@@ -385,20 +301,20 @@ def build_parser() -> argparse.ArgumentParser:
                      "refused)")
     ing.add_argument("--quiet", action="store_true",
                      help="no progress bar on stderr and no summary on stdout (default: off)")
-    ing.add_argument("--scheduler", metavar="S", type=_scheduler,
+    ing.add_argument("--scheduler", metavar="S", type=scheduler,
                      help="run on dask: 'threads' (this process), 'local' (a LocalCluster "
                      "of --workers processes) or the address of a scheduler "
                      "(tcp://HOST:PORT); without --tall, the tree mode (default: no dask, "
                      "in memory; 'threads' with --tall)")
-    ing.add_argument("--workers", metavar="W", type=_positive_int,
+    ing.add_argument("--workers", metavar="W", type=positive_int,
                      help="worker processes of --scheduler local (default: the number of "
                      "CPUs)")
     ing.add_argument("--tall", action="store_true",
                      help="tall mode: keep U out of core in panels on disk, for snapshots too "
                      "long for memory; on --scheduler, threads by default (default: off)")
-    ing.add_argument("--leaf-columns", metavar="L", type=_positive_int,
+    ing.add_argument("--leaf-columns", metavar="L", type=positive_int,
                      help="columns per leaf, tree mode only (default: 10 blocks)")
-    ing.add_argument("--chunk-rows", metavar="R", type=_positive_int,
+    ing.add_argument("--chunk-rows", metavar="R", type=positive_int,
                      help="rows per chunk of the panels, tall mode only (default: the "
                      "source's row chunks, else 16384)")
     _add_storage_option(ing)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from streamsvd.cli.parsing import CONVERGE
+from streamsvd.cli.types import CONVERGE
 from streamsvd.cli.wording import in_cli_words
 
 __all__ = ["print_check", "print_info", "print_json"]
