@@ -4,11 +4,7 @@
 # yet: it reports 13 errors, most from the facade's mixins (`python -m mypy` shows them).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
-if [ ! -x .venv/bin/python ]; then
-    "$PY" -m venv .venv
-fi
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[dev]"
+. scripts/venv.sh
+venv_install dev
 .venv/bin/python -m ruff check .
 .venv/bin/lint-imports

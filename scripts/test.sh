@@ -6,12 +6,8 @@
 # Further arguments pass through to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
-if [ ! -x .venv/bin/python ]; then
-    "$PY" -m venv .venv
-fi
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[test,fem]"
+. scripts/venv.sh
+venv_install test,fem
 tier=fast
 case "${1:-}" in
     --slow) tier=slow; shift ;;

@@ -84,34 +84,27 @@ def test_a_removal_at_1e200_keeps_the_bound_finite():
 
 
 @pytest.mark.parametrize("measure", MEASURES)
-def test_a_target_is_met_with_a_window(measure):
-    rng = np.random.default_rng(0)
-    n, m, W = 60, 400, 100
+@pytest.mark.parametrize("keep", ["window", "forget"])
+def test_a_target_is_met_with_a_window_or_forgetting(measure, keep):
+    # the snapshots the compressor holds: the last W, or all weighted by f^age
+    rng = np.random.default_rng(0 if keep == "window" else 2)
+    n, m, W, f = 60, 400 if keep == "window" else 300, 100, 0.98
     A = spectrum_matrix(rng, n, m, 30, 4) * np.sqrt(m)
+
+    def held(k):
+        if keep == "window":
+            return A[:, max(0, k - W):k]
+        return A[:, :k] * f ** np.arange(k - 1, -1, -1)
+
     t = {"relative": 1e-2, "mean_l2": 1e-2, "absolute": 1e-1}[measure]
-    sc = ss.StreamCompressor(n, target_error=t, error_measure=measure, window=W)
+    sc = ss.StreamCompressor(n, target_error=t, error_measure=measure,
+                             **({"window": W} if keep == "window" else {"forget": f}))
     for j in range(0, m, 10):
         sc.absorb(A[:, j:j + 10])
-        assert_bound_holds(sc, A[:, max(0, j + 10 - W):j + 10])
+        assert_bound_holds(sc, held(j + 10))
     sc.finalize()
-    assert_bound_holds(sc, A[:, -W:])
+    assert_bound_holds(sc, held(m))
     assert sc.target_met and sc.target_missed_by is None
-
-
-@pytest.mark.parametrize("measure", MEASURES)
-def test_a_target_is_met_with_forgetting(measure):
-    rng = np.random.default_rng(2)
-    n, m, f = 60, 300, 0.98
-    A = spectrum_matrix(rng, n, m, 30, 4) * np.sqrt(m)
-    t = {"relative": 1e-2, "mean_l2": 1e-2, "absolute": 1e-1}[measure]
-    sc = ss.StreamCompressor(n, target_error=t, error_measure=measure, forget=f)
-    for j in range(0, m, 10):
-        sc.absorb(A[:, j:j + 10])
-        seen = A[:, :j + 10]
-        assert_bound_holds(sc, seen * f ** np.arange(seen.shape[1] - 1, -1, -1))
-    sc.finalize()
-    assert_bound_holds(sc, A * f ** np.arange(m - 1, -1, -1))
-    assert sc.target_met
 
 
 @pytest.mark.parametrize("measure", MEASURES)
