@@ -31,7 +31,7 @@ import numpy as np
 from _common import machine_info, out_dir, print_table, pyplot, write_json
 from threadpoolctl import threadpool_limits
 
-import streamsvd.stream.compressor as stream_module
+import streamsvd.stream.updates as stream_module
 from streamsvd import StreamCompressor
 
 RANK, OVERSAMPLING, BLOCK, SIGNAL = 60, 20, 100, 200

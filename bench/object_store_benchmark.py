@@ -78,7 +78,7 @@ def run_one(location: Any, label: str, args: argparse.Namespace) -> dict[str, An
     t0 = time.perf_counter()
     sc = StreamCompressor(n, max_rank=args.max_rank, store=location)
     create_seconds = time.perf_counter() - t0
-    store = sc._persistence.handle
+    store = sc._life.persistence.handle
     assert store is not None
     with timed_commits(store) as commit_times:  # the updates' commits only
         for B in blocks:

@@ -141,8 +141,8 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     sc.save(path)
     save_seconds = time.perf_counter() - t0
-    assert sc._persistence is not None
-    store = sc._persistence.handle
+    assert sc._life.persistence is not None
+    store = sc._life.persistence.handle
     blocks = [_columns(Q1, s, args.block, rng) for _ in range(args.updates)]
     with_store, in_memory, written = [], [], []
     with timed_commits(store) as commit_times:
@@ -157,7 +157,7 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
             memory.absorb(B)
             in_memory.append(time.perf_counter() - t)
     same = bool(np.array_equal(sc.expansion.U, memory.expansion.U))
-    rows = sc._state.rows
+    rows = sc._life.state.rows
     assert rows is not None
     v0_bytes = 8 * rows.m * rows.width
     sc.close(finalize=False)  # the streamed state, as the in-memory copy holds it
@@ -166,7 +166,7 @@ def run_one(m: int, args: argparse.Namespace, root: Path) -> dict[str, Any]:
     shutil.rmtree(path, ignore_errors=True)
     return {
         "m": m, "n": n, "block": args.block, "updates": args.updates, "inner": args.inner,
-        "rank": memory.rank, "stored_width": memory._state.basis.width,
+        "rank": memory.rank, "stored_width": memory._life.state.basis.width,
         "V0_bytes": v0_bytes, "save_seconds": save_seconds,
         "commit_seconds": _summary(commit_times),
         "update_with_commit_seconds": _summary(with_store),

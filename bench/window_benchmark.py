@@ -117,8 +117,8 @@ def run_window(n: int, m: int, W: int, b: int, *, rank: int | None, check: int,
     return {
         "W": W, "b": b, "n": n, "m": m, "seconds_per_update": float(np.median(t)),
         "first_tenth": float(np.median(t[:tenth])), "last_tenth": float(np.median(t[-tenth:])),
-        "times": t, "checks": checks, "rewrites": sc._state.rows.rewrites,
-        "stored_rows": sc._state.rows.m,
+        "times": t, "checks": checks, "rewrites": sc._life.state.rows.rewrites,
+        "stored_rows": sc._life.state.rows.m,
     }
 
 

@@ -390,7 +390,7 @@ def test_a_failed_start_leaves_no_store(tmp_path, matrix, capsys, mode, cause, m
         def interrupt(*args, **kwargs):
             raise KeyboardInterrupt
 
-        monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupt)
+        monkeypatch.setattr("streamsvd.stream.updates.plan_absorb", interrupt)
     for resume in ([], ["--resume"]):
         store = tmp_path / "s.zarr"
         status, _, err = run_cli([*argv, store, "--block", "7", "--quiet", *resume,
@@ -778,7 +778,7 @@ def test_store_that_does_not_keep_its_inner_product_needs_inner(tmp_path, matrix
     np.save(src, matrix[:, :30])
     store = tmp_path / "old.zarr"
     with monkeypatch.context() as m:  # as an earlier version wrote it: no inner data
-        m.setattr("streamsvd.stream.compressor.inner_arrays", lambda inner: None)
+        m.setattr("streamsvd.stream.lifecycle.inner_arrays", lambda inner: None)
         assert main(["ingest", str(src), str(store), "--inner", str(path), "--quiet"]) == 0
     status, _, err = run_cli(["info", store], capsys)
     assert_one_line_error(status, err)
@@ -854,9 +854,9 @@ def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch
     """With the default --commit-every auto, Ctrl-C during an update commits the updates
     absorbed before it (whichever of them the schedule had committed), and --resume ends
     bit for bit where an uninterrupted run ends."""
-    import streamsvd.stream.compressor
+    import streamsvd.stream.updates
 
-    plan = streamsvd.stream.compressor.plan_absorb
+    plan = streamsvd.stream.updates.plan_absorb
     calls = []
 
     def interrupted_at_the_fifth(*args, **kwargs):
@@ -867,11 +867,11 @@ def test_ctrl_c_commits_every_update_absorbed(tmp_path, npy, capsys, monkeypatch
 
     argv = ["ingest", npy, tmp_path / "s.zarr", "--block", "7", "--max-rank", "4", "--quiet",
             *MODES[mode]]
-    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupted_at_the_fifth)
+    monkeypatch.setattr("streamsvd.stream.updates.plan_absorb", interrupted_at_the_fifth)
     status, _, err = run_cli(argv, capsys)
     assert status == 130, err
     assert "holds the snapshots up to column 28 of SOURCE (its last commit)" in err
-    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", plan)
+    monkeypatch.setattr("streamsvd.stream.updates.plan_absorb", plan)
     assert main([str(a) for a in [*argv, "--resume"]]) == 0
     assert main([str(a) for a in [*argv[:2], tmp_path / "ref.zarr", *argv[3:]]]) == 0
     with open_readonly(tmp_path / "s.zarr") as a, open_readonly(tmp_path / "ref.zarr") as b:
@@ -886,9 +886,9 @@ def test_ctrl_c_inside_a_commit_prints_one_line_and_no_warning(tmp_path, npy, ca
     holds the one line that says what the store holds."""
     import warnings
 
-    import streamsvd.stream.compressor
+    import streamsvd.stream.updates
 
-    plan = streamsvd.stream.compressor.plan_absorb
+    plan = streamsvd.stream.updates.plan_absorb
     calls = []
 
     async def create_array():
@@ -901,7 +901,7 @@ def test_ctrl_c_inside_a_commit_prints_one_line_and_no_warning(tmp_path, npy, ca
             raise KeyboardInterrupt
         return plan(*args, **kwargs)
 
-    monkeypatch.setattr("streamsvd.stream.compressor.plan_absorb", interrupted_in_a_commit)
+    monkeypatch.setattr("streamsvd.stream.updates.plan_absorb", interrupted_in_a_commit)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         status, _, err = run_cli(["ingest", npy, tmp_path / "s.zarr", "--block", "7",

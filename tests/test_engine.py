@@ -33,7 +33,7 @@ def test_an_update_touches_no_old_row_of_v_and_never_copies_the_basis(rng):
     sc = ss.StreamCompressor(n, max_rank=12, rule="jacobi", sweeps=None)
     for _ in range(4):
         sc.absorb(basis @ rng.standard_normal((8, b)))
-    rows, Q = sc._state.rows, sc._state.basis
+    rows, Q = sc._life.state.rows, sc._life.state.basis
     touched, realloc_q = rows.old_rows_touched, Q.reallocations
     for _ in range(400):
         sc.absorb(basis @ rng.standard_normal((8, b)))
@@ -77,7 +77,7 @@ def test_streamed_right_vectors_match_their_core(rng):
     A = rng.standard_normal((n, 900)) * np.logspace(0, -2, 900)
     for j in range(0, 900, b):
         sc.absorb(A[:, j : j + b])
-    s = sc._state
+    s = sc._life.state
     Y = s.rows.value()
     # rounding accumulates as a random walk: about 7 eps sqrt(updates) here
     assert np.linalg.norm(Y.T @ Y - np.eye(Y.shape[1]), 2) <= 50 * EPS * np.sqrt(len(sc.history))
@@ -95,7 +95,7 @@ def test_left_only_mode_gives_the_same_basis_bit_for_bit(rng):
     assert np.array_equal(full.left_vectors, left.left_vectors)
     assert np.array_equal(full.amplitudes, left.amplitudes)
     assert full.error_bound == left.error_bound and left.n_seen == 240
-    assert left._state.rows is None
+    assert left._life.state.rows is None
     with pytest.raises(ss.InputError, match=r"right_vectors=False"):
         _ = left.expansion
     with pytest.raises(ss.InputError, match=r"`add` needs the right vectors"):
@@ -402,7 +402,7 @@ def test_a_copy_holds_the_stored_columns_only_and_continues_bit_for_bit(rng):
     sc = ss.StreamCompressor(n, max_rank=40, oversampling=0)  # the exact path here
     for j in range(0, 100, 25):
         sc.absorb(A[:, j:j + 25])
-    basis = sc._state.basis
+    basis = sc._life.state.basis
     assert basis.capacity > basis.width  # room for a workspace, and a compaction buffer
     assert basis._spare is not None
     blob = pickle.dumps(sc)
@@ -410,7 +410,7 @@ def test_a_copy_holds_the_stored_columns_only_and_continues_bit_for_bit(rng):
     copies = [pickle.loads(blob), sc.copy()]
     dropped = sc.copy()
     dropped._drop_scratch()
-    assert dropped._state.basis._spare is None
+    assert dropped._life.state.basis._spare is None
     for other in [sc, *copies, dropped]:
         for j in range(100, 200, 25):
             other.absorb(A[:, j:j + 25])

@@ -311,7 +311,7 @@ def test_not_fitted_and_bad_arguments(rng):
 def _footprint(est):
     """Bytes of every array the estimator and its compressor hold."""
     sc = est.compressor_
-    owners = [est, sc, sc._state, sc._state.basis]
+    owners = [est, sc, sc._life.state, sc._life.state.basis]
     total = 0
     for obj in owners:
         for value in vars(obj).values():
@@ -335,7 +335,7 @@ def test_partial_fit_touches_no_per_sample_state(rng, monkeypatch):
             est.partial_fit(rng.standard_normal((7, 16)) @ spectrum + 1.0)
             if t == 29:
                 early = _footprint(est)
-        assert est.compressor_._state.rows is None
+        assert est.compressor_._life.state.rows is None
         assert est.n_samples_seen_ == 1050
         assert _footprint(est) <= early
         est.transform(np.ones((3, 16)))
@@ -343,7 +343,7 @@ def test_partial_fit_touches_no_per_sample_state(rng, monkeypatch):
         est.get_covariance()
         est.get_precision()
         est.fit(rng.standard_normal((200, 16)))
-        assert est.compressor_._state.rows is None
+        assert est.compressor_._life.state.rows is None
 
 
 def test_numerically_low_rank_data_in_wide_batches():

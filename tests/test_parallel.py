@@ -614,7 +614,7 @@ def test_tall_writes_its_files_over_the_ones_it_let_go(rng, tmp_path, monkeypatc
     monkeypatch.setattr(PanelBasis, "_new_scratch", spy)
     work = tmp_path / "work"
     tc = tall_compress(path, block=20, max_rank=8, workdir=work)
-    basis = tc._state.basis
+    basis = tc._life.state.basis
     assert len(scratches) == 6
     assert len({name for name, _ in scratches}) == len(scratches)  # renamed every time
     assert len(made) == scratches[3][1]  # no file made from the fourth update on
@@ -671,12 +671,12 @@ def test_tall_panels_are_raw_files_and_committed_with_a_zarr_copy(rng, tmp_path,
     A = low_rank(rng, n=500, m=60, rank=12, noise=1e-9)
     kw = {"workdir": tmp_path / "work"} if workdir else {}
     tc = tall_compress(A, block=10, max_rank=8, chunk_rows=100, **kw)
-    basis = tc._state.basis
+    basis = tc._life.state.basis
     assert basis.panels and all(isinstance(basis.files.open(p), RawArray) for p in basis.panels)
     tc.finalize()
     want = tc.expansion
     tc.save(tmp_path / "s.zarr")
-    saved = tc._state.basis
+    saved = tc._life.state.basis
     assert [zarr.open_array(str(tmp_path / "s.zarr" / "panels" / p)).shape
             for p in saved.panels] == [(500, 8)]
     tc.close()
@@ -696,8 +696,8 @@ def test_tall_store_commits_zarr_copies_of_its_raw_panels(rng, tmp_path):
                         commit_every=2) as tc:
         for j in range(0, 60, 10):
             tc.absorb(A[:, j:j + 10])
-            basis = tc._state.basis
-            listed = set(tc._persistence.recent[0]["panels"])
+            basis = tc._life.state.basis
+            listed = set(tc._life.persistence.recent[0]["panels"])
             for name in basis.panels:
                 raw = basis.files.open(name)
                 assert isinstance(raw, RawArray)
@@ -825,17 +825,17 @@ def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
     with TallCompressor(500, chunk_rows=100, max_rank=6, store=store, **opts) as tc:
         for j in range(0, 200, 20):
             tc.absorb(A[:, j:j + 20])
-            on_disk = {p for p in tc._state.basis.root.list("panels") if p.startswith("p")}
-            live = set(tc._state.basis.panels)
-            spares = {spare.name for spare in tc._state.basis.files.spares}
+            on_disk = {p for p in tc._life.state.basis.root.list("panels") if p.startswith("p")}
+            live = set(tc._life.state.basis.panels)
+            spares = {spare.name for spare in tc._life.state.basis.files.spares}
             assert len(spares) <= 2 and not spares & live
             if with_store:
-                recent = set().union(*(a["panels"] for a in tc._persistence.recent))
+                recent = set().union(*(a["panels"] for a in tc._life.persistence.recent))
                 assert not spares & recent
                 assert live <= on_disk <= live | recent | spares
             else:
                 assert on_disk == live | spares
-        assert tc._state.basis.compactions == 10
+        assert tc._life.state.basis.compactions == 10
 
 
 # ----------------------------------------------------------------------- drivers

@@ -185,7 +185,7 @@ def test_auto_commits_by_cost_and_a_kill_resumes_bit_for_bit(tmp_path, rng, monk
     monkeypatch.setattr(BasisStore, "commit", timed_commit)
     path = tmp_path / "auto.zarr"
     sc = StreamCompressor(A.shape[0], store=path, commit_every="auto", **opts)
-    sc._persistence.schedule = CommitSchedule("auto", clock=clock)
+    sc._life.persistence.schedule = CommitSchedule("auto", clock=clock)
     committed.clear()
     for j in range(0, A.shape[1], 5):
         clock.now += 3.0
@@ -210,10 +210,10 @@ def test_bad_block_leaves_store_bitwise_unchanged(tmp_path, rng):
     path = tmp_path / "b.zarr"
     sc = StreamCompressor(A.shape[0], store=path)
     sc.absorb(A[:, :10])
-    before = sc._persistence.handle.read()
+    before = sc._life.persistence.handle.read()
     with pytest.raises(ss.NonFiniteError):
         sc.absorb(np.full((A.shape[0], 3), np.inf))
-    after = sc._persistence.handle.read()
+    after = sc._life.persistence.handle.read()
     assert after.generation == before.generation
     assert all(np.array_equal(before.arrays[k], after.arrays[k]) for k in before.arrays)
     sc.close()
@@ -225,17 +225,17 @@ def test_failed_commit_leaves_memory_and_store_unchanged(tmp_path, rng, monkeypa
     sc = StreamCompressor(A.shape[0], store=path)
     sc.absorb(A[:, :10])
     U_before = sc.expansion.U.copy()
-    gen = sc._persistence.handle.generation
+    gen = sc._life.persistence.handle.generation
 
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(sc._persistence.handle, "commit", boom)
+    monkeypatch.setattr(sc._life.persistence.handle, "commit", boom)
     with pytest.raises(OSError, match="disk full"):
         sc.absorb(A[:, 10:20])
     monkeypatch.undo()
     assert sc.n_seen == 10 and np.array_equal(sc.expansion.U, U_before)
-    assert sc._persistence.handle.generation == gen and len(sc.history) == 1
+    assert sc._life.persistence.handle.generation == gen and len(sc.history) == 1
     sc.absorb(A[:, 10:20])
     ref = _stream(A[:, :20], 10)
     _assert_same(sc, ref)
@@ -360,7 +360,7 @@ def test_sigkill_during_tall_ingest_then_resume_gives_the_uninterrupted_result(t
     import zarr
 
     with open_compressor(store, mode="r") as done:
-        panels = done._state.basis.panels
+        panels = done._life.state.basis.panels
     assert panels and all(zarr.open_array(str(store / "panels" / p)).shape[0] == 300
                           for p in panels)
 
@@ -395,7 +395,7 @@ def _written_by_commits(path, m, monkeypatch, *, n=60, b=5, commits=8):
     per_array = []
     for j in range(commits):
         sc.absorb(tail[:, j * b : (j + 1) * b])
-        per_array.append(sc._persistence.handle.last_written)
+        per_array.append(sc._life.persistence.handle.last_written)
     monkeypatch.undo()
     assert packs == [sum(w.values()) for w in per_array]  # the counter counts what is written
     with StreamCompressor.open(path, mode="r") as back:
@@ -449,15 +449,15 @@ def test_store_holds_the_state_after_every_kind_of_update(tmp_path, rng, commit_
                    coefficients=1e-3 * rng.standard_normal((sc.n_seen, sc.rank)))
         else:
             sc.merge(other)
-        if sc._persistence.uncommitted == 0:  # committed: the store holds exactly this state
+        if sc._life.persistence.uncommitted == 0:  # committed: the store holds exactly this state
             with StreamCompressor.open(path, inner=w, mode="r") as back:
                 assert _expansions_equal(back, sc), (kind, j)
-    assert sc._state.rows.rebases > 0 and sc._state.basis.compactions > 0
+    assert sc._life.state.rows.rebases > 0 and sc._life.state.basis.compactions > 0
     sc.close()
     with StreamCompressor.open(path, inner=w) as back:
         assert _expansions_equal(back, sc)
-        assert back._state.basis.capacity == sc._state.basis.capacity
-        assert back._state.rows.capacity == sc._state.rows.capacity
+        assert back._life.state.basis.capacity == sc._life.state.basis.capacity
+        assert back._life.state.rows.capacity == sc._life.state.rows.capacity
 
 
 def test_store_of_the_previous_layout_is_refused_naming_both(tmp_path, rng):
@@ -496,11 +496,11 @@ def test_inner_product_is_kept_written_once_and_reopened_without_it(tmp_path, rn
     M = _inner(kind, A.shape[0], rng)
     path = tmp_path / "b.zarr"
     sc = StreamCompressor(A.shape[0], inner=M, max_rank=12, store=path)
-    first = set(sc._persistence.handle.last_written)
+    first = set(sc._life.persistence.handle.last_written)
     assert {k for k in first if k.startswith("inner_")}, first  # written at creation
     for j in range(0, 40, 8):
         sc.absorb(A[:, j : j + 8])
-        assert not [k for k in sc._persistence.handle.last_written if k.startswith("inner_")]
+        assert not [k for k in sc._life.persistence.handle.last_written if k.startswith("inner_")]
     fingerprint = sc.inner.fingerprint
     sc.close(finalize=False)  # a pause: resumed below, bit for bit
     with StreamCompressor.open(path, mode="r") as back:
@@ -520,7 +520,7 @@ def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
     w = rng.uniform(0.5, 2.0, A.shape[0])
     path = tmp_path / "old.zarr"
     with monkeypatch.context() as m:
-        m.setattr("streamsvd.stream.compressor.inner_arrays", lambda inner: None)
+        m.setattr("streamsvd.stream.lifecycle.inner_arrays", lambda inner: None)
         with StreamCompressor(A.shape[0], inner=w, store=path) as sc:
             sc.absorb(A[:, :20])
     with pytest.raises(ss.StoreMismatchError, match=r"`inner` must be given: the store .* "
@@ -528,9 +528,9 @@ def test_store_without_inner_data_opens_with_inner_and_keeps_it_from_then_on(
         StreamCompressor.open(path)
     with StreamCompressor.open(path, inner=w) as sc:
         sc.absorb(A[:, 20:30])
-        assert "inner_weights" in sc._persistence.handle.last_written
+        assert "inner_weights" in sc._life.persistence.handle.last_written
         sc.absorb(A[:, 30:40])
-        assert "inner_weights" not in sc._persistence.handle.last_written
+        assert "inner_weights" not in sc._life.persistence.handle.last_written
     with StreamCompressor.open(path, mode="r") as back:
         assert back.n_seen == 40 and back.inner == ss.DiagonalInner(w)
 

@@ -24,7 +24,7 @@ def test_planning_a_panel_update_writes_no_panel_until_staged(rng):
     A = rng.standard_normal((300, 24))
     with TallCompressor(300, chunk_rows=64) as tc:  # no cut: the exact path, no compaction
         tc.absorb(A[:, :8])
-        s, opts = tc._state, tc._opts
+        s, opts = tc._life.state, tc._life.opts
         before = _panels(s.basis)
         plan = plan_absorb(s, A[:, 8:16], opts, t0=time.perf_counter())
         assert not plan.writes.compacted and plan.writes.columns == 8
@@ -45,18 +45,18 @@ def test_planning_leaves_the_rows_and_their_rebase_to_staging(rng, monkeypatch):
     sc = StreamCompressor(80, max_rank=4, oversampling=0, rule="jacobi", sweeps=None)
     A = rng.standard_normal((80, 40))
     sc.absorb(A[:, :36])
-    s, rows = sc._state, sc._state.rows
+    s, rows = sc._life.state, sc._life.state.rows
     assert rows.wide
     V_before, buffer = sc.right_factor(), rows._V0.copy()
     rebases = rows.rebases
-    plan = plan_absorb(s, A[:, 36:40], sc._opts, t0=time.perf_counter())
+    plan = plan_absorb(s, A[:, 36:40], sc._life.opts, t0=time.perf_counter())
     assert plan.writes.rows is not None and plan.writes.rows.rebase
     assert rows.rebases == rebases and np.array_equal(rows._V0, buffer)  # nothing written
     stage_plan(s, plan)
     assert rows.rebases == rebases + 1
     np.testing.assert_allclose(sc.right_factor(), V_before, atol=1e-13)  # V unchanged
     apply_plan(s, plan)
-    assert sc._state.m == 40
+    assert sc._life.state.m == 40
 
 
 def test_a_backend_is_given_not_subclassed(rng, tmp_path):
@@ -83,4 +83,4 @@ def test_a_backend_is_given_not_subclassed(rng, tmp_path):
         back.close()
     with pytest.raises(Exception, match="TallCompressor"):
         StreamCompressor.open(tmp_path / "s.zarr", mode="r")
-    assert isinstance(StreamCompressor(5)._backend, MemoryBackend)
+    assert isinstance(StreamCompressor(5)._life.backend, MemoryBackend)

@@ -71,7 +71,7 @@ def test_right_vectors_stay_orthonormal_through_adds_merges_and_cuts(rng):
     for j in range(0, 150, 25):
         sc.absorb(A[:, j : j + 25])
         other.absorb(A[:, 150 + j : 175 + j])
-        Y = sc._state.rows.value()
+        Y = sc._life.state.rows.value()
         assert np.linalg.norm(Y.T @ Y - np.eye(Y.shape[1]), 2) <= 100 * EPS
     sc.merge(other)
     E = sc.expansion
@@ -80,5 +80,5 @@ def test_right_vectors_stay_orthonormal_through_adds_merges_and_cuts(rng):
     E = sc.expansion
     assert E.V.shape == (300, 30)
     assert _ratio(E.V) < RATIO
-    Y = sc._state.rows.value()
+    Y = sc._life.state.rows.value()
     assert np.linalg.norm(Y.T @ Y - np.eye(Y.shape[1]), 2) <= 100 * EPS

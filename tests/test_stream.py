@@ -196,7 +196,7 @@ def test_zero_block_adds_rows_and_nothing_else(rng):
 
 
 def _snapshot(sc):
-    s = sc._state
+    s = sc._life.state
     # the Gram is None while pending (after the Gram path): then it stays None
     arrays = (s.basis.Q, s.coords, np.zeros(0) if s.gram is None else s.gram, s.rows.V0,
               s.rows.Vp, s.R)
@@ -385,3 +385,28 @@ def test_add_with_coefficients_in_the_basis_matches_the_dense_model(rng):
         sc.add(np.zeros((n, 0)), np.zeros((m, 0)), coefficients=np.zeros((m, p + 1)))
     with pytest.raises(ss.InputError, match=r"`U_k` must have at least one column \(or pass `coefficients`\)"):
         sc.add(np.zeros((n, 0)), np.zeros((m, 0)))
+
+
+def test_the_facade_holds_its_parts_and_forwards_every_public_name_of_theirs():
+    """StreamCompressor inherits from nothing; each public name of a part is the facade's,
+    with the part's docstring, and reads the same object; the tall mode is a factory."""
+    from streamsvd.parallel.tall import TallCompressor
+    from streamsvd.stream.updates import Updates
+    from streamsvd.stream.view import ExpansionView
+    from streamsvd.stream.window import Window
+
+    assert ss.StreamCompressor.__mro__ == (ss.StreamCompressor, object)
+    among_parts = {"remove_positions", "windowed", "internal_coefficients",
+                   "warn_if_target_missed"}  # what one part asks of another
+    for part in (Updates, Window, ExpansionView):
+        for name in (n for n in vars(part) if not n.startswith("_") and n not in among_parts):
+            assert getattr(ss.StreamCompressor, name).__doc__ == getattr(part, name).__doc__, name
+    sc = ss.StreamCompressor(8, max_rank=2)
+    sc.absorb(np.arange(24.0).reshape(8, 3))
+    assert sc.rank == sc._view.rank and sc.n_absorbed == 3 and sc.chunk_rows is None
+    tc = TallCompressor(8, chunk_rows=4)
+    try:
+        assert type(tc) is ss.StreamCompressor and isinstance(tc, TallCompressor)
+        assert not isinstance(sc, TallCompressor) and tc.chunk_rows == 4
+    finally:
+        tc.close()

@@ -232,7 +232,7 @@ def test_a_store_killed_between_the_two_commits_of_an_earlier_version_is_refused
     path = tmp_path / "old.zarr"
     tc = TallCompressor(N, chunk_rows=ROWS, max_rank=RANK)
     BasisStore.create(path, n=N, inner_fingerprint=tc.inner.fingerprint,
-                      attrs=tc._attrs(None)).close()
+                      attrs=tc._life.attrs(None)).close()
     tc.close(finalize=False)
     with pytest.raises(ss.StoreFormatError, match=r"is an incomplete store: its creation by a "
                        r"TallCompressor was interrupted before its first commit .* Delete it "
@@ -271,7 +271,7 @@ def test_check_reports_a_missing_panel_as_opening_does(tmp_path, source):
     report = check_store(open_storage(path))
     assert report.healthy and "the TallCompressor it holds opens" in report.verified
     with open_compressor(path) as tc:
-        panel = tc._state.basis.panels[0]
+        panel = tc._life.state.basis.panels[0]
     shutil.rmtree(path / "panels" / panel)
     with pytest.raises(ss.StoreError, match=rf"panel {panel} of the basis cannot be opened"
                        ) as refused:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-import streamsvd.stream.compressor as stream_module
+import streamsvd.stream.updates as stream_module
 from streamsvd.parallel.cluster import tall_compress
 from streamsvd.testing import with_spectrum
 
@@ -165,7 +165,7 @@ def test_an_interrupted_gram_absorb_changes_nothing(tmp_path, monkeypatch):
             sc.absorb(A[:, j : j + 40])
         sc.flush()
         before = sc.expansion
-        basis = sc._state.basis
+        basis = sc._life.state.basis
 
         def interrupt(*args, **kwargs):
             raise KeyboardInterrupt
@@ -293,8 +293,8 @@ def test_a_basis_compacting_in_place_keeps_the_expansion_with_one_buffer_less(in
         tracemalloc.stop()
         results.append(sc)
     aside, over = results
-    assert over._state.basis._spare is None and aside._state.basis._spare is not None
-    k = over._state.basis.capacity
+    assert over._life.state.basis._spare is None and aside._life.state.basis._spare is not None
+    k = over._life.state.basis.capacity
     images = 1 if inner is None else 2  # the basis, and its M image
     # a slab of rows per part, and the last, shorter ones
     assert peaks[1] <= peaks[0] - images * n * k * 8 + 4 * SLAB_BYTES
@@ -352,7 +352,7 @@ def test_a_tree_whose_in_place_updates_break_compresses_them_again_aside(
         sc = tree_compress(A, block=50, leaf_columns=100, max_rank=20)
     assert "compressed again, compacting aside" in caplog.text  # a leaf
     assert "made again, compacting aside" in caplog.text  # a merge
-    assert not sc._state.basis.compact_in_place
+    assert not sc._life.state.basis.compact_in_place
     E = sc.expansion
     assert np.linalg.norm(A - E.U @ E.V.T) <= sc.error_bound * (1 + 1e-12)
     monkeypatch.undo()
@@ -385,10 +385,10 @@ def test_the_gram_path_leaves_the_new_bases_gram_to_the_next_block(rng, inner, b
     ip = None if inner is None else np.linspace(0.5, 2.0, n)
     A, sc, blocks = _pending_stream(rng, ip, n, block=block)
     joint = []
-    sc._state.basis.joint_products = _counted(sc._state.basis.joint_products, joint)
+    sc._life.state.basis.joint_products = _counted(sc._life.state.basis.joint_products, joint)
     for X in blocks:
         rec = sc.absorb(X)
-        state = sc._state
+        state = sc._life.state
         if sc.n_seen <= 22:
             continue  # nothing cut yet: the exact path
         assert _by_gram(rec) and state.gram is None
@@ -484,7 +484,7 @@ def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng, b
     with ss.StreamCompressor(A.shape[0], store=path, max_rank=12) as sc:
         for X in blocks[:half]:
             sc.absorb(X)
-        assert sc._state.gram is None
+        assert sc._life.state.gram is None
         sc.close(finalize=False)
     st = open_store(path, "r")
     try:
@@ -492,14 +492,14 @@ def test_a_pending_gram_is_committed_so_and_resumed_bit_for_bit(tmp_path, rng, b
     finally:
         st.close()
     with ss.StreamCompressor.open(path) as back:
-        assert back._state.gram is None
+        assert back._life.state.gram is None
         assert back.expansion.orthogonality_error() <= 20 * A.shape[0] * EPS
         for X in blocks[half:]:
             back.absorb(X)
         np.testing.assert_array_equal(back.expansion.U, ref.expansion.U)
         np.testing.assert_array_equal(back.expansion.V, ref.expansion.V)
         back.finalize()
-        assert back._state.gram is not None  # the final sweeps measured it
+        assert back._life.state.gram is not None  # the final sweeps measured it
 
 
 def test_a_pending_basis_that_lost_its_orthogonality_is_refused_by_name(rng):
@@ -509,7 +509,7 @@ def test_a_pending_basis_that_lost_its_orthogonality_is_refused_by_name(rng):
     A, sc, blocks = _pending_stream(rng)
     for X in blocks:
         sc.absorb(X)
-    state = sc._state
+    state = sc._life.state
     assert state.gram is None
     state.basis.Q[:, 3] = 0.0
     R = state.R.copy()
@@ -526,7 +526,7 @@ def test_a_block_wider_than_half_the_basis_is_not_copied_beside_it(rng):
         A, sc, blocks = _pending_stream(rng, block=block)
         for X in blocks:
             sc.absorb(X)
-        basis = sc._state.basis
+        basis = sc._life.state.basis
         assert sc.history[-1].passes == 2 and basis.width == 22
         assert (basis.capacity >= basis.width + block) == widened
 
@@ -554,7 +554,7 @@ def test_narrow_blocks_stay_beside_the_basis_and_keep_the_exact_paths_result(
     width = 0
     for j in range(0, m, block):
         rec = sc.absorb(A[:, j : j + block])
-        basis = sc._state.basis
+        basis = sc._life.state.basis
         if _kept(rec):
             assert basis.width == width + block  # stored as it is
         width = basis.width
@@ -606,17 +606,17 @@ def test_kept_blocks_are_committed_and_resumed_bit_for_bit(tmp_path, rng):
     holding = []
     for i, X in enumerate(blocks):
         ref.absorb(X)
-        if ref._state.basis.width > ref.rank:
+        if ref._life.state.basis.width > ref.rank:
             holding.append(i)
     half = holding[len(holding) // 2] + 1
     path = tmp_path / "s.zarr"
     with ss.StreamCompressor(n, store=path, max_rank=16) as sc:
         for X in blocks[:half]:
             sc.absorb(X)
-        assert sc._state.basis.width > sc.rank
+        assert sc._life.state.basis.width > sc.rank
         sc.close(finalize=False)
     with ss.StreamCompressor.open(path) as back:
-        assert back._state.basis.width > back.rank
+        assert back._life.state.basis.width > back.rank
         for X in blocks[half:]:
             back.absorb(X)
         np.testing.assert_array_equal(back.expansion.U, ref.expansion.U)
@@ -639,7 +639,7 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
             sc.absorb(A[:, j : j + 2])
             j += 2
         sc.flush()
-        before, width = sc.expansion, sc._state.basis.width
+        before, width = sc.expansion, sc._life.state.basis.width
 
         def interrupt(*args, **kwargs):
             raise KeyboardInterrupt
@@ -648,7 +648,7 @@ def test_an_interrupted_update_that_keeps_its_block_changes_nothing(tmp_path, mo
             mp.setattr(gram_path, "dtrtri", interrupt)  # in _kept_factors
             with pytest.raises(KeyboardInterrupt):
                 sc.absorb(A[:, j : j + 2])
-        assert sc._state.basis.width == width and sc.n_seen == j
+        assert sc._life.state.basis.width == width and sc.n_seen == j
         np.testing.assert_array_equal(sc.expansion.U, before.U)
         np.testing.assert_array_equal(sc.expansion.V, before.V)
         assert _kept(sc.absorb(A[:, j : j + 2]))

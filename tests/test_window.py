@@ -220,9 +220,9 @@ def test_forget_without_right_vectors(rng):
 
 # ------------------------------------------------------------------------- the store
 def _state(sc: ss.StreamCompressor) -> list[np.ndarray]:
-    s = sc._state
+    s = sc._life.state
     return [s.basis.lincomb(s.coords), s.R, sc.right_factor(), np.array([sc.error_bound]),
-            sc.removed, np.array(sc._ledger.entries)]
+            sc.removed, np.array(sc._life.ledger.entries)]
 
 
 @pytest.mark.parametrize("options", [
@@ -267,7 +267,7 @@ def test_resume_is_bit_for_bit(rng, tmp_path, options, commit_every):
 def test_dead_rows_are_written_anew_once_they_outnumber_the_live_ones(rng, tmp_path):
     A = _data(rng, 30, 400, 6, 1e-6)
     sc = ss.StreamCompressor(30, window=20, store=tmp_path / "w.zarr", sweeps=None)
-    rows = sc._state.rows
+    rows = sc._life.state.rows
     rewrites = []
     for start in range(0, 400, 5):
         sc.absorb(A[:, start : start + 5])
@@ -302,13 +302,13 @@ def test_bad_removals_name_the_argument_and_change_nothing(rng, tmp_path, column
     sc = ss.StreamCompressor(10, store=tmp_path / "s.zarr")
     sc.absorb(rng.standard_normal((10, 5)))
     sc.remove([0])
-    before, generation = _state(sc), sc._persistence.handle.generation
+    before, generation = _state(sc), sc._life.persistence.handle.generation
     history = sc.history
     with pytest.raises(InputError, match=message):
         sc.remove(columns)
     for a, b in zip(before, _state(sc), strict=True):
         np.testing.assert_array_equal(a, b)
-    assert sc._persistence.handle.generation == generation and sc.history == history
+    assert sc._life.persistence.handle.generation == generation and sc.history == history
     sc.close(finalize=False)
 
 
@@ -451,7 +451,7 @@ def test_bound_holds_through_any_sequence_of_absorbs_and_removals(seed, ops, gam
             sc.remove([ids[i] for i in pick])
             cols = [c for i, c in enumerate(cols) if i not in pick]
             ids = [g for i, g in enumerate(ids) if i not in pick]
-        assert sc.n_seen == len(cols) and sc._ledger.entries.shape[0] <= 32
+        assert sc.n_seen == len(cols) and sc._life.ledger.entries.shape[0] <= 32
         A = np.column_stack(cols) if cols else np.zeros((n, 0))
         err = np.linalg.norm(A - sc.expansion.to_dense())
         assert err <= sc.error_bound + 50 * n * EPS * np.linalg.norm(A)

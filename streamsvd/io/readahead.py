@@ -11,7 +11,7 @@ from __future__ import annotations
 import queue
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from typing import Any, cast
 
 import numpy as np
@@ -31,7 +31,7 @@ def read_ahead(
     read: Callable[[int, int, np.ndarray | None], np.ndarray],
     ranges: list[tuple[int, int]],
     depth: int,
-) -> Iterator[tuple[int, np.ndarray]]:
+) -> Generator[tuple[int, np.ndarray], None, None]:
     """Yield ``(a, read(a, b, spare))`` for each range, read by a background thread.
 
     The thread reads at most ``depth`` ranges ahead of the one the caller holds (a
@@ -75,7 +75,7 @@ def read_ahead(
                 raise exc
             yield a, cast(np.ndarray, X)
             if sys.getrefcount(X) == _UNREFERENCED:
-                spares.put(X)
+                spares.put(cast(np.ndarray, X))
             del X
             permits.release()
     finally:

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from types import TracebackType
 from typing import Any, cast
 
@@ -240,7 +240,7 @@ class Source:
     def blocks(
         self, block: int = 100, *, start: int = 0, stop: int | None = None,
         prefetch: bool = True, depth: int = 1, min_last: int = 0, rows: int | None = None,
-    ) -> Iterator[tuple[int, np.ndarray | LazyBlock]]:
+    ) -> Generator[tuple[int, np.ndarray | LazyBlock], None, None]:
         """Yield ``(offset, X)`` for consecutive column blocks of columns ``start:stop``.
 
         ``X`` holds columns ``offset:offset + b`` as a column-major array of dtype

@@ -118,9 +118,10 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
         yield client
 
 
-def compressor_class(kind: Any) -> type[StreamCompressor] | None:
+def compressor_class(kind: Any) -> type | None:
     """Return the class whose stores record ``kind`` (None for any other kind)."""
-    return {MEMORY_KIND: StreamCompressor, KIND: TallCompressor}.get(kind)
+    classes: dict[str, type] = {MEMORY_KIND: StreamCompressor, KIND: TallCompressor}
+    return classes.get(kind)
 
 
 def stored_kind(path: Any, *, storage_options: dict[str, Any] | None = None) -> Any:
@@ -131,7 +132,7 @@ def stored_kind(path: Any, *, storage_options: dict[str, Any] | None = None) -> 
 
 def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: Any = None,
                     storage_options: dict[str, Any] | None = None,
-                    ) -> StreamCompressor | TallCompressor:
+                    ) -> StreamCompressor:
     """Reopen the compressor of a store, in memory or tall, whichever wrote it.
 
     Both kinds offer ``n``, ``n_seen``, ``rank``, ``amplitudes``, ``error_bound``,
@@ -168,7 +169,7 @@ def tall_compress(
     progress: bool = False,
     storage_options: dict[str, Any] | None = None,
     **options: Any,
-) -> TallCompressor:
+) -> StreamCompressor:
     """Stream every column of a source into a :class:`TallCompressor`, block by block.
 
     Parameters
@@ -316,7 +317,7 @@ def ingest(
     """
     t0 = time.perf_counter()
     with connect(scheduler, workers=workers) as client:
-        sc: StreamCompressor | TallCompressor
+        sc: StreamCompressor
         if tall:
             if leaf_columns is not None:
                 raise InputError(

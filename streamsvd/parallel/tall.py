@@ -2,8 +2,8 @@
 
 :class:`~streamsvd.algebra.panels.backend.PanelBackend` is the backend
 (:class:`~streamsvd.algebra.memory.Backend`) that keeps a compressor's n-sized factor in a
-:class:`~streamsvd.algebra.panels.basis.PanelBasis`, and :class:`TallCompressor` is
-:class:`~streamsvd.StreamCompressor` built with it (a constructor and nothing else): the
+:class:`~streamsvd.algebra.panels.basis.PanelBasis`, and :class:`TallCompressor` is the
+factory of a :class:`~streamsvd.StreamCompressor` built with it (nothing else): the
 basis lives in panels chunked by rows in the store directory (``<store>/panels/``), and
 every product with it runs over row chunks with dask, on the threaded scheduler or on a
 ``distributed`` cluster. The update step, the options, ``add``, ``merge``, the error
@@ -34,28 +34,33 @@ panels included, are replaced by the next creation), never half of it
 
 from __future__ import annotations
 
-import logging
-from typing import Any, cast
+from typing import Any
 
-import numpy as np
-
-from streamsvd._util.scaling import safe_column_norms
-from streamsvd._util.scheduling import check_client, execute
+from streamsvd._util.scheduling import check_client
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.panels.backend import KIND, PanelBackend
-from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.stream.compressor import StreamCompressor
 
 __all__ = ["TallCompressor"]
 
-logger = logging.getLogger(__name__)
 
-class TallCompressor(StreamCompressor):
+class _TallMode(type):
+    """The type of :class:`TallCompressor`: its instances are the tall-mode compressors."""
+
+    def __instancecheck__(cls, instance: object) -> bool:
+        return isinstance(instance, StreamCompressor) and instance._life.kind == KIND
+
+
+class TallCompressor(metaclass=_TallMode):
     """Stream snapshots into a basis kept out of core, in panels chunked by rows.
 
-    A :class:`~streamsvd.StreamCompressor` whose backend is a
-    :class:`~streamsvd.algebra.panels.backend.PanelBackend`: this class only builds it
-    from the arguments below.
+    A factory: ``TallCompressor(n, ...)`` returns a :class:`~streamsvd.StreamCompressor`
+    whose backend is a :class:`~streamsvd.algebra.panels.backend.PanelBackend`, built
+    from the arguments below, and ``isinstance(sc, TallCompressor)`` tells whether a
+    compressor is one. Its tall-mode attributes (:attr:`~streamsvd.StreamCompressor.
+    chunk_rows`, :attr:`~streamsvd.StreamCompressor.client`,
+    :meth:`~streamsvd.StreamCompressor.factors`, whose ``U`` is lazy here, and
+    :meth:`~streamsvd.StreamCompressor.expect`) are the compressor's.
 
     Parameters
     ----------
@@ -101,8 +106,8 @@ class TallCompressor(StreamCompressor):
 
     KIND = KIND
 
-    def __init__(
-        self,
+    def __new__(  # type: ignore[misc]
+        cls,
         n: int,
         *,
         store: Any = None,
@@ -112,18 +117,19 @@ class TallCompressor(StreamCompressor):
         inner: Any = None,
         storage_options: dict[str, Any] | None = None,
         **options: Any,
-    ) -> None:
+    ) -> StreamCompressor:
+        """Return a :class:`~streamsvd.StreamCompressor` over panels (see the class)."""
         check_positive_int(n, "n")
         backend = PanelBackend.create(store=store, workdir=workdir, chunk_rows=chunk_rows,
                                       client=client, storage_options=storage_options)
-        super().__init__(n, inner=inner, store=None if store is None else backend.root,
-                         backend=backend, **options)
+        return StreamCompressor(n, inner=inner, store=None if store is None else backend.root,
+                                backend=backend, **options)
 
     @classmethod
     def open(
         cls, path: Any, *, inner: Any = None, mode: str = "a", client: Any = None,
         storage_options: dict[str, Any] | None = None,
-    ) -> TallCompressor:
+    ) -> StreamCompressor:
         """Reopen a tall compressor from its store, exactly as at the last commit.
 
         Parameters
@@ -141,63 +147,8 @@ class TallCompressor(StreamCompressor):
             Options of the object store of a URL ``path``.
         """
         client = check_client(client)
-        return cls._open(
+        return StreamCompressor._open(
             path, inner=inner, mode=mode, kind=KIND,
             backend=lambda attrs, root: PanelBackend.for_store(attrs, root, client=client),
             storage_options=storage_options,
         )
-
-    @property
-    def chunk_rows(self) -> int:
-        """Rows per chunk of the panels."""
-        return self._panel_backend.chunk_rows
-
-    @property
-    def client(self) -> Any:
-        """The cluster the row-chunk products run on (None: the threaded scheduler)."""
-        return self._panel_backend.client
-
-    @property
-    def _panel_backend(self) -> PanelBackend:
-        backend = self._backend
-        assert isinstance(backend, PanelBackend)
-        return backend
-
-    def expect(self, columns: Any) -> None:
-        """Name the block that will follow the one the coming :meth:`absorb` is given.
-
-        A block read from its source (a :class:`~streamsvd.algebra.panels.lazy.LazyBlock`, as
-        :func:`~streamsvd.stream.ingest.ingest` hands them out) is then read by the coming
-        update's last pass over the panels, which writes its scratch copy and forms its
-        products with the new basis: its own update then makes one pass over the panels
-        instead of two (``bench/README.md``). The results are the same to the last bit
-        (tested); should the call after the coming one get another block, or the coming
-        update take another path, the block is read as usual.
-        """
-        cast(PanelBasis, self._state.basis).expect(columns)
-
-    @property
-    def stored_width(self) -> int:
-        """Number of stored columns of the basis (all panels)."""
-        return self._state.basis.width
-
-    def factors(self) -> tuple[Any, np.ndarray]:
-        """Return the expansion as ``(U, V)``: ``U`` lazy (dask, over the panels), ``V`` in memory.
-
-        Terms are sorted by decreasing amplitude and signed as in :attr:`expansion` (the
-        largest-modulus entry of each ``u_i`` positive, found by a reduction over the
-        row chunks), so neither this call nor computing ``U`` chunk by chunk holds
-        ``n x p``; :attr:`left_vectors` and :attr:`expansion` do gather ``U``. Needs
-        ``right_vectors=True``.
-        """
-        s = self._state
-        basis = s.basis
-        assert isinstance(basis, PanelBasis)
-        V = self.right_factor()
-        perm = np.argsort(-safe_column_norms(V), kind="stable")
-        U = basis.lazy(s.settled()[0][:, perm])
-        top, bottom = execute([U.max(axis=0), U.min(axis=0)], client=self.client,
-                              overlap_io=True)
-        signs = np.where(np.asarray(top) >= -np.asarray(bottom), 1.0, -1.0)
-        self._exposure = (self._version, perm, signs)  # the coordinates of `add`
-        return U * signs, V[:, perm] * signs

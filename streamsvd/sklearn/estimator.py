@@ -294,7 +294,7 @@ class StreamingSVD(FittedPCA):
             self.n_features_in_ = n_features
         m = sc.n_seen
         g = opts.forget ** np.arange(m - 1, -1, -1, dtype=np.float64)
-        state = sc._state
+        state = sc._life.state
         assert state.rows is not None
         coords, _, R = state.settled()
         found = _pca_math.weighted_components(

@@ -11,11 +11,15 @@ far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each u
 3. truncates the terms that fail ``||v_i|| >= eps``, ``||v_i|| >= rtol * ||v_1||`` or
    ``i <= max_rank`` (after the sweeps, on the sorted amplitudes), logging what was cut.
 
-The step is written once (:mod:`streamsvd.engine.update`) over the n-sized basis
-(:mod:`streamsvd.algebra.memory`) and the m-sized right vectors (:mod:`streamsvd.engine.rows`); this
-class is the facade: its options are :class:`~streamsvd.stream.options.CompressorOptions`, its
-store a :class:`~streamsvd.stream.persistence.StreamStore`, and what it exposes of the
-expansion :class:`~streamsvd.stream.view.ExpansionView`.
+The step is written once (:mod:`streamsvd.engine.update`) over the n-sized basis (a
+:class:`~streamsvd.algebra.memory.Backend`'s) and the m-sized right vectors
+(:mod:`streamsvd.engine.rows`). This class is the facade, composed of parts it holds as
+attributes and forwards to: a :class:`~streamsvd.stream.lifecycle.Lifecycle` (the
+state, each update's run and commit, the store), an
+:class:`~streamsvd.stream.updates.Updates` (``absorb``, ``add``, ``merge``,
+``finalize``), a :class:`~streamsvd.stream.window.Window` (``remove``, the window,
+forgetting) and an :class:`~streamsvd.stream.view.ExpansionView` (every read-only
+attribute); its options are :class:`~streamsvd.stream.options.CompressorOptions`.
 
 Store contents: besides the state, the first commit writes the data of the inner
 product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
@@ -42,43 +46,31 @@ re-orthonormalised through the Cholesky factor of that small Gram
 
 from __future__ import annotations
 
-import functools
-import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from streamsvd._util.threads import check_threads
 from streamsvd._util.validation import check_positive_int
-from streamsvd.algebra.inner import InnerProduct, as_inner, inner_arrays
+from streamsvd.algebra.inner import InnerProduct, as_inner
 from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
 from streamsvd.engine.record import UpdateRecord
-from streamsvd.engine.rows import RowFactor
-from streamsvd.engine.state import State
-from streamsvd.engine.update import (
-    plan_absorb,
-    plan_add,
-    plan_finalize,
-    plan_merge,
-)
-from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
 from streamsvd.errors import InputError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.linalg.expansion import Expansion
-from streamsvd.stream.lifecycle import StoreLifecycle
-from streamsvd.stream.operands import _final_options, _increment, _merge_operand, _merge_options
+from streamsvd.stream.delegation import Forward
+from streamsvd.stream.lifecycle import Lifecycle
 from streamsvd.stream.options import CompressorOptions, option_properties
-from streamsvd.stream.persistence import StreamStore
-from streamsvd.stream.summary import _sweep_bar
+from streamsvd.stream.updates import Updates
 from streamsvd.stream.view import ExpansionView
-from streamsvd.stream.window import Removals
+from streamsvd.stream.window import Window
 
 __all__ = ["StreamCompressor", "UpdateRecord"]
 
 
-
 @option_properties
-class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
+class StreamCompressor:
     """Absorb snapshots (columns) and low-rank increments into an orthonormal expansion.
 
     Parameters
@@ -185,6 +177,13 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
     optimally, then commits. Call ``close(finalize=False)`` to keep the streamed state
     as it is.
+
+
+    Notes
+    -----
+    Its updates are :class:`~streamsvd.stream.updates.Updates`', its removals
+    :class:`~streamsvd.stream.window.Window`'s, its read-only attributes
+    :class:`~streamsvd.stream.view.ExpansionView`'s (one per option too).
     """
 
     def __init__(
@@ -193,183 +192,180 @@ class StreamCompressor(StoreLifecycle, Removals, ExpansionView):
         storage_options: dict[str, Any] | None = None, threads: int | None = 1,
         backend: Backend | None = None, **options: Any,
     ) -> None:
-        self.n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
-        self._backend: Backend = MemoryBackend() if backend is None else backend
-        self.threads = check_threads(threads)
-        self.inner: InnerProduct = as_inner(inner, self.n)
+        n = int(check_positive_int(n, "n"))  # type: ignore[arg-type]
+        backend = MemoryBackend() if backend is None else backend
+        threads = check_threads(threads)
+        ip = as_inner(inner, n)
         if source_record is not None and not isinstance(source_record, SourceRecord):
             raise InputError(
                 f"`source_record` must be a SourceRecord or None; got "
                 f"{type(source_record).__name__}. Build one with `SourceRecord.of(...)`."
             )
-        self.source_record = source_record
-        self.options = CompressorOptions.validated(self.n, **options)
-        self._opts = self.options.step_options(self.inner)
-        self._state = State(
-            basis=self._backend.new_basis(self.n, self.inner),
-            rows=RowFactor() if self.options.right_vectors else None,
-        )
-        self._history: list[UpdateRecord] = []
-        self._version = 0  # increases with every state change (for the exposure cache)
-        self._exposure: tuple[int, np.ndarray, np.ndarray] | None = None
-        self.source_offset = 0
-        self._start_removals()
-        self._persistence: StreamStore | None = None
+        self._attach(Lifecycle(n, inner=ip, options=CompressorOptions.validated(n, **options),
+                               backend=backend, threads=threads, source_record=source_record))
         if store is not None:
-            self._start_store(store, storage_options)
+            self._life.start_store(store, storage_options)
 
     KIND = MEMORY_KIND
 
-    @functools.cached_property
-    def _inner_data(self) -> dict[str, np.ndarray]:
-        """The inner product's arrays that the store keeps (none for an unknown class)."""
-        return inner_arrays(self.inner) or {}
+    # the parts' public names (documented there; `help(sc.absorb)` shows the part's)
+    absorb = Forward[Callable[..., UpdateRecord]]("_updates", Updates)
+    add = Forward[Callable[..., UpdateRecord]]("_updates", Updates)
+    merge = Forward[Callable[..., UpdateRecord]]("_updates", Updates)
+    finalize = Forward[Callable[..., UpdateRecord]]("_updates", Updates)
+    expect = Forward[Callable[[Any], None]]("_updates", Updates)
+    remove = Forward[Callable[[Any], UpdateRecord]]("_window", Window)
+    n_absorbed = Forward[int]("_window", Window)
+    removed = Forward[np.ndarray]("_window", Window)
+    n = Forward[int]("_view", ExpansionView)
+    inner = Forward[InnerProduct]("_view", ExpansionView)
+    options = Forward[CompressorOptions]("_view", ExpansionView)
+    source_offset = Forward[int]("_view", ExpansionView)
+    store_path = Forward["str | None"]("_view", ExpansionView)
+    chunk_rows = Forward["int | None"]("_view", ExpansionView)
+    client = Forward[Any]("_view", ExpansionView)
+    n_seen = Forward[int]("_view", ExpansionView)
+    rank = Forward[int]("_view", ExpansionView)
+    left_vectors = Forward[np.ndarray]("_view", ExpansionView)
+    expansion = Forward[Expansion]("_view", ExpansionView)
+    factors = Forward[Callable[[], tuple[Any, np.ndarray]]]("_view", ExpansionView)
+    right_factor = Forward[Callable[[], np.ndarray]]("_view", ExpansionView)
+    amplitudes = Forward[np.ndarray]("_view", ExpansionView)
+    discarded_energy = Forward[float]("_view", ExpansionView)
+    discarded_norm = Forward[float]("_view", ExpansionView)
+    error_bound = Forward[float]("_view", ExpansionView)
+    error_in_measure = Forward[float]("_view", ExpansionView)
+    target_met = Forward["bool | None"]("_view", ExpansionView)
+    target_missed_by = Forward["str | None"]("_view", ExpansionView)
+    history = Forward[tuple[UpdateRecord, ...]]("_view", ExpansionView)
+    orthogonality_error = Forward[Callable[[], float]]("_view", ExpansionView)
+    finalized = Forward[bool]("_view", ExpansionView)
+    streaming_rank = Forward["int | None"]("_view", ExpansionView)
+    stored_width = Forward[int]("_view", ExpansionView)
+
+    def _attach(self, life: Lifecycle) -> StreamCompressor:
+        """Hold the parts around ``life``: the lifecycle, the window and the view."""
+        self._life = life
+        self._window = Window(life)
+        self._view = ExpansionView(life)
+        self._updates = Updates(life, self._window, self._view)
+        return self
 
     @classmethod
-    def _built(cls, n: int, *, backend: Backend, **arguments: Any) -> Any:
-        """Return a compressor of this class around ``backend`` (its constructor skipped)."""
-        sc = cls.__new__(cls)
-        StreamCompressor.__init__(sc, n, backend=backend, **arguments)
-        return sc
-
-    def _empty_copy(self, *, backend: Backend | None = None, **changes: Any) -> Any:
-        """Return a compressor with these options (but ``changes``), nothing absorbed.
-
-        Its basis is kept by ``backend`` (default: a fresh one of the same settings).
-        """
-        backend = self._backend.fresh() if backend is None else backend
-        return self._built(self.n, backend=backend, inner=self.inner,
-                           source_record=self.source_record, threads=self.threads,
-                           **{**self.options.as_dict(), **changes})
+    def _around(cls, life: Lifecycle) -> StreamCompressor:
+        """Return the compressor whose lifecycle is ``life`` (its constructor skipped)."""
+        return StreamCompressor.__new__(StreamCompressor)._attach(life)
 
     def __repr__(self) -> str:
+        life, o = self._life, self._life.options
         return (
-            f"{type(self).__name__}(n={self.n}, n_seen={self.n_seen}, rank={self.rank}, "
-            f"{self._backend.describe(self._state.basis)}"
-            f"rule={self.rule!r}, sweeps={self.sweeps}, eps={self.eps}, rtol={self.rtol}, "
-            f"max_rank={self.max_rank})"
+            f"{life.kind.rpartition('.')[2]}(n={self.n}, n_seen={self.n_seen}, "
+            f"rank={self.rank}, {life.backend.describe(life.state.basis)}"
+            f"rule={o.rule!r}, sweeps={o.sweeps}, eps={o.eps}, rtol={o.rtol}, "
+            f"max_rank={o.max_rank})"
         )
 
-    # ------------------------------------------------------------------ updates
-    def absorb(self, columns: Any, *, source_offset: int | None = None) -> UpdateRecord:
-        """Append a block of snapshots (the columns of ``columns``, ``n x b``, ``b >= 1``).
+    # ------------------------------------------------------------------ settings
+    @property
+    def threads(self) -> int | None:
+        """BLAS threads of an update (None: the BLAS as it is set); may be changed."""
+        return self._life.threads
+
+    @threads.setter
+    def threads(self, value: int | None) -> None:
+        self._life.threads = check_threads(value)
+
+    @property
+    def source_record(self) -> SourceRecord | None:
+        """Where the snapshots come from, kept by every commit; may be replaced."""
+        return self._life.source_record
+
+    @source_record.setter
+    def source_record(self, value: SourceRecord | None) -> None:
+        self._life.source_record = value
+
+    # ------------------------------------------------------------------ the store
+    @classmethod
+    def open(
+        cls, path: Any, *, inner: Any = None, mode: str = "a",
+        storage_options: dict[str, Any] | None = None,
+    ) -> StreamCompressor:
+        """Reopen a compressor from its store, exactly as it was at the last commit.
 
         Parameters
         ----------
-        columns : array_like, shape (n, b)
-            The new snapshots.
-        source_offset : int, optional
-            Position in the source just after this block, recorded in the store so that
-            an interrupted ingestion resumes there; default: the previous offset + ``b``.
-
-        With ``window``, the oldest snapshots that would fall out are removed first
-        (:meth:`remove`, an update of its own in :attr:`history`); with ``forget``, the
-        expansion is scaled by ``forget^b`` and the block's columns weighted
-        ``forget^(b-1), ..., 1`` (``b`` the block's width).
-
-        On bad input an :class:`~streamsvd.errors.InputError` is raised and the state,
-        in memory and in the store, is unchanged.
+        path : str or path-like
+            The store written with ``StreamCompressor(..., store=path)``.
+        inner : optional
+            The inner product the store was written with (checked by fingerprint). When
+            omitted, the one the store keeps (Euclidean if none); a store written before
+            stores kept it, with another inner product than the Euclidean one, needs it.
+        mode : {"a", "r"}
+            ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
+        storage_options : dict, optional
+            Options of the object store of a URL ``path`` (``s3://``: ``key``,
+            ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
         """
-        t0 = time.perf_counter()
-        B = self._backend.load(columns, rows=self.n, first=self.source_offset)
-        offset = self.source_offset + B.shape[1] if source_offset is None else int(source_offset)
-        B, state, ledger, removed = self._windowed(B)
-        return self._run(
-            lambda: plan_absorb_by_gram(state, B, self._opts, t0=t0)
-            or plan_absorb(state, self._backend.in_memory(B), self._opts, t0=t0),
-            offset, ledger=ledger, removed=removed,
-        )
+        return cls._open(path, inner=inner, mode=mode, kind=MEMORY_KIND,
+                         backend=lambda attrs, root: MemoryBackend(),
+                         storage_options=storage_options)
 
-    def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
-        """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.
+    @classmethod
+    def _open(cls, path: Any, *, inner: Any, mode: str, kind: str,
+              backend: Callable[[dict[str, Any], Any], Backend],
+              storage_options: dict[str, Any] | None = None) -> StreamCompressor:
+        """Open a store of ``kind`` and return the compressor it holds.
+
+        ``backend(basis_attrs, root)`` returns the backend of the store at ``root``.
+        """
+        return cls._around(Lifecycle.open(
+            path, inner=inner, mode=mode, kind=kind, name=kind.rpartition(".")[2],
+            backend=backend, storage_options=storage_options,
+        ))
+
+    def copy(self) -> StreamCompressor:
+        """Return an independent copy of the compressor (without its store)."""
+        return self._copy_with()
+
+    def _copy_with(self, *, backend: Backend | None = None, **changes: Any) -> StreamCompressor:
+        """Return a copy whose options differ by ``changes``, its basis kept by ``backend``."""
+        return self._around(self._life.copied(backend=backend, **changes))
+
+    def _drop_scratch(self) -> None:
+        """Free the basis's buffers for its next update (a finished leaf of a tree)."""
+        self._life.state.basis.drop_scratch()
+
+    def save(self, path: Any) -> None:
+        """Write the compressor into a new store at ``path`` and keep committing there.
+
+        One commit of the current state, bit for bit (no update is run). The compressor
+        must not have a store already.
+        """
+        self._life.start_store(path, None)
+
+    def flush(self) -> None:
+        """Commit the current state to the store now (no-op without a store)."""
+        self._life.flush()
+
+    def close(self, *, finalize: bool = True) -> None:
+        """Finalise the expansion, commit what is pending and release the store's lock.
 
         Parameters
         ----------
-        U_k : array_like, shape (n, k)
-            Left vectors of the increment (any, not necessarily orthonormal); ``k`` may
-            be 0 when ``coefficients`` is given.
-        V_k : array_like, shape (m, k)
-            Right vectors; ``m`` must equal :attr:`n_seen` (or fixes it when the
-            compressor is empty).
-        coefficients : array_like, shape (m, p), optional
-            ``dV``: an increment *inside* the current basis, in the coordinates of the
-            ``U`` last returned by :attr:`expansion` (its column ``i`` is the change of
-            ``v_i``). It costs ``O(m p^2)`` instead of a Gram-Schmidt of ``U`` against
-            itself. This is how a PGD solver updates its time functions.
-
-        A term whose residual carries ``||r_j||_M ||v_j|| <= reject_tol * max_i
-        ||u_i||_M ||v_i||`` is rejected; the rejected residuals share the same columns, so
-        their norm ``||Res V_rej^T||`` is computed exactly from two small Gram matrices.
-        Needs ``right_vectors=True``.
+        finalize : bool
+            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
+            closed expansion is the SVD, truncated to ``max_rank``. A store opened
+            read-only is never finalised, nor a basis that closing removes (a
+            temporary backend's).
         """
-        t0 = time.perf_counter()
-        s = self._state
-        Uk, Vk, dV = _increment(self, U_k, V_k, coefficients)
-        dV_int = None if dV is None else self._internal_coefficients(dV)
-        return self._run(
-            lambda: plan_add(s, Uk, Vk, dV_int, self._opts, t0=t0), self.source_offset
-        )
+        life = self._life
+        if finalize and life.writable and not self.finalized and not life.backend.temporary:
+            self.finalize()
+        life.close()
 
-    def merge(
-        self, other: StreamCompressor | Expansion, *, spend_target: bool = True
-    ) -> UpdateRecord:
-        """Append the snapshots represented by ``other`` (they come after the current ones).
+    def __enter__(self) -> StreamCompressor:
+        return self
 
-        ``other`` is a compressor fed with later columns (for instance on another worker)
-        or an expansion of them; it is not modified. Its left vectors are decomposed on
-        the basis, and its right vectors enter the small core through their core ``R_o``,
-        so the cost is ``O(n w p_o + p_o^2 (p + p_o))`` (plus ``O(m_o p_o p)`` for the new
-        rows of ``V`` when they are kept), never ``O(n m_o)``. A term of ``other`` is
-        rejected relative to the energy of ``other``, and a term of the merged core below
-        ``reject_tol`` times the largest amplitude of the smaller expansion is cut as
-        rounding noise, its norm counted in the bound (see
-        :func:`streamsvd.engine.update.plan_merge`).
-        Error bounds compose: the two parts cover disjoint columns, so before the merge's
-        own truncation the bound is ``sqrt(b_self^2 + b_other^2)``, as in the hierarchical
-        POD of Himpe, Leibner and Rave (2018).
-
-        With ``spend_target=False`` the merge cuts nothing for the target error (``eps``,
-        ``rtol`` and the rank cap still apply): the tree of :func:`streamsvd.parallel.
-        tree_compress` merges so, and the budget its leaves left is spent by one optimal
-        cut in the root's :meth:`finalize`, as pyMOR's ``dist_vectorarray_hapod`` does.
-        """
-        t0 = time.perf_counter()
-        op = _merge_operand(other, StreamCompressor, n=self.n, inner=self.inner,
-                            keep_rows=self._state.rows is not None)
-        prior = self._state.bound.combine(op.bound)
-        opts = _merge_options(self._opts, spend_target=spend_target)
-        s = self._state
-        return self._run(
-            lambda: plan_merge_by_gram(s, op.Q, op.coordinates(), op.R, op.Y, op.m, prior,
-                                       opts, t0=t0)
-            or plan_merge(s, op.left_vectors(), op.R, op.Y, op.m, prior, opts, t0=t0),
-            self.source_offset + op.m,
-            ledger=self._ledger.appended(self.n_seen + op.m, prior.bound),
-        )
-
-    def finalize(
-        self, *, rule: str = "jacobi", max_rank: int | None = None, progress: bool = False
-    ) -> UpdateRecord:
-        """Converge the small core to the SVD of the current expansion, then truncate.
-
-        Rotation sweeps of ``rule`` (``"jacobi"`` by default: quadratic convergence) run
-        on the core until a sweep rotates nothing (at most 200), and the truncation rules
-        (``eps``, ``rtol``, and ``max_rank``, or the compressor's own when omitted, without
-        the oversampling) are applied to the converged amplitudes: the optimal
-        (Eckart-Young) truncation of the expansion. Costs one compaction of the basis at
-        most, nothing in the number of snapshots; recorded in :attr:`history` (kind
-        ``"finalize"``) and committed like any update. :meth:`close` calls it. The stream
-        may continue afterwards (with the compressor's options). ``progress=True`` shows
-        the sweeps on stderr (tqdm). An interrupt (Ctrl-C) or an error during the sweeps
-        leaves the compressor and its store at the last commit: calling ``finalize``
-        again starts the sweeps over from it.
-        """
-        t0 = time.perf_counter()
-        opts = _final_options(self, rule=rule, max_rank=max_rank)
-        with _sweep_bar(self.rank, progress) as on_sweep:
-            record = self._run(
-                lambda: plan_finalize(self._state, opts, t0=t0, on_sweep=on_sweep),
-                self.source_offset,
-            )
-        self._warn_if_target_missed()
-        return record
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        # a block that raised keeps its streamed state: what was committed stays as it was
+        self.close(finalize=exc_type is None)

@@ -1,16 +1,20 @@
-"""The lifecycle of a compressor: open, copy, save, flush, close, and each update.
+"""The lifecycle of a compressor: its state, each update, its store.
 
-:class:`StoreLifecycle` is the part of the :class:`~streamsvd.StreamCompressor` facade that
-creates, reopens and closes its store, and that runs every update
-(:meth:`StoreLifecycle._run`: plan, commit when due, then switch to the new state); what a
-commit writes, what it lets the basis delete and how a store is checked are
-:mod:`streamsvd.stream.persistence`'s; what differs where the basis is out of core is the
-compressor's :class:`~streamsvd.algebra.memory.Backend`.
+:class:`Lifecycle` is the part of the :class:`~streamsvd.StreamCompressor` facade that
+owns everything an update changes: the state (:class:`~streamsvd.engine.state.State`),
+the history, the source offset, the removed snapshots and their error ledger. It runs
+every update (:meth:`Lifecycle.run`: plan, commit when due, then switch to the new state)
+and creates, reopens, copies and closes the store. What a commit writes, what it lets
+the basis delete and how a store is checked are :mod:`streamsvd.stream.persistence`'s;
+what differs where the basis is out of core is the
+:class:`~streamsvd.algebra.memory.Backend`'s. The other parts of the facade (the window
+and the view) read this one and never write it but through :meth:`Lifecycle.run`.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -18,126 +22,137 @@ import numpy as np
 
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
-from streamsvd.algebra.inner import InnerProduct
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
+from streamsvd.algebra.inner import InnerProduct, inner_arrays
+from streamsvd.algebra.memory import Backend
 from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
+from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.state import Plan, State, apply_plan
 from streamsvd.errors import StoreError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.storage import open_storage
 from streamsvd.stream.options import CompressorOptions
-from streamsvd.stream.persistence import StreamStore, open_stream_store, restore_state
+from streamsvd.stream.persistence import (
+    LAYOUT,
+    LAYOUT_WITH_REMOVALS,
+    StreamStore,
+    open_stream_store,
+    restore_state,
+)
 
-__all__ = ["StoreLifecycle"]
+__all__ = ["Lifecycle"]
 
 
-class StoreLifecycle:
-    """Open, copy, save, flush and close a compressor's store (see the module docstring)."""
+class Lifecycle:
+    """A compressor's state, its updates and its store (see the module docstring).
 
-    n: int
-    inner: InnerProduct
-    options: CompressorOptions
-    source_record: SourceRecord | None
-    source_offset: int
-    finalized: bool
-    _state: State
-    _history: list[UpdateRecord]
-    _version: int
-    _persistence: StreamStore | None
-    _inner_data: dict[str, np.ndarray]
-    _removed: np.ndarray
-    _ledger: Ledger
-    _restore_removals: Callable[[dict[str, Any]], None]
-    _removal_attrs: Callable[[Plan | None], dict[str, Any]]
-    _pending: tuple[Ledger, np.ndarray]
-    threads: int | None
-    finalize: Callable[..., UpdateRecord]
-    _empty_copy: Callable[..., Any]
-    _backend: Backend
-    _built: Callable[..., Any]
+    Parameters
+    ----------
+    n : int
+        Size of one snapshot.
+    inner : InnerProduct
+        The inner product of the basis.
+    options : CompressorOptions
+        The compressor's validated options.
+    backend : Backend
+        Where the n-sized factor lives.
+    threads : int or None
+        BLAS threads of an update.
+    source_record : SourceRecord or None
+        Where the snapshots come from.
+    """
 
+    def __init__(
+        self, n: int, *, inner: InnerProduct, options: CompressorOptions, backend: Backend,
+        threads: int | None, source_record: SourceRecord | None,
+    ) -> None:
+        self.n, self.inner, self.options = n, inner, options
+        self.opts = options.step_options(inner)
+        self.backend = backend
+        self.threads = threads
+        self.source_record = source_record
+        self.state = State(basis=backend.new_basis(n, inner),
+                           rows=RowFactor() if options.right_vectors else None)
+        self.history: list[UpdateRecord] = []
+        self.version = 0  # increases with every state change (for the view's caches)
+        self.source_offset = 0
+        # the removed snapshots ([start, stop) rows in absorption order), the error ledger
+        # of the discards that still lie on the current columns, and both as the planned
+        # update leaves them (committed with it)
+        self.removed = np.zeros((0, 2), dtype=np.int64)
+        self.ledger = Ledger.start(0, 0.0)
+        self._pending = (self.ledger, self.removed)
+        self.persistence: StreamStore | None = None
+
+    @functools.cached_property
+    def inner_data(self) -> dict[str, np.ndarray]:
+        """The inner product's arrays that the store keeps (none for an unknown class)."""
+        return inner_arrays(self.inner) or {}
+
+    @property
+    def kind(self) -> str:
+        """The kind of compressor a store records (the backend's)."""
+        return self.backend.kind
+
+    # ------------------------------------------------------------ the store
     @classmethod
-    def open(
-        cls, path: Any, *, inner: Any = None, mode: str = "a",
-        storage_options: dict[str, Any] | None = None,
-    ) -> Any:
-        """Reopen a compressor from its store, exactly as it was at the last commit.
+    def open(cls, path: Any, *, inner: Any, mode: str, kind: str, name: str,
+             backend: Callable[[dict[str, Any], Any], Backend],
+             storage_options: dict[str, Any] | None = None) -> Lifecycle:
+        """Open a store of ``kind`` and restore the lifecycle it holds.
 
-        Parameters
-        ----------
-        path : str or path-like
-            The store written with ``StreamCompressor(..., store=path)``.
-        inner : optional
-            The inner product the store was written with (checked by fingerprint). When
-            omitted, the one the store keeps (Euclidean if none); a store written before
-            stores kept it, with another inner product than the Euclidean one, needs it.
-        mode : {"a", "r"}
-            ``"a"`` continues the stream (takes the writer lock); ``"r"`` reads only.
-        storage_options : dict, optional
-            Options of the object store of a URL ``path`` (``s3://``: ``key``,
-            ``secret``, ``endpoint_url``, ...), as for :func:`streamsvd.open_storage`.
-        """
-        return cls._open(path, inner=inner, mode=mode, kind=MEMORY_KIND,
-                         backend=lambda attrs, root: MemoryBackend(),
-                         storage_options=storage_options)
-
-    @classmethod
-    def _open(cls, path: Any, *, inner: Any, mode: str, kind: str,
-              backend: Callable[[dict[str, Any], Any], Backend],
-              storage_options: dict[str, Any] | None = None) -> Any:
-        """Open a store of ``kind`` and restore the compressor it holds.
-
-        ``backend(basis_attrs, root)`` returns the backend of the store at ``root``.
+        ``backend(basis_attrs, root)`` returns the backend of the store at ``root``;
+        ``name`` is the facade's, for the messages.
         """
         mode = check_choice(mode, "mode", ("a", "r"))
         path = open_storage(path, storage_options=storage_options)
-        st, state, ip = open_stream_store(path, kind=kind, name=cls.__name__, mode=mode,
-                                          inner=inner)
+        st, state, ip = open_stream_store(path, kind=kind, name=name, mode=mode, inner=inner)
         try:
             options = CompressorOptions.from_stored(state.n, state.attrs["options"])
-            sc = cls._built(state.n, backend=backend(state.attrs["basis"], path),
-                            inner=ip, **options.as_dict())
-            sc.source_offset, sc._history = restore_state(sc._state, state.arrays,
-                                                          state.attrs)
-            sc._restore_removals(state.attrs)
-            sc._version += 1
-            sc.source_record = SourceRecord.from_attrs(state.attrs.get("source"))
-            sc._persistence = StreamStore(st, commit_every=options.commit_every)
-            sc._persistence.restored(
-                sc._state, state.generation, state.attrs["basis"], state.arrays["history"],
-                inner=all(name in state.arrays for name in sc._inner_data),
+            life = cls(state.n, inner=ip, options=options, threads=1,
+                       backend=backend(state.attrs["basis"], path),
+                       source_record=SourceRecord.from_attrs(state.attrs.get("source")))
+            life.source_offset, life.history = restore_state(life.state, state.arrays,
+                                                             state.attrs)
+            life._restore_removals(state.attrs)
+            life.version += 1
+            life.persistence = StreamStore(st, commit_every=options.commit_every)
+            life.persistence.restored(
+                life.state, state.generation, state.attrs["basis"], state.arrays["history"],
+                inner=all(name in state.arrays for name in life.inner_data),
             )
         except BaseException:
             st.close()
             raise
-        return sc
+        return life
 
-    def copy(self) -> Any:
-        """Return an independent copy of the compressor (without its store)."""
-        return self._copy_with()
+    def _restore_removals(self, attrs: dict[str, Any]) -> None:
+        """Read the removed indices and the ledger a store's commit recorded."""
+        self.removed = np.array(attrs.get("removed", []), dtype=np.int64).reshape(-1, 2)
+        self.ledger = (
+            Ledger(np.array(attrs["ledger"], dtype=np.float64).reshape(-1, 2))
+            if "ledger" in attrs else Ledger.start(self.state.m, self.state.bound.bound)
+        )
+        self._pending = (self.ledger, self.removed)
 
-    def _drop_scratch(self) -> None:
-        """Free the buffers the basis keeps for its next update (they come back when needed).
-
-        For a compressor that will not be updated soon, such as a finished leaf of a tree.
-        """
-        self._state.basis.drop_scratch()
-
-    def _copy_with(self, *, backend: Any = None, **changes: Any) -> Any:
-        """Return an independent copy whose options differ by ``changes``.
+    def copied(self, *, backend: Backend | None = None, **changes: Any) -> Lifecycle:
+        """Return an independent copy, without the store, whose options differ by ``changes``.
 
         Its basis is kept by ``backend`` (default: a fresh one of the same settings).
         """
-        out = self._empty_copy(backend=backend, **changes)
-        basis = self._backend.copied(self._state.basis, out._state.basis)
-        out._state = copy.deepcopy(self._state, {id(self._state.basis): basis})
-        out._history = list(self._history)
+        options = CompressorOptions.validated(self.n, **{**self.options.as_dict(), **changes})
+        out = Lifecycle(self.n, inner=self.inner, options=options, threads=self.threads,
+                        backend=self.backend.fresh() if backend is None else backend,
+                        source_record=self.source_record)
+        basis = self.backend.copied(self.state.basis, out.state.basis)
+        out.state = copy.deepcopy(self.state, {id(self.state.basis): basis})
+        out.history = list(self.history)
         out.source_offset = self.source_offset
-        out._removed, out._ledger = self._removed, self._ledger
+        out.removed, out.ledger = self.removed, self.ledger
+        out._pending = (out.ledger, out.removed)
         return out
 
-    def _start_store(self, path: Any, storage_options: dict[str, Any] | None) -> None:
+    def start_store(self, path: Any, storage_options: dict[str, Any] | None) -> None:
         """Create the store at ``path`` by committing the current state to it.
 
         All or nothing: the store exists once its first commit, which holds the whole
@@ -145,100 +160,81 @@ class StoreLifecycle:
         deletes everything written under it, and a process killed meanwhile leaves the
         leftovers of an interrupted creation, which the next creation replaces.
         """
-        self._persistence = StreamStore.create(
+        if self.persistence is not None:
+            raise StoreError(
+                f"this compressor already commits to {self.persistence.path}; `save` "
+                "writes a compressor that has no store."
+            )
+        self.persistence = StreamStore.create(
             path, n=self.n, inner_fingerprint=self.inner.fingerprint,
             storage_options=storage_options, commit_every=self.options.commit_every,
         )
-        before = self._backend, self._state.basis
+        before = self.backend, self.state.basis
         try:
             # a basis that no commit refers to (a tall mode's work directory) is copied
             # into the store first
-            self._backend, self._state.basis = self._backend.into_store(
-                self._state.basis, self._persistence.storage)
+            self.backend, self.state.basis = self.backend.into_store(
+                self.state.basis, self.persistence.storage)
             self._commit(None, self.source_offset)
         except BaseException:
-            self._backend, self._state.basis = before
-            self._persistence.close()  # deletes a creation that did not commit
-            self._persistence = None
+            self.backend, self.state.basis = before
+            self.persistence.close()  # deletes a creation that did not commit
+            self.persistence = None
             raise
-        if self._backend is not before[0]:
+        if self.backend is not before[0]:
             before[0].close()
-
-    def save(self, path: Any) -> None:
-        """Write the compressor into a new store at ``path`` and keep committing there.
-
-        One commit of the current state, bit for bit (no update is run). The compressor
-        must not have a store already.
-        """
-        if self._persistence is not None:
-            raise StoreError(
-                f"this compressor already commits to {self._persistence.path}; `save` "
-                "writes a compressor that has no store."
-            )
-        self._start_store(path, None)
 
     def flush(self) -> None:
         """Commit the current state to the store now (no-op without a store)."""
-        if self._persistence is not None and self._persistence.uncommitted:
+        if self.persistence is not None and self.persistence.uncommitted:
             self._commit(None, self.source_offset)
 
-    def close(self, *, finalize: bool = True) -> None:
-        """Finalise the expansion, commit what is pending and release the store's lock.
+    @property
+    def writable(self) -> bool:
+        """Whether updates may be committed (no store, or one opened for writing)."""
+        return self.persistence is None or self.persistence.writable
 
-        Parameters
-        ----------
-        finalize : bool
-            Run :meth:`finalize` first (default) unless :attr:`finalized`, so that the
-            closed expansion is the SVD, truncated to ``max_rank``. A store opened
-            read-only is never finalised, nor a basis that closing removes (a
-            temporary backend's).
-        """
-        p = self._persistence
-        writable = p is None or p.writable
-        if finalize and writable and not self.finalized and not self._backend.temporary:
-            self.finalize()
+    def close(self) -> None:
+        """Commit what is pending, release the store's lock and the backend's resources."""
+        p = self.persistence
         if p is not None:
-            if writable:
+            if p.writable:
                 self.flush()
             p.close()
-            self._persistence = None
-        self._state.basis.drop_scratch()
-        self._backend.close()
+            self.persistence = None
+        self.state.basis.drop_scratch()
+        self.backend.close()
 
-    def __enter__(self) -> Any:
-        return self
+    def attrs(self, plan: Plan | None) -> dict[str, Any]:
+        """Return the attributes a commit of the current state, or of ``plan``'s, records.
 
-    def __exit__(self, exc_type: object, *exc: object) -> None:
-        # a block that raised keeps its streamed state: what was committed stays as it was
-        self.close(finalize=exc_type is None)
-
-    @property
-    def store_path(self) -> str | None:
-        """Path of the store, or None."""
-        return None if self._persistence is None else self._persistence.path
-
-    def _attrs(self, plan: Plan | None) -> dict[str, Any]:
-        s = self._state
+        A store with snapshots removed has the layout :data:`~streamsvd.stream.persistence.
+        LAYOUT_WITH_REMOVALS`, which a version that knows no removals refuses.
+        """
+        s = self.state
         bound = s.bound if plan is None else plan.bound
-        rank = s.rank if plan is None else plan.coords.shape[1]
+        ledger, removed = (self.ledger, self.removed) if plan is None else self._pending
         return {
-            "kind": self._backend.kind, "options": self.options.as_dict(),
-            "n_seen": s.m if plan is None else plan.m, "rank": rank,
-            "source_offset": self.source_offset, "updates": len(self._history),
+            "kind": self.backend.kind, "options": self.options.as_dict(),
+            "n_seen": s.m if plan is None else plan.m,
+            "rank": s.rank if plan is None else plan.coords.shape[1],
+            "source_offset": self.source_offset, "updates": len(self.history),
             "error_bound": bound.bound, "discarded_norm": bound.discarded,
             "source": None if self.source_record is None else self.source_record.to_attrs(),
-            **self._removal_attrs(plan),
+            "removed": removed.tolist(), "ledger": ledger.entries.tolist(),
+            "layout": LAYOUT_WITH_REMOVALS if removed.size else LAYOUT,
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:
         """Write the current state, or the state ``plan`` leads to, as a new generation."""
-        assert self._persistence is not None
-        self._persistence.commit(
-            self._state, plan, attrs=self._attrs(plan), history=self._history,
-            inner_data=self._inner_data, source_offset=source_offset,
+        assert self.persistence is not None
+        self.persistence.commit(
+            self.state, plan, attrs=self.attrs(plan), history=self.history,
+            inner_data=self.inner_data, source_offset=source_offset,
         )
 
-    def _run(
+    # ------------------------------------------------------------ updates
+    def run(
         self, make_plan: Callable[[], Plan], source_offset: int, *,
         ledger: Ledger | None = None, removed: np.ndarray | None = None,
     ) -> UpdateRecord:
@@ -251,7 +247,7 @@ class StoreLifecycle:
         # plan, then persist, then switch the in-memory state: an exception anywhere
         # before the switch leaves both the memory and the store as they were, and the
         # backend drops what the plan wrote in its workspace
-        p = self._persistence
+        p = self.persistence
         if p is not None:
             # refused before planning: a plan may write (the tall mode's panels)
             p.check_writable()
@@ -259,28 +255,28 @@ class StoreLifecycle:
             with blas_threads(self.threads):
                 plan = make_plan()
             self._pending = (
-                (self._ledger if ledger is None else ledger).appended(
+                (self.ledger if ledger is None else ledger).appended(
                     plan.m, plan.record.discarded),
-                self._removed if removed is None else removed,
+                self.removed if removed is None else removed,
             )
-            self._history.append(plan.record)
+            self.history.append(plan.record)
             try:
-                if p is not None and p.due(self._state, plan):
+                if p is not None and p.due(self.state, plan):
                     self._commit(plan, source_offset)
                 elif p is not None:
                     p.uncommitted += 1
             except BaseException:
-                self._history.pop()
+                self.history.pop()
                 raise
         except BaseException:
-            self._state.basis.discard_planned()
+            self.state.basis.discard_planned()
             raise
-        apply_plan(self._state, plan)
-        self._ledger, self._removed = self._pending
+        apply_plan(self.state, plan)
+        self.ledger, self.removed = self._pending
         if p is not None:
-            p.tracker.settle(self._state.extents(), len(self._history))
+            p.tracker.settle(self.state.extents(), len(self.history))
         # what the update replaced goes, unless a recent commit still refers to it
-        self._state.basis.release(() if p is None else p.recent)
-        self._version += 1
+        self.state.basis.release(() if p is None else p.recent)
+        self.version += 1
         self.source_offset = source_offset
         return plan.record

@@ -25,10 +25,12 @@ from streamsvd.engine.core import r_factor
 from streamsvd.errors import InputError
 from streamsvd.linalg.expansion import Expansion
 from streamsvd.linalg.rotations import RULES
+from streamsvd.stream.lifecycle import Lifecycle
 
 if TYPE_CHECKING:
     from streamsvd.engine import StepOptions
-    from streamsvd.stream.compressor import StreamCompressor
+    from streamsvd.engine.state import State
+    from streamsvd.stream.options import CompressorOptions
 
 __all__: list[str] = []
 
@@ -63,26 +65,25 @@ class _MergeOperand:
         return blas.dgemm(1.0, self.Q, self.Z)
 
 
-def _merge_operand(
-    other: Any, compressor: type[StreamCompressor], *, n: int, inner: InnerProduct,
-    keep_rows: bool,
-) -> _MergeOperand:
+def _merge_operand(other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
+                   ) -> _MergeOperand:
     """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
 
-    ``other`` is checked first: a compressor (an instance of ``compressor``, the class
-    :class:`StreamCompressor`) or an expansion of snapshots of size ``n`` in the inner
-    product ``inner``. A compressor's basis in memory is used as it is; a
-    basis elsewhere (panels) gives its left vectors.
+    ``other`` is checked first: a compressor (whose parts hold a
+    :class:`~streamsvd.stream.lifecycle.Lifecycle`) or an expansion of snapshots of size
+    ``n`` in the inner product ``inner``. A compressor's basis in memory is used as it is;
+    a basis elsewhere (panels) gives its left vectors.
     """
-    if not isinstance(other, compressor | Expansion):
+    life = getattr(other, "_life", None)
+    if not isinstance(life, Lifecycle) and not isinstance(other, Expansion):
         raise InputError(
             f"`other` must be a StreamCompressor or an Expansion; got {type(other).__name__}."
         )
     if other.n != n:
         raise InputError(f"`other` must have snapshots of size {n}; got {other.n}.")
     check_same_inner(inner, other.inner, "other")
-    if isinstance(other, compressor):
-        o = other._state
+    if isinstance(life, Lifecycle):
+        o = life.state
         if keep_rows and o.rows is None:
             raise InputError(
                 "`other` keeps no right vectors (`right_vectors=False`) but this "
@@ -101,16 +102,15 @@ def _merge_operand(
     return _MergeOperand(U_o, None, R_o, Y_o, V_o.shape[0], Bound())
 
 
-def _increment(sc: StreamCompressor, U_k: Any, V_k: Any, coefficients: Any
+def _increment(s: State, U_k: Any, V_k: Any, coefficients: Any, *, n: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Check the arguments of :meth:`StreamCompressor.add`; return them as arrays."""
-    s = sc._state
+    """Check the arguments of :meth:`StreamCompressor.add` on the state ``s``; return arrays."""
     if s.rows is None:
         raise InputError(
             "`add` needs the right vectors, and this StreamCompressor keeps none "
             "(`right_vectors=False`); create it with `right_vectors=True`."
         )
-    Uk = as_float_array(U_k, "U_k", ndim=2, rows=sc.n)
+    Uk = as_float_array(U_k, "U_k", ndim=2, rows=n)
     m = s.m if (s.m or s.rank) else None
     Vk = as_float_array(V_k, "V_k", ndim=2, rows=m, cols=Uk.shape[1])
     if coefficients is not None:
@@ -133,11 +133,15 @@ def _merge_options(opts: StepOptions, *, spend_target: bool) -> StepOptions:
     )
 
 
-def _final_options(sc: StreamCompressor, *, rule: str, max_rank: int | None) -> StepOptions:
-    """Return the step options of :meth:`StreamCompressor.finalize` (checking its arguments)."""
+def _final_options(opts: StepOptions, options: CompressorOptions, *, rule: str,
+                   max_rank: int | None) -> StepOptions:
+    """Return the step options of :meth:`StreamCompressor.finalize` (checking its arguments).
+
+    ``opts`` are the compressor's step options, ``options`` its options.
+    """
     cap = check_positive_int(max_rank, "max_rank", allow_none=True)
     return dataclasses.replace(
-        sc._opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
-        truncation=sc.options.truncation(
-            max_rank=sc.max_rank if cap is None else cap, share=1.0),
+        opts, rule=check_choice(rule, "rule", RULES), sweeps=None,
+        truncation=options.truncation(
+            max_rank=options.max_rank if cap is None else cap, share=1.0),
     )

@@ -204,8 +204,14 @@ TREE_OPTIONS = ("inner",) + tuple(
 def option_properties(cls: type) -> type:
     """Class decorator: a read-only attribute per option, read from ``self.options``."""
     for name in CompressorOptions.names():
-        setattr(cls, name, property(
-            lambda self, _name=name: getattr(self.options, _name),
-            doc=f"The ``{name}`` option (see the class's parameters); read-only.",
-        ))
+        setattr(cls, name, _option_property(name))
     return cls
+
+
+def _option_property(name: str) -> property:
+    """Return the read-only attribute of the option ``name``."""
+
+    def read(self: Any) -> Any:
+        return getattr(self.options, name)
+
+    return property(read, doc=f"The ``{name}`` option (see the class's parameters); read-only.")

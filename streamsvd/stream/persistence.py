@@ -22,7 +22,7 @@ inner product) before anything is restored from it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -273,7 +273,7 @@ def open_stream_store(path: Any, *, kind: str, name: str, mode: str, inner: Any
     ``name`` is the class the user called (for the messages). Returns the handle, the
     state read and the inner product to use; the handle is closed on any error.
     """
-    st = open_store(path, mode)
+    st = open_store(path, cast(Literal["r", "a"], mode))
     try:
         state = st.read()
         attrs = state.attrs

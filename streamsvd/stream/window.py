@@ -1,20 +1,19 @@
 """Windows and forgetting: the snapshots a compressor removes, and their error ledger.
 
-:class:`Removals` is the part of the :class:`~streamsvd.StreamCompressor` facade that
-removes absorbed snapshots (:meth:`Removals.remove`, Brand's downdate of
+:class:`Window` is the part of the :class:`~streamsvd.StreamCompressor` facade that
+removes absorbed snapshots (:meth:`Window.remove`, Brand's downdate of
 :mod:`streamsvd.engine.downdate`), keeps the ``window`` most recent ones and weights them by
-``forget``. It keeps the indices removed (disjoint ``[start, stop)`` rows, in absorption
-order) and the error ledger of the discards that still lie on the current columns; the
-facade's update loop carries both into the state an update leads to (``_pending``) and
-the store records them.
+``forget``. The indices removed (disjoint ``[start, stop)`` rows, in absorption order)
+and the error ledger of the discards that still lie on the current columns are state:
+the :class:`~streamsvd.stream.lifecycle.Lifecycle` keeps them, carries them into the
+state an update leads to and commits them; this part computes what a removal changes.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,60 +28,38 @@ from streamsvd.engine.downdate import (
     plan_remove,
 )
 from streamsvd.engine.record import UpdateRecord
-from streamsvd.engine.state import Plan, State, StepOptions
+from streamsvd.engine.state import State
 from streamsvd.errors import InputError
-from streamsvd.stream.options import CompressorOptions
-from streamsvd.stream.persistence import LAYOUT, LAYOUT_WITH_REMOVALS
 
-__all__ = ["Removals"]
+if TYPE_CHECKING:
+    from streamsvd.stream.lifecycle import Lifecycle
+
+__all__ = ["Window"]
 
 
-class Removals:
-    """Remove snapshots, keep a window, forget (see the module docstring)."""
+class Window:
+    """Remove snapshots, keep a window, forget (see the module docstring).
 
-    options: CompressorOptions
-    source_offset: int
-    n_seen: int
-    _state: State
-    _opts: StepOptions
-    _removed: np.ndarray
-    _ledger: Ledger
-    _pending: tuple[Ledger, np.ndarray]
-    _run: Callable[..., UpdateRecord]
+    Parameters
+    ----------
+    life : Lifecycle
+        The compressor's lifecycle, whose removed indices and ledger this part reads and
+        whose :meth:`~streamsvd.stream.lifecycle.Lifecycle.run` runs the removals.
+    """
 
-    def _start_removals(self) -> None:
-        """Nothing removed, an empty ledger."""
-        self._removed = np.zeros((0, 2), dtype=np.int64)
-        self._ledger = Ledger.start(0, 0.0)
-        self._pending = (self._ledger, self._removed)
-
-    def _restore_removals(self, attrs: dict[str, Any]) -> None:
-        """Read the removed indices and the ledger a store's commit recorded."""
-        self._removed = np.array(attrs.get("removed", []), dtype=np.int64).reshape(-1, 2)
-        self._ledger = (
-            Ledger(np.array(attrs["ledger"], dtype=np.float64).reshape(-1, 2))
-            if "ledger" in attrs else Ledger.start(self._state.m, self._state.bound.bound)
-        )
-
-    def _removal_attrs(self, plan: Plan | None) -> dict[str, Any]:
-        """Return what a commit records of the removals (of the state ``plan`` leads to).
-
-        A store with snapshots removed has the layout :data:`~streamsvd.stream.persistence.
-        LAYOUT_WITH_REMOVALS`, which a version that knows no removals refuses.
-        """
-        ledger, removed = (self._ledger, self._removed) if plan is None else self._pending
-        return {"removed": removed.tolist(), "ledger": ledger.entries.tolist(),
-                "layout": LAYOUT_WITH_REMOVALS if removed.size else LAYOUT}
+    def __init__(self, life: Lifecycle) -> None:
+        self._life = life
 
     @property
     def n_absorbed(self) -> int:
         """Number of snapshots absorbed, removed ones included (the next one's index)."""
-        return self._state.m + int(np.sum(self._removed[:, 1] - self._removed[:, 0]))
+        removed = self._life.removed
+        return self._life.state.m + int(np.sum(removed[:, 1] - removed[:, 0]))
 
     @property
     def removed(self) -> np.ndarray:
         """Indices (in absorption order) of the snapshots removed, as ``[start, stop)`` rows."""
-        return self._removed.copy()
+        return self._life.removed.copy()
 
     def remove(self, columns: Any) -> UpdateRecord:
         """Remove absorbed snapshots exactly: the result is as if they were never absorbed.
@@ -117,7 +94,7 @@ class Removals:
             repeated or already removed; the state, in memory and in the store, is then
             unchanged.
         """
-        if self._state.rows is None:
+        if self._life.state.rows is None:
             raise InputError(
                 "`remove` needs the right vectors, and this StreamCompressor keeps none "
                 "(`right_vectors=False`); create it with `right_vectors=True`."
@@ -144,26 +121,28 @@ class Removals:
                 f"`columns` must name each snapshot once; got "
                 f"{values[counts > 1][:5].tolist()} more than once."
             )
-        gone = g[intervals_contain(self._removed, g)]
+        gone = g[intervals_contain(self._life.removed, g)]
         if gone.size:
             raise InputError(
                 f"`columns` must name snapshots still in the expansion; got "
                 f"{gone[:5].tolist()}, already removed (see `removed`)."
             )
-        return self._remove_positions(values - intervals_count_below(self._removed, values))
+        return self.remove_positions(
+            values - intervals_count_below(self._life.removed, values))
 
-    def _remove_positions(self, positions: np.ndarray) -> UpdateRecord:
+    def remove_positions(self, positions: np.ndarray) -> UpdateRecord:
         """Remove the current columns at ``positions`` (sorted, distinct, valid)."""
         t0 = time.perf_counter()
-        ledger = self._ledger.removed(positions)
-        prior = bound_after_removal(self._state.bound, ledger)
-        removed = intervals_add(self._removed, intervals_skip(self._removed, positions))
-        return self._run(
-            lambda: plan_remove(self._state, positions, self._opts, prior=prior, t0=t0),
-            self.source_offset, ledger=ledger, removed=removed,
+        life = self._life
+        ledger = life.ledger.removed(positions)
+        prior = bound_after_removal(life.state.bound, ledger)
+        removed = intervals_add(life.removed, intervals_skip(life.removed, positions))
+        return life.run(
+            lambda: plan_remove(life.state, positions, life.opts, prior=prior, t0=t0),
+            life.source_offset, ledger=ledger, removed=removed,
         )
 
-    def _windowed(self, B: Any) -> tuple[Any, State, Ledger, np.ndarray]:
+    def windowed(self, B: Any) -> tuple[Any, State, Ledger, np.ndarray]:
         """Prepare the absorption of the block ``B``: the window's removal, the weights.
 
         With ``window``, the oldest snapshots that fall out leave first (an update of their
@@ -172,20 +151,21 @@ class Removals:
         from is scaled. Returns the block, that state, the ledger and the removed indices
         the update starts from.
         """
-        window, forget = self.options.window, self.options.forget
+        life = self._life
+        window, forget = life.options.window, life.options.forget
         if window is not None or forget < 1.0:
-            B = self._backend.in_memory(B)
+            B = life.backend.in_memory(B)
         skipped = 0
         if window is not None:
             skipped = max(B.shape[1] - window, 0)
-            out = self.n_seen + B.shape[1] - skipped - window
+            out = life.state.m + B.shape[1] - skipped - window
             if out > 0:
-                self._remove_positions(np.arange(out))
+                self.remove_positions(np.arange(out))
             B = B[:, skipped:]
         # read after the removal above, which moved them
-        removed = (intervals_add(self._removed, self.n_absorbed + np.arange(skipped))
-                   if skipped else self._removed)
-        state, ledger = self._state, self._ledger
+        removed = (intervals_add(life.removed, self.n_absorbed + np.arange(skipped))
+                   if skipped else life.removed)
+        state, ledger = life.state, life.ledger
         if forget < 1.0:
             b = B.shape[1]
             B = B * forget ** np.arange(b - 1, -1, -1, dtype=np.float64)

@@ -69,7 +69,7 @@ class RawArray:
         assert data.shape[1] == self.shape[1], "rows are written whole"
         fd = os.open(self.path, os.O_WRONLY)
         try:
-            view = memoryview(data).cast("B")
+            view = data.data.cast("B")
             done = 0
             while done < len(view):
                 done += os.pwrite(fd, view[done:], r0 * self._row_bytes + done)
@@ -82,7 +82,7 @@ class RawArray:
         out = np.empty((r1 - r0, self.shape[1]), dtype=self.dtype)
         with open(self.path, "rb") as f:
             f.seek(r0 * self._row_bytes)
-            read = f.readinto(memoryview(out).cast("B"))
+            read = f.readinto(out.data.cast("B"))
         if read != out.nbytes:
             raise StoreError(
                 f"{self.path} holds {r0 * self._row_bytes + read} bytes "

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -82,8 +82,9 @@ def _seal(basis: PanelBasis, names: list[str]) -> None:
     if not todo:
         return
     basis.rows.compute([
-        da.store(basis.rows.panel(name), Region(basis.files.zarr_copy(name)), lock=False,
-                 compute=False)
+        # a Region takes the rows written into it (dask stores into any __setitem__)
+        da.store(basis.rows.panel(name), cast(Any, Region(basis.files.zarr_copy(name))),
+                 lock=False, compute=False)
         for name in todo
     ])
     basis.files.sealed.update(todo)
