@@ -98,7 +98,8 @@ _SUBPACKAGES = frozenset({
 # split in the move names its homes in order, and its alias reads each name from the
 # first home that has it
 _MOVED: dict[str, str | tuple[str, ...]] = {
-    "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
+    "basis": ("algebra.memory", "algebra.interface", "algebra.buffer"),
+    "bound": "engine.bound", "estimator": "sklearn.estimator",
     "expansion": "linalg.expansion",
     "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
     "inner": "algebra.inner", "locks": ("storage.lockfile", "storage.lease"),

@@ -12,10 +12,11 @@ far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each u
    ``i <= max_rank`` (after the sweeps, on the sorted amplitudes), logging what was cut.
 
 The step is written once (:mod:`streamsvd.engine.update`) over the n-sized basis
-(:mod:`streamsvd.algebra.memory`) and the m-sized right vectors (:mod:`streamsvd.engine.rows`); this
-class is the facade: its options are :class:`~streamsvd.stream.options.CompressorOptions`, its
-store a :class:`~streamsvd.stream.persistence.StreamStore`, and what it exposes of the
-expansion :class:`~streamsvd.stream.view.ExpansionView`.
+(:mod:`streamsvd.algebra.interface`) and the m-sized right vectors
+(:mod:`streamsvd.engine.rows`); this class is the facade: its options are
+:class:`~streamsvd.stream.options.CompressorOptions`, its store a
+:class:`~streamsvd.stream.persistence.StreamStore`, and what it exposes of the expansion
+:class:`~streamsvd.stream.view.ExpansionView`.
 
 Store contents: besides the state, the first commit writes the data of the inner
 product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
@@ -30,7 +31,7 @@ energies)``.
 Cost: an update costs nothing in the number of snapshots already absorbed: the
 right vectors are kept as ``V = Y R`` with ``Y`` orthonormal, appended in Brand's form
 ``Y = V0 Vp`` (:mod:`streamsvd.engine.rows`), the
-basis lives in a buffer grown geometrically (:mod:`streamsvd.algebra.memory`), and the
+basis lives in a buffer grown geometrically (:mod:`streamsvd.algebra.buffer`), and the
 rotations act on small matrices (:mod:`streamsvd.engine.update` has the flop count).
 
 Orthogonality: ``H = Q^T M Q`` of the stored basis is kept (exactly, by a Gram of
@@ -51,7 +52,8 @@ import numpy as np
 from streamsvd._util.threads import check_threads
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.inner import InnerProduct, as_inner, inner_arrays
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
+from streamsvd.algebra.interface import Backend
+from streamsvd.algebra.memory import MEMORY_KIND, MemoryBackend
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.state import State

@@ -5,7 +5,7 @@ creates, reopens and closes its store, and that runs every update
 (:meth:`StoreLifecycle._run`: plan, commit when due, then switch to the new state); what a
 commit writes, what it lets the basis delete and how a store is checked are
 :mod:`streamsvd.stream.persistence`'s; what differs where the basis is out of core is the
-compressor's :class:`~streamsvd.algebra.memory.Backend`.
+compressor's :class:`~streamsvd.algebra.interface.Backend`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ import numpy as np
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
+from streamsvd.algebra.interface import Backend
+from streamsvd.algebra.memory import MEMORY_KIND, MemoryBackend
 from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.state import Plan, State, apply_plan
