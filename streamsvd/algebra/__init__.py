@@ -4,7 +4,8 @@ The backend interface (the Protocols an update needs of the basis) lives in
 :mod:`~streamsvd.algebra.interface`; its in-memory implementation in
 :mod:`~streamsvd.algebra.memory`, on the growable buffer of :mod:`~streamsvd.algebra.buffer`;
 the out-of-core one in :mod:`~streamsvd.algebra.panels`. Inner products are in
-:mod:`~streamsvd.algebra.inner`, the Gram products in :mod:`~streamsvd.algebra.blas`.
+:mod:`~streamsvd.algebra.inner` (the checks that a matrix is symmetric positive definite in
+:mod:`~streamsvd.algebra.spd`), the Gram products in :mod:`~streamsvd.algebra.blas`.
 """
 
 from streamsvd._util.lazy import lazy_exports
@@ -17,7 +18,6 @@ _EXPORTS = {
     "MatrixInner": "inner",
     "as_inner": "inner",
     "check_same_inner": "inner",
-    "load_inner": "inner",
     "Backend": "interface",
     "BasisAlgebra": "interface",
     "BasisBackend": "interface",
