@@ -98,10 +98,12 @@ _SUBPACKAGES = frozenset({
 # split in the move names its homes in order, and its alias reads each name from the
 # first home that has it
 _MOVED: dict[str, str | tuple[str, ...]] = {
-    "basis": "algebra.memory", "bound": "engine.bound", "estimator": "sklearn.estimator",
+    "basis": ("algebra.memory", "algebra.interface", "algebra.buffer"),
+    "bound": "engine.bound", "estimator": "sklearn.estimator",
     "expansion": "linalg.expansion",
     "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
-    "inner": "algebra.inner", "locks": ("storage.lockfile", "storage.lease"),
+    "inner": ("algebra.inner", "io.inner_file", "algebra.spd"),
+    "locks": ("storage.lockfile", "storage.lease"),
     "panels": "algebra.panels.basis",
     "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
     "parallel_tree": ("parallel.tree", "parallel.spec"),

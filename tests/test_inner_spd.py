@@ -11,7 +11,7 @@ import pytest
 import scipy.sparse as sp
 
 import streamsvd as ss
-import streamsvd.algebra.inner as inner_module
+import streamsvd.algebra.spd as inner_module
 from streamsvd.cli import main
 
 EPS = np.finfo(np.float64).eps
@@ -91,7 +91,7 @@ def test_semidefinite_matrix_with_a_cluster_at_zero_is_refused_exactly():
 def test_lanczos_that_does_not_settle_is_logged(caplog):
     """Above 10000 the same matrix passes the Lanczos estimate unproven, which is logged."""
     M = neumann_laplacian(LANCZOS)
-    with caplog.at_level(logging.WARNING, logger="streamsvd.algebra.inner"):
+    with caplog.at_level(logging.WARNING, logger="streamsvd.algebra.spd"):
         ss.MatrixInner(M)
     assert "is taken as positive definite without proof: after 150 Lanczos steps" in caplog.text
 
@@ -108,7 +108,7 @@ def test_fem_mass_matrix_is_accepted(m, rng, caplog, monkeypatch):
 
     for name in ("_ldlt_pivots", "_lanczos_smallest"):
         monkeypatch.setattr(inner_module, name, counted(name))
-    with caplog.at_level(logging.WARNING, logger="streamsvd.algebra.inner"):
+    with caplog.at_level(logging.WARNING, logger="streamsvd.algebra.spd"):
         for mat in (M, scaled):
             sc = ss.StreamCompressor(M.shape[0], inner=mat)
             A = rng.standard_normal((M.shape[0], 6))

@@ -11,18 +11,23 @@ import streamsvd
 
 LAYERS = ["algebra", "algebra.panels", "engine", "io", "linalg", "parallel", "sklearn",
           "stream"]
-OLD_PATHS = {"basis": "algebra.memory", "bound": "engine.bound",
+OLD_PATHS = {"basis": ("algebra.memory", "algebra.interface", "algebra.buffer"),
+             "bound": "engine.bound",
              "estimator": "sklearn.estimator",
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
              "parallel_tree": ("parallel.tree", "parallel.spec"),
              "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
              "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
+             "inner": ("algebra.inner", "io.inner_file", "algebra.spd"),
              "locks": ("storage.lockfile", "storage.lease")}
 # the public names of the flat modules split in the move: their aliases still read them
-OLD_NAMES = {"sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
+OLD_NAMES = {"basis": ["Backend", "BasisBackend", "DeferredGram", "MEMORY_KIND", "MemoryBackend",
+                       "MemoryBasis"],
+             "sources": ["LazyBlock", "Source", "open_source", "open_zarr_url"],
              "parallel_tree": ["COMPRESSOR_OPTIONS", "SourceSpec", "tree_compress"],
              "parallel_tall": ["DEFAULT_CHUNK_ROWS", "KIND", "PanelBackend", "TallCompressor"],
-             "locks": ["LEASE_SECONDS", "FileLock", "Lease"]}
+             "locks": ["LEASE_SECONDS", "FileLock", "Lease"],
+             "inner": ["InnerProduct", "MatrixInner", "as_inner", "inner_arrays", "load_inner"]}
 
 
 def test_every_public_name_of_the_package_resolves():

@@ -1,13 +1,18 @@
 """Planning writes nothing the state or a commit refers to; the backend is composed."""
 
+import copy
+import pickle
 import time
 
 import numpy as np
 import pytest
 
-from streamsvd import StreamCompressor
-from streamsvd.algebra.memory import MemoryBackend
+from streamsvd import DiagonalInner, Euclidean, StreamCompressor
+from streamsvd.algebra.buffer import BasisBuffer
+from streamsvd.algebra.interface import Backend, BasisBackend, DeferredGram
+from streamsvd.algebra.memory import MemoryBackend, MemoryBasis
 from streamsvd.algebra.panels.backend import PanelBackend
+from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.engine import rows as rows_module
 from streamsvd.engine.state import apply_plan, stage_plan
 from streamsvd.engine.update import plan_absorb
@@ -84,3 +89,53 @@ def test_a_backend_is_given_not_subclassed(rng, tmp_path):
     with pytest.raises(Exception, match="TallCompressor"):
         StreamCompressor.open(tmp_path / "s.zarr", mode="r")
     assert isinstance(StreamCompressor(5)._life.backend, MemoryBackend)
+
+
+def _members(protocol):
+    """The attributes and methods a Protocol asks for (its own and its bases')."""
+    names = set()
+    for cls in protocol.__mro__:
+        if cls.__module__ == protocol.__module__:
+            names |= {n for n in vars(cls) if not n.startswith("_")}
+            names |= set(getattr(cls, "__annotations__", {}))
+    return names
+
+
+@pytest.mark.parametrize(("implementation", "protocol"), [
+    (MemoryBasis, DeferredGram), (PanelBasis, BasisBackend),
+    (MemoryBackend, Backend), (PanelBackend, Backend),
+])
+def test_each_backend_offers_what_the_interface_asks(implementation, protocol):
+    """The backend interface is the Protocols of ``algebra.interface``: both backends and
+    their bases offer every member (the memory basis the deferred Gram's as well)."""
+    members = _members(protocol)
+    assert {"project", "swap", "commit_arrays"} <= _members(BasisBackend)
+    instance_only = {"n", "compactions", "kind", "temporary"}  # set by the constructor
+    missing = {m for m in members - instance_only if not hasattr(implementation, m)}
+    assert not missing, missing
+
+
+@pytest.mark.parametrize("inner", [Euclidean(), DiagonalInner(np.linspace(1.0, 2.0, 30))])
+def test_the_memory_buffer_grows_and_copies_its_stored_columns_only(rng, inner):
+    """The growable buffer of a memory basis: its capacity grows geometrically, a copy
+    (pickle) holds the stored columns alone, and a commit's arrays restore the basis."""
+    buffer = BasisBuffer(30, inner)
+    assert buffer.width == 0 and buffer.capacity == 0
+    for b, capacity in ((3, 8), (4, 8), (2, 16)):
+        Y, MY = buffer.workspace(b)
+        Y[...] = rng.standard_normal((30, b))
+        MY[...] = inner.apply(Y)
+        buffer.accept(b)
+        assert buffer.capacity == capacity
+    assert buffer.width == 9 and buffer.reallocations == 2
+    np.testing.assert_array_equal(buffer.MQ, inner.apply(buffer.Q))
+    for other in (pickle.loads(pickle.dumps(buffer)), copy.deepcopy(buffer)):
+        assert other.width == 9 and other.capacity == 9
+        np.testing.assert_array_equal(other.Q, buffer.Q)
+        np.testing.assert_array_equal(other.MQ, buffer.MQ)
+    arrays, attrs = buffer.commit_arrays(0, compacted=False)
+    assert sorted(arrays) == (["Q"] if inner.is_euclidean else ["MQ", "Q"])
+    restored = BasisBuffer(30, inner)
+    restored.restore({k: v.copy() for k, v in arrays.items()}, attrs)
+    assert restored.width == 9 and restored.capacity == 16
+    np.testing.assert_array_equal(restored.MQ, buffer.MQ)

@@ -4,9 +4,13 @@ import dask.array as da
 import h5py
 import numpy as np
 import pytest
+import scipy.io
+import scipy.sparse as sp
 import zarr
 
+from streamsvd.algebra.inner import DiagonalInner, MatrixInner
 from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, SourceError
+from streamsvd.io.inner_file import load_inner
 from streamsvd.io.open import open_source
 from streamsvd.io.sources import Source
 
@@ -416,3 +420,28 @@ def test_read_range_errors(A):
         src.read(0, M + 1)
     with pytest.raises(InputError, match=r"`stop` must be >= `start` \(5\); got 2"):
         src.read(5, 2)
+
+
+def test_an_inner_product_is_read_from_each_kind_of_file(tmp_path):
+    """``--inner FILE``: weights or a dense matrix (.npy), a sparse matrix (.npz, .mtx)."""
+    w = np.linspace(1.0, 2.0, N)
+    M = sp.diags_array([w, np.full(N - 1, 0.1), np.full(N - 1, 0.1)], offsets=[0, -1, 1])
+    np.save(tmp_path / "w.npy", w)
+    np.save(tmp_path / "m.npy", M.toarray())
+    sp.save_npz(tmp_path / "m.npz", sp.csr_array(M))
+    scipy.io.mmwrite(tmp_path / "m.mtx", sp.coo_matrix(M))
+    assert load_inner(tmp_path / "w.npy") == DiagonalInner(w)
+    dense, sparse, market = (load_inner(str(tmp_path / f"m.{suffix}"))
+                             for suffix in ("npy", "npz", "mtx"))
+    assert isinstance(dense, MatrixInner) and sparse == market == MatrixInner(M)
+    np.testing.assert_allclose(dense.matrix, M.toarray())
+
+
+def test_an_inner_product_file_must_exist_and_be_of_a_known_kind(tmp_path):
+    with pytest.raises(InputError, match=r"must be a \.npy .*got 'w\.txt'"):
+        load_inner(tmp_path / "w.txt")
+    with pytest.raises(InputError, match=r"`inner` file .*w\.npy does not exist"):
+        load_inner(tmp_path / "w.npy")
+    (tmp_path / "e.npz").write_bytes(b"")
+    with pytest.raises(InputError, match=r"cannot be read as a \.npz file"):
+        load_inner(tmp_path / "e.npz")

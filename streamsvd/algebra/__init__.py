@@ -1,7 +1,11 @@
 """The n-sized algebra: inner products and the basis, in memory and out of core.
 
-The basis interface and its in-memory implementation live in :mod:`~streamsvd.algebra.memory`,
-the out-of-core one in :mod:`~streamsvd.algebra.panels`.
+The backend interface (the Protocols an update needs of the basis) lives in
+:mod:`~streamsvd.algebra.interface`; its in-memory implementation in
+:mod:`~streamsvd.algebra.memory`, on the growable buffer of :mod:`~streamsvd.algebra.buffer`;
+the out-of-core one in :mod:`~streamsvd.algebra.panels`. Inner products are in
+:mod:`~streamsvd.algebra.inner` (the checks that a matrix is symmetric positive definite in
+:mod:`~streamsvd.algebra.spd`), the Gram products in :mod:`~streamsvd.algebra.blas`.
 """
 
 from streamsvd._util.lazy import lazy_exports
@@ -14,12 +18,12 @@ _EXPORTS = {
     "MatrixInner": "inner",
     "as_inner": "inner",
     "check_same_inner": "inner",
-    "load_inner": "inner",
-    "Backend": "memory",
-    "BasisAlgebra": "memory",
-    "BasisBackend": "memory",
-    "BasisStaging": "memory",
-    "DeferredGram": "memory",
+    "Backend": "interface",
+    "BasisAlgebra": "interface",
+    "BasisBackend": "interface",
+    "BasisStaging": "interface",
+    "DeferredGram": "interface",
+    "BasisBuffer": "buffer",
     "MEMORY_KIND": "memory",
     "MemoryBackend": "memory",
     "MemoryBasis": "memory",

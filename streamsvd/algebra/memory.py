@@ -1,43 +1,10 @@
-"""The n-sized factor of an expansion: the stored basis ``Q`` and the few products on it.
+"""The basis in memory: :class:`MemoryBasis` and :class:`MemoryBackend`, the default backend.
 
-An update of a compressor touches the ``n``-sized data only through a handful of
-operations (:class:`BasisAlgebra`; how a planned basis is switched to and committed is
-:class:`BasisStaging`), all BLAS-3 (written once in :mod:`streamsvd.engine.update`, as pyMOR writes
-``gram_schmidt`` once over its vector arrays):
-
-* ``project(X, G)``: ``G^T (MQ^T X)``, the coefficients of a block on the basis ``Q G``;
-* ``subtract(X, G, C)``: ``X -= Q (G C)``;
-* ``workspace(b)``: room for ``b`` new columns right after the stored ones, where a block
-  is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns;
-* ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
-  written aside first so that nothing stored changes before ``swap``; its Gram is
-  measured from the written columns;
-* ``block_products(X)`` then ``compact_with_block(G)``: the Gram path's two passes
-  (:mod:`streamsvd.engine.update_gram`): the block's Gram ``X^T M X`` and its projection
-  ``MQ^T X`` with the block staged as it is (in memory: referenced, not copied; a block
-  read by row chunks: written once to a scratch panel as it is read), then
-  ``Q <- [Q, X] G`` written aside like ``compact_planned`` (or over ``Q`` itself by a
-  basis made to, below). A basis that ``defers_gram`` (in memory, compacting aside)
-  leaves the Gram of the columns it writes there to the next update, whose
-  ``joint_products(X)`` copies the block beside ``Q`` and measures the Gram of ``[Q, X]``
-  whole, ``Q^T M Q`` with it, in one product (``measure_gram()`` measures ``Q^T M Q``
-  alone for whoever reads the basis before; :class:`~streamsvd.engine.state.State`); its
-  ``products_beside(X)`` copies a narrow block beside ``Q`` and returns ``X^T M X`` and
-  ``MQ^T X`` in one product, so that the update may keep the block as stored columns
-  (``accept``) instead of compacting;
-* ``stage_new(r)``, ``commit_arrays(...)``, ``restore(...)``, ``collect(...)``,
-  ``release(...)``: what a commit to a store needs, what it may delete afterwards, and
-  what an update replaced that no recent commit uses; ``compactions`` counts the swaps,
-  so a commit tells the columns appended since the previous one (the others are
-  unchanged) from a basis replaced whole.
-* ``lincomb(G)``: ``Q G``. (The new block of the basis Gram, ``MQ^T Y``, is measured by
-  Gram-Schmidt with ``project``, never formed again.)
-
-:class:`MemoryBasis` keeps ``Q`` (and ``M Q`` for a non-Euclidean inner product) in
-column-major buffers whose capacity grows geometrically, so appending columns never
-copies the basis (the buffers are reallocated ``O(log)`` times over a stream, counted in
-:attr:`MemoryBasis.reallocations`); a compaction writes into a second buffer of the same
-capacity, swapped in by ``swap``. Made with ``compact_in_place=True``, it writes the Gram
+:class:`MemoryBasis` implements the backend interface (:mod:`streamsvd.algebra.interface`)
+on the growable buffers of :class:`~streamsvd.algebra.buffer.BasisBuffer`: ``Q`` (and
+``M Q`` for a non-Euclidean inner product) in column-major buffers that appending columns
+never copies; a compaction writes into a second buffer of the same capacity, swapped in by
+``swap``. Made with ``compact_in_place=True``, it writes the Gram
 path's compactions over the stored columns instead, slab of rows by slab of rows (each row
 of ``[Q, X] G`` depends on the same row of ``Q`` and ``X`` only), and keeps no second
 buffer between updates: one ``n x k`` buffer less, for compactions about 20% slower (the
@@ -48,17 +15,15 @@ basis unusable (:class:`~streamsvd.errors.BrokenStateError`), so only a compress
 away or recomputed on failure should be made so (the leaves and merges of
 :func:`~streamsvd.parallel.tree_compress`).
 
-A compressor does not choose its basis class: it is given a :class:`Backend`, which
-makes its basis and says what that choice implies (the kind of store it writes, how a
-copy gets its own basis, how a block reaches memory). :class:`MemoryBackend` is the
-default; :class:`streamsvd.algebra.panels.backend.PanelBackend` keeps the basis in panels on disk.
+:class:`MemoryBackend` is the default :class:`~streamsvd.algebra.interface.Backend` of a
+compressor; :class:`streamsvd.algebra.panels.backend.PanelBackend` keeps the basis in
+panels on disk.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import scipy.linalg.blas as blas
@@ -66,159 +31,14 @@ import scipy.linalg.blas as blas
 from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
 from streamsvd.algebra.blas import gram
+from streamsvd.algebra.buffer import BasisBuffer
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.errors import BrokenStateError
+from streamsvd.algebra.interface import BasisBackend
 
-__all__ = [
-    "Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "DeferredGram", "MEMORY_KIND",
-    "MemoryBackend", "MemoryBasis",
-]
+__all__ = ["MEMORY_KIND", "MemoryBackend", "MemoryBasis"]
 
 MEMORY_KIND = "streamsvd.StreamCompressor"
 """The kind recorded in the store of a compressor whose basis is in memory."""
-
-_GROWTH = 2.0  # capacity factor when the buffers are full
-
-
-class BasisAlgebra(Protocol):
-    """The products an update computes on the n-sized factor (module docstring)."""
-
-    n: int
-
-    @property
-    def width(self) -> int:
-        """Number of stored columns ``w``."""
-
-    @property
-    def capacity(self) -> int:
-        """Columns the basis can hold (stored and workspace) without growing its storage."""
-
-    def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
-        """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
-
-    def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
-        """``X -= Q (G C)`` in place."""
-
-    def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return views ``(Y, MY)`` of ``b`` columns after the stored ones."""
-
-    def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
-        """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
-
-    def block_products(self, X: Any, *, project: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """Stage the block ``X``; return ``X^T M X`` and ``MQ^T X`` (None unless ``project``).
-
-        A backend that reads ``X`` in one pass computes ``MQ^T X`` whatever ``project``.
-        """
-
-    def compact_with_block(self, G: np.ndarray) -> np.ndarray | None:
-        """Write ``[Q, X] G`` aside (``X`` the staged block); return its Gram ``Q'^T M Q'``.
-
-        None when the basis ``defers_gram``: the next update measures it.
-        """
-
-    @property
-    def defers_gram(self) -> bool:
-        """Whether ``compact_with_block`` leaves its Gram to be measured later.
-
-        Such a basis is a :class:`DeferredGram` as well.
-        """
-
-    def lincomb(self, G: np.ndarray) -> np.ndarray:
-        """Return ``Q G`` as a new array."""
-
-
-class BasisStaging(Protocol):
-    """How a planned basis becomes the stored one, and what a commit of it writes."""
-
-    compactions: int  # number of swaps: the stored columns were all replaced
-
-    def accept(self, r: int) -> None:
-        """Make the first ``r`` workspace columns stored columns."""
-
-    def stage_new(self, r: int) -> None:
-        """Make the first ``r`` workspace columns durable before a commit refers to them."""
-
-    def swap(self, p: int) -> None:
-        """Make the basis written by ``compact_planned`` the stored one."""
-
-    def discard_planned(self) -> None:
-        """Forget what a plan staged (the update was abandoned)."""
-
-    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
-        """Return the arrays and attributes a commit of the planned basis writes."""
-
-    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
-        """Load the basis a commit wrote."""
-
-    def collect(self, committed: Sequence[dict]) -> None:
-        """Delete stored data that neither the state nor these commits' attributes use."""
-
-    def release(self, committed: Sequence[dict]) -> None:
-        """Delete what this basis replaced and none of these commits' attributes use."""
-
-    def drop_scratch(self) -> None:
-        """Free the scratch kept between updates (a compaction buffer, ...)."""
-
-
-class BasisBackend(BasisAlgebra, BasisStaging, Protocol):
-    """What an update needs from the n-sized factor: its algebra and its staging."""
-
-
-class DeferredGram(BasisBackend, Protocol):
-    """A basis whose compactions leave their Gram to be measured later (``defers_gram``)."""
-
-    def joint_products(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stage ``X`` beside the basis; return ``X^T M X``, ``MQ^T X`` and ``Q^T M Q``."""
-
-    def measure_gram(self) -> np.ndarray:
-        """Return the Gram ``Q^T M Q`` of the stored columns, measured."""
-
-    def products_beside(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Stage ``X`` beside the basis; return ``X^T M X`` and ``MQ^T X`` (one product)."""
-
-    @property
-    def block_beside(self) -> bool:
-        """Whether the staged block is in the workspace, after the stored columns."""
-
-
-class Backend(Protocol):
-    """Where a compressor keeps its n-sized factor, and what that choice implies."""
-
-    kind: str  # recorded in the store: a store is reopened with the backend that wrote it
-    temporary: bool  # the basis is removed by close() (nothing left to finalise)
-
-    def new_basis(self, n: int, inner: InnerProduct) -> BasisBackend:
-        """Return an empty basis for snapshots of size ``n`` in the inner product ``inner``."""
-
-    def fresh(self) -> Backend:
-        """Return a backend of the same settings whose basis is independent of this one."""
-
-    def copied(self, basis: BasisBackend, blank: BasisBackend) -> BasisBackend:
-        """Return ``basis`` copied for a compressor whose own empty basis is ``blank``."""
-
-    def into_store(self, basis: BasisBackend, storage: Any) -> tuple[Backend, BasisBackend]:
-        """Return the backend and basis that a new store in ``storage`` commits.
-
-        This backend and ``basis`` when a commit writes the basis itself; else a copy
-        of the basis written into ``storage``, which ``basis`` is left as it was.
-        """
-
-    def load(self, columns: Any, *, rows: int, first: int) -> Any:
-        """Return ``columns`` checked as a block of ``rows`` rows the basis takes.
-
-        An array, or a block its basis reads when the update needs it (``first``: its
-        offset in the source, named when that read fails).
-        """
-
-    def in_memory(self, block: Any) -> np.ndarray:
-        """Return a block from :meth:`load` as a float64 array, its entries checked finite."""
-
-    def describe(self, basis: BasisBackend) -> str:
-        """Return what ``repr`` of a compressor shows of its basis (may be empty)."""
-
-    def close(self) -> None:
-        """Release what the backend holds (a temporary directory, ...)."""
 
 
 class MemoryBackend:
@@ -282,8 +102,8 @@ class MemoryBackend:
         """Nothing to release."""
 
 
-class MemoryBasis:
-    """In-memory basis buffer (see the module docstring).
+class MemoryBasis(BasisBuffer):
+    """In-memory basis: the products and compactions of an update on its buffers.
 
     Parameters
     ----------
@@ -298,23 +118,6 @@ class MemoryBasis:
         buffer between updates (module docstring).
     """
 
-    def __init__(
-        self, n: int, inner: InnerProduct, *, capacity: int = 0, compact_in_place: bool = False
-    ) -> None:
-        self.n = int(n)
-        self.inner = inner
-        self.compact_in_place = bool(compact_in_place)
-        self._w = 0
-        self.reallocations = 0
-        self.compactions = 0  # columns only appended between two (what a commit writes)
-        self._bufs = self._allocate(int(capacity))
-        self._spare: tuple[np.ndarray, np.ndarray] | None = None
-        self._planned_width = 0
-        self._overwritten = False  # the planned basis is in the stored buffers
-        self._broken = False  # they were overwritten by an update that did not complete
-        self._block: tuple[np.ndarray, np.ndarray] | None = None
-        self._beside = False  # the staged block is in the workspace, after the basis
-
     @property
     def defers_gram(self) -> bool:
         """Whether the Gram path's compactions leave their Gram to the next update.
@@ -323,73 +126,6 @@ class MemoryBasis:
         those in place measure it at once (their basis may then be broken).
         """
         return not self.compact_in_place
-
-    def __getstate__(self) -> dict[str, Any]:
-        """Pickle and copy the stored columns only (not the workspace, not the scratch).
-
-        A copy's buffers hold its ``w`` columns; they grow again when it appends.
-        """
-        state = dict(self.__dict__)
-        w = self._w
-        Q, MQ = self._bufs
-        state["_bufs"] = (Q[:, :w], None if self.inner.is_euclidean else MQ[:, :w])
-        state["_spare"], state["_block"], state["_beside"] = None, None, False
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        """Restore a pickled or copied basis (``M Q`` is ``Q`` when Euclidean)."""
-        self.__dict__.update(state)
-        Q, MQ = self._bufs
-        self._bufs = (Q, Q if MQ is None else MQ)
-
-    # ------------------------------------------------------------------ buffers
-    def _allocate(self, cap: int) -> tuple[np.ndarray, np.ndarray]:
-        Q = np.empty((self.n, cap), order="F")
-        MQ = Q if self.inner.is_euclidean else np.empty((self.n, cap), order="F")
-        return Q, MQ
-
-    @property
-    def capacity(self) -> int:
-        """Columns the buffers hold (stored and workspace) before they must grow."""
-        return int(self._bufs[0].shape[1])
-
-    def _ensure(self, cols: int) -> None:
-        if cols <= self.capacity:
-            return
-        cap = max(cols, int(_GROWTH * self.capacity), 8)
-        Q, MQ = self._allocate(cap)
-        w = self._w
-        Q[:, :w] = self._bufs[0][:, :w]
-        if not self.inner.is_euclidean:
-            MQ[:, :w] = self._bufs[1][:, :w]
-        self._bufs = (Q, MQ)
-        self._spare = None
-        self.reallocations += 1
-
-    @property
-    def width(self) -> int:
-        """Number of stored columns ``w``."""
-        return self._w
-
-    @property
-    def Q(self) -> np.ndarray:
-        """The stored columns (a view, ``n x w``)."""
-        self._check_usable()
-        return self._bufs[0][:, : self._w]
-
-    @property
-    def MQ(self) -> np.ndarray:
-        """``M Q`` (the same view as :attr:`Q` for the Euclidean inner product)."""
-        self._check_usable()
-        return self._bufs[1][:, : self._w]
-
-    def _check_usable(self) -> None:
-        if self._broken:
-            raise BrokenStateError(
-                "this compressor's basis was written over by an update that did not "
-                "complete (its compactions are made in place, `compact_in_place=True`): "
-                "its stored columns are lost. Start again, or reopen its store."
-            )
 
     # ------------------------------------------------------------------ products
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
@@ -410,35 +146,6 @@ class MemoryBasis:
             if np.shares_memory(out, X):
                 return
         X -= self.Q @ K
-
-    def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return views ``(Y, MY)`` of ``b`` columns after the stored ones.
-
-        Their content is scratch until :meth:`accept`; the stored columns are untouched
-        (the buffers may be reallocated here, never afterwards in the same update).
-        """
-        w = self._w
-        self._ensure(w + b)
-        Q, MQ = self._bufs
-        return Q[:, w : w + b], MQ[:, w : w + b]
-
-    def accept(self, r: int) -> None:
-        """Make the first ``r`` workspace columns stored columns."""
-        self._w += int(r)
-        self._block, self._beside = None, False
-
-    def stage_new(self, r: int) -> None:
-        """Nothing to do: the workspace columns are in memory until :meth:`accept`."""
-
-    def _planned(self, r: int, *, compacted: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Return the stored columns after :meth:`accept` (``r``) or :meth:`swap` (views)."""
-        if compacted:
-            p = self._planned_width
-            planned = self._bufs if self._overwritten else self._spare
-            assert planned is not None
-            return planned[0][:, :p], planned[1][:, :p]
-        w = self._w + r
-        return self._bufs[0][:, :w], self._bufs[1][:, :w]
 
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` into the spare buffer; :meth:`swap` makes it the basis.
@@ -595,62 +302,9 @@ class MemoryBasis:
         H = MQ.T @ Q
         return 0.5 * (H + H.T)
 
-    def discard_planned(self) -> None:
-        """Forget the staged block: a plan only wrote scratch columns and the spare buffer.
-
-        A plan that wrote over the stored columns cannot be forgotten: the basis is then
-        unusable (:class:`~streamsvd.errors.BrokenStateError` on its next use).
-        """
-        self._block, self._beside = None, False
-        if self._overwritten:
-            self._overwritten, self._broken = False, True
-
-    def drop_scratch(self) -> None:
-        """Free the compaction buffer kept for the next update (made again when needed)."""
-        self._spare = None
-
-    def swap(self, p: int) -> None:
-        """Make the spare buffer written by :meth:`compact_planned` the stored basis.
-
-        A basis made with ``compact_in_place=True`` frees the replaced buffer (it keeps no
-        compaction buffer between updates).
-        """
-        assert p == self._planned_width
-        if not self._overwritten:
-            assert self._spare is not None
-            self._spare, self._bufs = self._bufs, self._spare
-            if self.compact_in_place:
-                self._spare = None
-        self._overwritten = False
-        self._w = p
-        self._block, self._beside = None, False
-        self.compactions += 1
-
     def lincomb(self, G: np.ndarray) -> np.ndarray:
         """Return ``Q G`` as a new column-major array."""
         if self._w == 0 or G.shape[1] == 0:
             return np.zeros((self.n, G.shape[1]), order="F")
         return blas.dgemm(1.0, self.Q, G)
 
-    def commit_arrays(self, r: int, *, compacted: bool) -> tuple[dict[str, np.ndarray], dict]:
-        """Return the arrays (views) and attributes a commit of the planned basis writes."""
-        Q, MQ = self._planned(r, compacted=compacted)
-        arrays = {"Q": Q} if self.inner.is_euclidean else {"Q": Q, "MQ": MQ}
-        return arrays, {"capacity": self.capacity}
-
-    def collect(self, committed: Sequence[dict]) -> None:
-        """Nothing to delete: the buffers are in memory."""
-
-    def release(self, committed: Sequence[dict]) -> None:
-        """Nothing to delete: the buffers are in memory."""
-
-    def restore(self, arrays: dict[str, np.ndarray], attrs: dict) -> None:
-        """Load the stored columns, with the capacity they were written with."""
-        Q = arrays["Q"]
-        w = Q.shape[1]
-        self._bufs = self._allocate(max(int(attrs["capacity"]), w))
-        self._spare = None
-        self._bufs[0][:, :w] = Q
-        if not self.inner.is_euclidean:
-            self._bufs[1][:, :w] = arrays["MQ"]
-        self._w = w

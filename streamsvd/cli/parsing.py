@@ -169,7 +169,7 @@ def load_inner(args: Any) -> Any:
     """Return the inner product of ``--inner`` (loaded from its file), or None."""
     if args.inner is None:
         return None
-    from streamsvd.algebra.inner import load_inner as load
+    from streamsvd.io.inner_file import load_inner as load
 
     return load(args.inner)
 

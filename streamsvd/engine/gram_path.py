@@ -17,7 +17,7 @@ import numpy as np
 from scipy.linalg.lapack import dtrtri
 
 from streamsvd._util.scaling import pow2_exponent
-from streamsvd.algebra.memory import BasisBackend, DeferredGram
+from streamsvd.algebra.interface import BasisBackend, DeferredGram
 from streamsvd.engine.core import Truncation
 from streamsvd.engine.state import Plan, State, StepOptions
 from streamsvd.linalg.extend import default_reject_tol

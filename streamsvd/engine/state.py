@@ -1,7 +1,7 @@
 """The state of a compressor and the plan of one update, with its deferred writes.
 
 State. ``U = Q coords`` with ``Q`` the stored basis (a
-:class:`~streamsvd.algebra.memory.BasisBackend`,
+:class:`~streamsvd.algebra.interface.BasisBackend`,
 ``n x w``) and ``coords`` small (``w x p``, the coordinates of ``U`` on ``Q``);
 ``gram = Q^T M Q`` (small) measures orthogonality;
 ``R`` (``k x p``, ``k <= p``) is the core of the right factor: ``V = Y R`` with ``Y``
@@ -28,7 +28,7 @@ import numpy as np
 from scipy.linalg.lapack import dtrtri
 
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.algebra.memory import BasisBackend, DeferredGram
+from streamsvd.algebra.interface import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Truncation
 from streamsvd.engine.record import UpdateRecord
@@ -178,7 +178,7 @@ class Writes:
 
     ``columns``: workspace columns that become stored columns of the basis; ``compacted``:
     the compacted basis (written in the backend's workspace by
-    :meth:`~streamsvd.algebra.memory.BasisAlgebra.compact_planned`) replaces the stored one;
+    :meth:`~streamsvd.algebra.interface.BasisAlgebra.compact_planned`) replaces the stored one;
     ``rows``: new rows of ``Y`` and its new small factor; ``rows_replaced``: ``Y`` written
     anew whole (``add``, or a removal that orthonormalises the live rows again);
     ``dead_rows``: the stored rows no longer live (:mod:`streamsvd.engine.downdate`).

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.linalg.lapack import dtrtri
 
 from streamsvd._util.scaling import pow2_exponent
-from streamsvd.algebra.memory import DeferredGram
+from streamsvd.algebra.interface import DeferredGram
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before
 from streamsvd.engine.gram_path import (

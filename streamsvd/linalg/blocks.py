@@ -5,7 +5,7 @@ from :mod:`streamsvd.algebra.blas`), CholeskyQR in place,
 the rounds that orthonormalise a nearly collinear residual (SVQB with re-measured
 tails), and the column-by-column rejection rule on the residual's small coefficients.
 Every function works on arrays; the basis is reached only through
-:class:`~streamsvd.algebra.memory.BasisBackend`.
+:class:`~streamsvd.algebra.interface.BasisBackend`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
 
 if TYPE_CHECKING:
-    from streamsvd.algebra.memory import BasisBackend
+    from streamsvd.algebra.interface import BasisBackend
 
 _EPS = np.finfo(np.float64).eps
 # A residual whose Gram has its eigenvalues within COND_SPLIT of the largest is

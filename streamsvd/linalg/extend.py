@@ -19,7 +19,7 @@ import scipy.linalg.lapack
 from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.algebra.memory import BasisBackend
+from streamsvd.algebra.interface import BasisBackend
 from streamsvd.linalg.blocks import (
     COND_SPLIT,
     ONE_PASS_COND,

@@ -1,7 +1,7 @@
 """Out-of-core streaming for tall snapshots: the stream compressor over zarr row panels.
 
 :class:`~streamsvd.algebra.panels.backend.PanelBackend` is the backend
-(:class:`~streamsvd.algebra.memory.Backend`) that keeps a compressor's n-sized factor in a
+(:class:`~streamsvd.algebra.interface.Backend`) that keeps a compressor's n-sized factor in a
 :class:`~streamsvd.algebra.panels.basis.PanelBasis`, and :class:`TallCompressor` is the
 factory of a :class:`~streamsvd.StreamCompressor` built with it (nothing else): the
 basis lives in panels chunked by rows in the store directory (``<store>/panels/``), and

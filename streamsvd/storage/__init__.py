@@ -41,6 +41,7 @@ from streamsvd.storage.local import LocalStorage
 from streamsvd.storage.objects import ObjectStorage, remote_errors
 
 __all__ = [
+    "PANELS",
     "LocalStorage",
     "ObjectStorage",
     "Storage",
@@ -48,6 +49,12 @@ __all__ = [
     "open_storage",
     "remote_errors",
 ]
+
+PANELS = "panels"
+"""The directory under a store's root where a tall compressor keeps its basis, beside the
+generations (:mod:`streamsvd.algebra.panels.files` writes it, before the commits that list
+it, also before the first one: a store's creation; :mod:`streamsvd.store` knows it as its
+own)."""
 
 
 class Storage(Protocol):

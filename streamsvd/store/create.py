@@ -5,7 +5,7 @@ last. :func:`begin_store` takes the writer lock or lease and writes the root met
 (each object created anew, through the writer's fence), and returns the
 :class:`Creation`; the handle's first commit (generation 0) writes the generation and
 switches the pointer to it. Until that switch, the caller may write its own objects
-under the store (a tall compressor's panels, :data:`~streamsvd.store.format.PANELS`),
+under the store (a tall compressor's panels, :data:`~streamsvd.storage.PANELS`),
 and if any step fails or the handle is closed first (a full disk, a lost connection,
 Ctrl-C), everything written under the store is deleted again, the lock released and a
 root directory it made removed, and the error says which store and which step failed.

@@ -23,7 +23,7 @@ import numpy as np
 
 from streamsvd._util.validation import check_finite, check_positive_int
 from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError
-from streamsvd.storage import LocalStorage, Storage, remote_errors
+from streamsvd.storage import PANELS, LocalStorage, Storage, remote_errors
 from streamsvd.storage.lockfile import LOCK_NAME
 
 FORMAT = "streamsvd-basis"
@@ -41,10 +41,6 @@ LEASE_NAME = "writer.lease"
 GENERATIONS = "generations"
 MARKER_NAME = "committed.json"
 """Written into a generation after the pointer named it: the generation was committed."""
-PANELS = "panels"
-"""Where a tall compressor keeps its basis beside the generations
-(:mod:`streamsvd.algebra.panels.files`),
-written before the commits that list it, also before the first one (a store's creation)."""
 
 GEN_RE = re.compile(r"^g(\d{8})$")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

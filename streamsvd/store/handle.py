@@ -110,7 +110,7 @@ class BasisStore:
         The lock is taken and the root metadata written, but no pointer: the store
         exists once the first commit (generation 0) switched the pointer to it. Until
         then the caller may write its own objects under the store (see
-        :data:`~streamsvd.store.format.PANELS`); a first commit that fails, or
+        :data:`~streamsvd.storage.PANELS`); a first commit that fails, or
         :meth:`close` before it, deletes everything written under the store, and a
         process killed meanwhile leaves the leftovers of an interrupted creation, which
         opening reports and the next creation replaces.

@@ -12,7 +12,7 @@ far (columns of ``A``) with ``U`` orthonormal in the inner product ``M``. Each u
    ``i <= max_rank`` (after the sweeps, on the sorted amplitudes), logging what was cut.
 
 The step is written once (:mod:`streamsvd.engine.update`) over the n-sized basis (a
-:class:`~streamsvd.algebra.memory.Backend`'s) and the m-sized right vectors
+:class:`~streamsvd.algebra.interface.Backend`'s) and the m-sized right vectors
 (:mod:`streamsvd.engine.rows`). This class is the facade, composed of parts it holds as
 attributes and forwards to: a :class:`~streamsvd.stream.lifecycle.Lifecycle` (the
 state, each update's run and commit, the store), an
@@ -34,7 +34,7 @@ energies)``.
 Cost: an update costs nothing in the number of snapshots already absorbed: the
 right vectors are kept as ``V = Y R`` with ``Y`` orthonormal, appended in Brand's form
 ``Y = V0 Vp`` (:mod:`streamsvd.engine.rows`), the
-basis lives in a buffer grown geometrically (:mod:`streamsvd.algebra.memory`), and the
+basis lives in a buffer grown geometrically (:mod:`streamsvd.algebra.buffer`), and the
 rotations act on small matrices (:mod:`streamsvd.engine.update` has the flop count).
 
 Orthogonality: ``H = Q^T M Q`` of the stored basis is kept (exactly, by a Gram of
@@ -54,7 +54,8 @@ import numpy as np
 from streamsvd._util.threads import check_threads
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.inner import InnerProduct, as_inner
-from streamsvd.algebra.memory import MEMORY_KIND, Backend, MemoryBackend
+from streamsvd.algebra.interface import Backend
+from streamsvd.algebra.memory import MEMORY_KIND, MemoryBackend
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.errors import InputError
 from streamsvd.io.provenance import SourceRecord

@@ -7,7 +7,7 @@ every update (:meth:`Lifecycle.run`: plan, commit when due, then switch to the n
 and creates, reopens, copies and closes the store. What a commit writes, what it lets
 the basis delete and how a store is checked are :mod:`streamsvd.stream.persistence`'s;
 what differs where the basis is out of core is the
-:class:`~streamsvd.algebra.memory.Backend`'s. The other parts of the facade (the window
+:class:`~streamsvd.algebra.interface.Backend`'s. The other parts of the facade (the window
 and the view) read this one and never write it but through :meth:`Lifecycle.run`.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
 from streamsvd.algebra.inner import InnerProduct, inner_arrays
-from streamsvd.algebra.memory import Backend
+from streamsvd.algebra.interface import Backend
 from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor

@@ -1,7 +1,7 @@
 """The out-of-core backend: a compressor's n-sized factor in panels chunked by rows.
 
-:class:`PanelBackend` is the :class:`~streamsvd.algebra.memory.Backend` that keeps the basis
-in a :class:`~streamsvd.algebra.panels.basis.PanelBasis` (panels in ``<root>/panels/``,
+:class:`PanelBackend` is the :class:`~streamsvd.algebra.interface.Backend` that keeps the
+basis in a :class:`~streamsvd.algebra.panels.basis.PanelBasis` (panels in ``<root>/panels/``,
 products over row chunks with dask) and checks the blocks it is given (a dask block is
 read by row chunks, each checked for NaN and infinite entries, by :func:`_checked_dask`);
 :class:`~streamsvd.parallel.tall.TallCompressor` is the stream compressor built with it.
@@ -25,7 +25,7 @@ from streamsvd._util.validation import (
     first_non_finite,
 )
 from streamsvd.algebra.inner import DiagonalInner, InnerProduct
-from streamsvd.algebra.memory import BasisBackend
+from streamsvd.algebra.interface import BasisBackend
 from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.algebra.panels.lazy import LazyBlock
 from streamsvd.errors import InputError, NonFiniteError, ShapeMismatchError, StreamSVDError

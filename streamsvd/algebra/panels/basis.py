@@ -1,7 +1,7 @@
 """The n-sized factor out of core: the basis in panels chunked by rows, used by dask.
 
-:class:`PanelBasis` implements :class:`~streamsvd.algebra.memory.BasisBackend` for snapshots too
-long for the basis ``n x w`` to stay in memory. The stored columns are a list of
+:class:`PanelBasis` implements :class:`~streamsvd.algebra.interface.BasisBackend` for
+snapshots too long for the basis ``n x w`` to stay in memory. The stored columns are a list of
 *panels*, written once each (``<root>/panels/<name>``, in a local directory or an object
 store: :mod:`streamsvd.storage`): in a local directory a raw row-major file, which the
 passes use, and, once a commit lists it, a zarr copy with checksums beside it, which a

@@ -19,8 +19,7 @@ import numpy as np
 
 from streamsvd.algebra.panels.raw_array import RawArray
 from streamsvd.errors import StoreError
-from streamsvd.storage import LocalStorage, ObjectStorage
-from streamsvd.store.format import PANELS
+from streamsvd.storage import PANELS, LocalStorage, ObjectStorage
 
 __all__ = ["SPARES", "PanelFiles"]
 

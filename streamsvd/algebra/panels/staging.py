@@ -1,7 +1,7 @@
 """What a store needs of the panels: the staged panels made the basis, listed, let go.
 
 Module functions taking the :class:`~streamsvd.algebra.panels.basis.PanelBasis`, its
-staging part of :class:`~streamsvd.algebra.memory.BasisStaging` (the basis binds each as
+staging part of :class:`~streamsvd.algebra.interface.BasisStaging` (the basis binds each as
 its method of the same name): :func:`stage_new` writes the new columns as a panel and
 :func:`swap` makes the compacted panel the basis, :func:`discard_planned` removes what an
 abandoned plan wrote; :func:`commit_arrays` lists the panels a commit refers to (each
