@@ -32,9 +32,8 @@ from streamsvd.store.format import (
     lock_key,
     named,
     normalise_attrs,
-    read_root,
 )
-from streamsvd.store.reading import current_doc, load_generation, read_current
+from streamsvd.store.reading import current_doc, load_generation, read_current, read_root
 from streamsvd.store.segments import Appended, Piece
 
 logger = logging.getLogger("streamsvd.store")
