@@ -17,8 +17,9 @@ reads retried while the pointer moves), :mod:`~streamsvd.store.check`
 (:func:`check_store`), :mod:`~streamsvd.store.commit` (the pack and the pointer switch),
 :mod:`~streamsvd.store.fence` (every write and delete checked against the lock or
 lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach),
-:mod:`~streamsvd.store.create` (all or nothing) and :mod:`~streamsvd.store.handle`
-(:class:`BasisStore`, a thin handle). Layout (directory or prefix)::
+:mod:`~streamsvd.store.create` (all or nothing), :mod:`~streamsvd.store.session` (what an
+open handle holds: opening, reading, committing) and :mod:`~streamsvd.store.handle`
+(:class:`BasisStore`, the thin public face of a session). Layout (directory or prefix)::
 
     <path>/
       zarr.json                  root group; attributes: format, format_version, n,
