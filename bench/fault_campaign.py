@@ -49,8 +49,9 @@ import numpy as np
 
 from streamsvd.cli import main as cli
 from streamsvd.engine.record import HISTORY_FIELDS
+from streamsvd.parallel.cluster import check_store
 from streamsvd.storage import open_storage
-from streamsvd.store import CRASH_POINTS, POINTER_NAME, check_store, open_store
+from streamsvd.store import CRASH_POINTS, POINTER_NAME, open_store
 from streamsvd.testing.damage import GENERATION_DAMAGE, damage_generation
 
 # a writer run as `python -c WRAPPER <point> <signal> <nth> <lease seconds> -- <cli args>`

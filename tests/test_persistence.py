@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
-from streamsvd.parallel.cluster import open_compressor
+from streamsvd.parallel.cluster import check_store, open_compressor
 from streamsvd.storage import open_storage
-from streamsvd.store import check_store, history
+from streamsvd.store import history
 from streamsvd.stream.commits import CommitSchedule
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum

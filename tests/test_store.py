@@ -235,7 +235,7 @@ def test_packs_compressed_by_an_earlier_version_are_read_and_appended_to(
         assert np.array_equal(reader.read().arrays["T"], T)
         assert np.array_equal(reader.read(generation=1).arrays["T"], T[:30])
     from streamsvd.storage import open_storage
-    from streamsvd.store.reading import check_store
+    from streamsvd.store.check import check_store
 
     assert check_store(open_storage(tmp_path / "s")).healthy
 
@@ -595,6 +595,65 @@ def test_missing_current_generation_is_a_format_error(store_path, rng):
     shutil.rmtree(store_path / "generations/g00000002")
     with pytest.raises(StoreFormatError, match=r"generation 2 .* cannot be opened"):
         open_store(store_path).read()
+
+
+def test_check_opens_what_a_store_holds_only_through_the_opener_it_is_given(store_path, rng):
+    from streamsvd.storage import open_storage
+    from streamsvd.store.check import check_store
+
+    with BasisStore.create(store_path, n=200, inner_fingerprint=FP) as s:
+        s.commit(factors(rng), {"kind": "some kind"})
+    storage = open_storage(store_path)
+    plain = check_store(storage)
+    assert plain.healthy and len(plain.verified) == 2  # the current and previous generation
+    seen = []
+
+    def opens(where, kind):
+        seen.append((where, kind))
+        return "Held"
+
+    def mismatch(where, kind):
+        raise StoreMismatchError("its inner product must be given")
+
+    def refuses(where, kind):
+        raise StoreFormatError(" it holds no basis ")
+
+    assert check_store(storage, opens=opens).verified == [*plain.verified,
+                                                          "the Held it holds opens"]
+    assert seen == [(storage, "some kind")]
+    assert check_store(storage, opens=lambda where, kind: None).verified == plain.verified
+    assert check_store(storage, opens=mismatch).verified == plain.verified
+    assert check_store(storage, opens=refuses).problems == ["it holds no basis"]
+    (store_path / POINTER_NAME).write_text("{not json")  # damaged: nothing is opened
+    assert not check_store(storage, opens=opens).healthy and len(seen) == 1
+
+
+def test_a_session_opens_reads_follows_its_pointer_and_commits(store_path, rng):
+    from streamsvd.storage import open_storage
+    from streamsvd.store.reading import read_pointer
+    from streamsvd.store.session import Session
+
+    with BasisStore.create(store_path, n=200, inner_fingerprint=FP) as s:
+        s.commit(factors(rng), {"k": 1})
+    expect = {"n": 200, "dtype": None, "inner_fingerprint": FP, "storage_options": None}
+    reader = Session.open(store_path, "r", **expect)
+    assert (reader.generation, reader.previous, reader.lock, reader.writer) == (1, 0, None, None)
+    assert reader.load(1, None).attrs == {"k": 1} and set(reader.docs) == {1}
+    with open_store(store_path, "a") as s:
+        s.commit(factors(rng), {"k": 2})
+    reader.follow(read_pointer(open_storage(store_path)))
+    assert (reader.generation, reader.previous) == (2, 1)
+    writer = Session.open(store_path, "a", **expect)
+    try:
+        records, pieces = writer.plan({"x": np.ones(200)}, None, 3)
+        writer.settle(3, writer.write(3, records, pieces, {"k": 3}))
+        assert (writer.generation, writer.previous, writer.written) == (3, 2, {"x": 200})
+    finally:
+        writer.lock.release()
+    with open_store(store_path) as s:
+        assert s.read().attrs == {"k": 3}
+    with pytest.raises(InputError, match=r"`mode` must be 'r' \(read only\) or 'a'"):
+        Session.open(store_path, "w", **expect)
 
 
 # ------------------------------------------------------------- failing commits

@@ -24,11 +24,11 @@ import streamsvd as ss
 from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.algebra.panels.files import PanelFiles
 from streamsvd.cli import main
-from streamsvd.parallel.cluster import open_compressor
+from streamsvd.parallel.cluster import check_store, open_compressor
 from streamsvd.parallel.tall import TallCompressor
 from streamsvd.storage import LocalStorage, open_storage
 from streamsvd.storage.lockfile import FileLock
-from streamsvd.store import MARKER_NAME, BasisStore, check_store, history, open_store
+from streamsvd.store import MARKER_NAME, BasisStore, history, open_store
 from streamsvd.stream.compressor import StreamCompressor
 
 N, M, BLOCK, ROWS, RANK = 60, 40, 10, 20, 6

@@ -68,7 +68,7 @@ def print_check(report: Any) -> None:
     Parameters
     ----------
     report : streamsvd.store.CheckReport
-        What :func:`streamsvd.store.check_store` found.
+        What :func:`streamsvd.parallel.cluster.check_store` found.
     """
     for problem in report.problems:
         print(f"damaged: {in_cli_words(problem)}")

@@ -94,8 +94,8 @@ def plot(args: Any) -> int:
 
 def check(args: Any) -> int:
     """Verify every checksum of STORE: one line per problem (exit 2), or what verified (0)."""
+    from streamsvd.parallel.cluster import check_store
     from streamsvd.storage import open_storage
-    from streamsvd.store import check_store
 
     report = check_store(open_storage(args.store))
     print_check(report)

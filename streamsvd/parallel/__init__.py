@@ -1,7 +1,7 @@
 """Scale-out on dask.
 
 The tree of leaves (:func:`tree_compress`), the tall mode (:class:`TallCompressor`,
-:func:`tall_compress`), and opening a compressor on a cluster.
+:func:`tall_compress`), and opening (or checking) the compressor a store holds.
 """
 
 from streamsvd._util.lazy import lazy_exports
@@ -9,6 +9,8 @@ from streamsvd._util.lazy import lazy_exports
 # public name -> the submodule that defines it (imported on first access)
 _EXPORTS = {
     "COMPRESSOR_OPTIONS": "cluster",
+    "check_opens": "cluster",
+    "check_store": "cluster",
     "compressor_class": "cluster",
     "ingest": "cluster",
     "connect": "cluster",

@@ -11,6 +11,10 @@ Three ways to run the same compression beyond one in-memory stream, all built on
   row chunks with ``map_blocks`` and ``da.reduction``;
 * :func:`ingest` -- what ``streamsvd ingest --scheduler ... [--tall]`` runs.
 
+The compressor a store holds is reopened by the class of the kind it records
+(:func:`compressor_class`, :func:`open_compressor`), and :func:`check_store` verifies a
+store and then opens it (``streamsvd check``).
+
 Scheduler. Every function takes ``client=``: ``None`` runs on dask's threaded scheduler
 in this process; a :class:`distributed.Client` runs the same task graphs on its cluster
 (:func:`connect` opens a :class:`~distributed.LocalCluster` or connects to a scheduler
@@ -44,8 +48,9 @@ from streamsvd.io.provenance import SourceRecord
 from streamsvd.parallel.spec import SourceSpec
 from streamsvd.parallel.tall import TallCompressor
 from streamsvd.parallel.tree import COMPRESSOR_OPTIONS, tree_compress
-from streamsvd.storage import open_storage
-from streamsvd.store import open_store
+from streamsvd.storage import Storage, open_storage
+from streamsvd.store import CheckReport, open_store
+from streamsvd.store import check_store as check_checksums
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.stream.ingest import ingest as ingest_blocks
 from streamsvd.stream.summary import summary_of
@@ -53,6 +58,8 @@ from streamsvd.stream.summary import summary_of
 __all__ = [
     "COMPRESSOR_OPTIONS",
     "TallCompressor",
+    "check_opens",
+    "check_store",
     "compressor_class",
     "connect",
     "execute",
@@ -118,9 +125,10 @@ def connect(scheduler: str | None = None, *, workers: int | None = None) -> Iter
         yield client
 
 
-def compressor_class(kind: Any) -> type | None:
+def compressor_class(kind: Any) -> type[StreamCompressor] | type[TallCompressor] | None:
     """Return the class whose stores record ``kind`` (None for any other kind)."""
-    classes: dict[str, type] = {MEMORY_KIND: StreamCompressor, KIND: TallCompressor}
+    classes: dict[str, type[StreamCompressor] | type[TallCompressor]] = {
+        MEMORY_KIND: StreamCompressor, KIND: TallCompressor}
     return classes.get(kind)
 
 
@@ -152,6 +160,42 @@ def open_compressor(path: Any, *, mode: str = "r", client: Any = None, inner: An
         f"`path` {path!s} holds a basis store of kind {kind!r}; expected a StreamCompressor "
         "or TallCompressor store."
     )
+
+
+def check_opens(storage: Storage, kind: Any) -> str | None:
+    """Open the compressor a store of ``kind`` holds, read-only, and close it.
+
+    Returns the name of its class (None for a kind that holds no compressor: nothing is
+    opened) and raises what opening it raises (:meth:`StreamCompressor.open`): the
+    ``opens`` of :func:`streamsvd.store.check_store`.
+    """
+    cls = compressor_class(kind)
+    if cls is None:
+        return None
+    with cls.open(storage, mode="r"):
+        pass
+    return cls.__name__
+
+
+def check_store(storage: Storage) -> CheckReport:
+    """Verify every checksum of a store, then open the compressor it holds: ``streamsvd check``.
+
+    :func:`streamsvd.store.check_store` with ``opens=``:func:`check_opens`: a store that
+    verifies is opened read-only as ``streamsvd info`` and ``--resume`` open it, so that a
+    store called healthy opens; a store that needs its inner product given to open (an
+    earlier version's that does not keep it) is no problem. Nothing is written or deleted.
+
+    Parameters
+    ----------
+    storage : Storage
+        Where the store lives (:func:`streamsvd.storage.open_storage`).
+
+    Returns
+    -------
+    streamsvd.store.CheckReport
+        One line per problem, or what verified.
+    """
+    return check_checksums(storage, opens=check_opens)
 
 
 # ------------------------------------------------------------------------- tall driver

@@ -10,14 +10,16 @@ readable.
 A store lives in a local directory or under a prefix of an object store
 (``s3://bucket/basis.zarr``); :mod:`streamsvd.storage` gives both the same small
 interface (keys and bytes, conditional writes, a zarr store over the root) and
-:mod:`streamsvd.storage.lockfile` their writer lock or lease. The package's modules have one job
-each: :mod:`~streamsvd.store.format` (names, documents, the checks of the root and the
-pointer), :mod:`~streamsvd.store.reading` (verified reads, retried while the pointer
-moves; :func:`check_store`), :mod:`~streamsvd.store.commit` (the pack and the pointer
-switch), :mod:`~streamsvd.store.fence` (every write and delete checked against the lock
-or lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach),
-:mod:`~streamsvd.store.create` (all or nothing) and :mod:`~streamsvd.store.handle`
-(:class:`BasisStore`, a thin handle). Layout (directory or prefix)::
+:mod:`streamsvd.storage.lockfile` their writer lock or lease. The package's modules have
+one job each: :mod:`~streamsvd.store.format` (names, documents, the checks of the root
+attributes), :mod:`~streamsvd.store.reading` (the pointer, :func:`history`, verified
+reads retried while the pointer moves), :mod:`~streamsvd.store.check`
+(:func:`check_store`), :mod:`~streamsvd.store.commit` (the pack and the pointer switch),
+:mod:`~streamsvd.store.fence` (every write and delete checked against the lock or
+lease), :mod:`~streamsvd.store.collector` (deleting what no pointer can reach),
+:mod:`~streamsvd.store.create` (all or nothing), :mod:`~streamsvd.store.session` (what an
+open handle holds: opening, reading, committing) and :mod:`~streamsvd.store.handle`
+(:class:`BasisStore`, the thin public face of a session). Layout (directory or prefix)::
 
     <path>/
       zarr.json                  root group; attributes: format, format_version, n,
@@ -132,6 +134,7 @@ with an expiry after which a dead writer's lease is taken over
 from __future__ import annotations
 
 from streamsvd.storage.lockfile import LOCK_NAME
+from streamsvd.store.check import CheckReport, check_store
 from streamsvd.store.create import check_creatable
 from streamsvd.store.fence import CRASH_POINTS, crash_point
 from streamsvd.store.format import (
@@ -143,10 +146,9 @@ from streamsvd.store.format import (
     MARKER_NAME,
     POINTER_NAME,
     StoreState,
-    history,
 )
 from streamsvd.store.handle import BasisStore, open_store
-from streamsvd.store.reading import CheckReport, check_store
+from streamsvd.store.reading import history
 from streamsvd.store.segments import Appended
 
 __all__ = [

@@ -34,13 +34,13 @@ from streamsvd.store.format import (
     POINTER_NAME,
     check_dtype,
     check_fingerprint,
-    history,
     library_version,
     lock_key,
     named,
     now,
     positive_int,
 )
+from streamsvd.store.reading import history
 
 logger = logging.getLogger(__name__)
 

@@ -1,10 +1,10 @@
-"""The layout of a basis store: names, documents, and the checks of the root and the pointer.
+"""The layout of a basis store: names, documents, and the checks of the root attributes.
 
-Everything here reads; nothing writes. :func:`read_root` returns the root attributes and
-the pointer of a store after checking both (the root attributes against the copy the
-pointer records, so that an edited ``n`` or ``dtype`` is reported by field);
-:func:`history` tells a store that has ever committed from the leftovers of an
-interrupted creation, which only those may be replaced.
+Everything here reads; nothing writes. :func:`read_root_attrs` returns the root
+attributes of a store after checking them, :func:`check_root_against_pointer` checks
+them against the copy the pointer records (so that an edited ``n`` or ``dtype`` is
+reported by field). Reading the pointer itself, which names the last readable generation
+when it is damaged, is :mod:`streamsvd.store.reading`'s.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 
 from streamsvd._util.validation import check_finite, check_positive_int
 from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError
-from streamsvd.storage import PANELS, LocalStorage, Storage, remote_errors
+from streamsvd.storage import LocalStorage, Storage, remote_errors
 from streamsvd.storage.lockfile import LOCK_NAME
 
 FORMAT = "streamsvd-basis"
@@ -269,37 +269,7 @@ def committed_generations(storage: Storage) -> list[int]:
     return [k for k in generations(storage) if k > 0 or read_marker(storage, k) is not None]
 
 
-def history(storage: Storage) -> str:
-    """Tell what ``storage`` holds: ``"empty"``, ``"creation"``, ``"store"`` or ``"other"``.
-
-    ``"store"`` is a store that has a pointer or has ever committed (a generation above
-    0, or generation 0 marked as committed): such a store is never replaced. Leftovers of
-    an interrupted creation hold nothing but the root metadata, the lock or lease, an
-    unmarked generation 0, the panels written after the root metadata and temporary
-    files.
-    """
-    entries = storage.list()
-    if not entries:
-        return "empty"
-    if POINTER_NAME in entries or committed_generations(storage):
-        return "store"
-    ours = {"zarr.json", GENERATIONS, LOCK_NAME, LEASE_NAME, PANELS}
-    for name in entries:
-        if name not in ours and not name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
-            return "other"
-    if "zarr.json" not in entries:  # panels come after the root metadata
-        return "other" if PANELS in entries else "creation"
-    try:
-        doc = json.loads(storage.get("zarr.json"))
-    except (OSError, ValueError):
-        return "creation"
-    attrs = doc.get("attributes") if isinstance(doc, dict) else None
-    if not (isinstance(attrs, dict) and attrs.get("format") == FORMAT):
-        return "other"
-    return "creation"
-
-
-# ------------------------------------------------------------------ root, pointer
+# ------------------------------------------------------------------------- root
 
 ROOT_FIELDS = ("format", "format_version", "n", "dtype", "inner_fingerprint", "chunk_bytes")
 
@@ -379,78 +349,6 @@ def root_record(attrs: Mapping[str, Any]) -> dict[str, Any]:
     return {key: attrs[key] for key in ROOT_FIELDS if key in attrs}
 
 
-def missing_pointer(storage: Storage) -> StoreFormatError:
-    """Return the error for a store without a pointer: an interrupted creation, or damage."""
-    path = named(storage)
-    done = committed_generations(storage)
-    if not done:
-        return StoreFormatError(
-            f"`path` {path} is an incomplete basis store: it has no {POINTER_NAME} (its "
-            "creation was interrupted). Create it again with `BasisStore.create`, which "
-            "replaces the leftovers."
-        )
-    return StoreFormatError(
-        f"`path` {path} is damaged: its pointer {POINTER_NAME} is missing, but it holds "
-        f"committed generations (up to {done[-1]}); nothing was deleted. "
-        f"{last_readable_hint(storage)}"
-    )
-
-
-def last_readable_hint(storage: Storage) -> str:
-    """Name the newest generation that still reads back with every checksum verified."""
-    from streamsvd.store.reading import last_readable
-
-    path = named(storage)
-    k = last_readable(storage)
-    if k is None:
-        return "No generation is readable: restore the store from a copy."
-    return (
-        f"The last readable generation is {k}: copy {path}/{gen_key(k)}/{MARKER_NAME} to "
-        f"{path}/{POINTER_NAME} to make it current, or restore the store from a copy."
-    )
-
-
-def read_pointer_tagged(storage: Storage) -> tuple[dict[str, Any], str]:
-    """Return the pointer and its version tag (the ETag on an object store)."""
-    path = named(storage)
-    pointer = f"{path}/{POINTER_NAME}"
-    try:
-        seen = storage.get_tagged(POINTER_NAME)
-        if seen is None:
-            raise FileNotFoundError(pointer)
-        raw, tag = seen
-        doc = json.loads(raw)
-    except FileNotFoundError:
-        raise missing_pointer(storage) from None
-    except (OSError, ValueError) as exc:
-        raise StoreFormatError(
-            f"`path` {path} is a damaged basis store: {pointer} cannot be read ({exc}). "
-            f"{last_readable_hint(storage)}"
-        ) from exc
-    if (
-        not isinstance(doc, dict)
-        or doc.get("format") != FORMAT
-        or not isinstance(doc.get("generation"), int)
-        or not isinstance(doc.get("attrs_sha256"), str)
-    ):
-        raise StoreFormatError(
-            f"`path` {path} is a damaged basis store: {pointer} does not name a "
-            f"generation. {last_readable_hint(storage)}"
-        )
-    if doc.get("format_version") != FORMAT_VERSION:
-        raise StoreFormatError(
-            f"`path` {path} has a pointer of format version {doc.get('format_version')!r}; "
-            f"this version of streamsvd reads format version {FORMAT_VERSION}. Open it with "
-            "the streamsvd release that wrote it."
-        )
-    return doc, tag
-
-
-def read_pointer(storage: Storage) -> dict[str, Any]:
-    """Return the pointer of the store (checked)."""
-    return read_pointer_tagged(storage)[0]
-
-
 def expectations(n: Any, dtype: Any, inner_fingerprint: Any) -> dict[str, Any]:
     """Check what a caller expects of a store (None: not checked) and normalise it."""
     return {
@@ -470,11 +368,3 @@ def check_expected(storage: Storage, attrs: dict[str, Any], want: dict[str, Any]
                 f"found {attrs[key]!r}. Open the store that belongs to this problem, "
                 "or create a new one."
             )
-
-
-def read_root(storage: Storage) -> tuple[dict[str, Any], dict[str, Any], str]:
-    """Return the root attributes, the pointer and its tag, each checked against the other."""
-    attrs = read_root_attrs(storage)
-    pointer, tag = read_pointer_tagged(storage)
-    check_root_against_pointer(storage, attrs, pointer)
-    return attrs, pointer, tag

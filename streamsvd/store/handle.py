@@ -1,10 +1,10 @@
 """The store handle: :class:`BasisStore` and :func:`open_store`.
 
-A thin handle: it checks the root and the pointer on opening
-(:mod:`~streamsvd.store.format`), reads through :mod:`~streamsvd.store.reading`, plans
-what a commit writes (:mod:`streamsvd.store.segments`) and hands it to its
+A thin handle: the public face of its :class:`~streamsvd.store.session.Session`, which
+checks the root and the pointer on opening (:mod:`~streamsvd.store.reading`), reads,
+plans what a commit writes (:mod:`streamsvd.store.segments`) and hands it to its
 :class:`~streamsvd.store.commit.Writer`, which owns the fence, the pointer switch and the
-collector.
+collector. The handle checks its arguments and its mode, and closes.
 """
 
 from __future__ import annotations
@@ -17,25 +17,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
-import numpy as np
-
-from streamsvd.errors import InputError, StoreError
-from streamsvd.storage import Storage, open_storage
-from streamsvd.store import collector
-from streamsvd.store.commit import Writer, plan_commit
-from streamsvd.store.create import Creation, begin_store
-from streamsvd.store.format import (
-    DEFAULT_CHUNK_BYTES,
-    StoreState,
-    check_expected,
-    expectations,
-    lock_key,
-    named,
-    normalise_attrs,
-    read_root,
-)
-from streamsvd.store.reading import current_doc, load_generation, read_current
+from streamsvd.errors import StoreError
+from streamsvd.storage import Storage
+from streamsvd.store.format import DEFAULT_CHUNK_BYTES, StoreState, normalise_attrs
+from streamsvd.store.reading import read_current
 from streamsvd.store.segments import Appended, Piece
+from streamsvd.store.session import Session
 
 logger = logging.getLogger("streamsvd.store")
 
@@ -53,53 +40,18 @@ class BasisStore:
     def __init__(self, path: str | os.PathLike[str] | Storage, mode: Literal["r", "a"] = "r", *,
                  n: int | None = None, dtype: Any = None, inner_fingerprint: str | None = None,
                  storage_options: Mapping[str, Any] | None = None) -> None:
-        storage = open_storage(path, storage_options=storage_options)
-        if mode not in ("r", "a"):
-            raise InputError(
-                f"`mode` must be 'r' (read only) or 'a' (read and commit); got {mode!r}."
-            )
-        want = expectations(n, dtype, inner_fingerprint)
-        attrs, _pointer, _tag = read_root(storage)
-        check_expected(storage, attrs, want)
-        lock = None
-        if mode == "a":
-            lock = storage.lock(lock_key(storage))
-            lock.acquire()
-        try:
-            attrs, pointer, tag = read_root(storage)  # as it is now that the lock is held
-            self._setup(storage, mode, attrs, lock, pointer["generation"],
-                        pointer.get("previous"), Writer(storage, lock, attrs, tag)
-                        if lock is not None else None)
-            if self._writer is not None:
-                keep = self._keep()
-                keep.current_sha256 = pointer["attrs_sha256"]
-                collector.clean_leftovers(self._writer.fence, keep)
-        except BaseException:
-            if lock is not None:
-                lock.release()
-            raise
+        self._setup(Session.open(path, mode, n=n, dtype=dtype,
+                                 inner_fingerprint=inner_fingerprint,
+                                 storage_options=storage_options))
 
-    def _setup(self, storage: Storage, mode: str, attrs: dict[str, Any], lock: Any,
-               generation: int, previous: int | None, writer: Writer | None,
-               creation: Creation | None = None) -> None:
-        self._storage = storage
-        self._path = named(storage)
-        self._mode = mode
-        self._root_attrs = dict(attrs)
-        self._lock = lock
-        self._writer = writer
-        self._creation = creation
+    def _setup(self, session: Session) -> None:
+        self._session = session
+        self._lock = session.lock  # held until close (None: a reader)
         self._closed = False
-        self._generation = generation
-        self._previous = previous
-        self._docs: dict[int, dict[str, Any]] = {}  # attributes of retained generations
-        self._written: dict[str, int] = {}
+        creation = session.creation
         release = (creation.close if creation is not None
-                   else lock.release if lock is not None else None)
+                   else self._lock.release if self._lock is not None else None)
         self._finalizer = weakref.finalize(self, release) if release is not None else None
-
-    def _keep(self) -> collector.Keep:
-        return collector.Keep(self._generation, self._previous, self._docs)
 
     @classmethod
     def begin(cls, path: str | os.PathLike[str] | Storage, *, n: int, dtype: Any = "float64",
@@ -134,12 +86,9 @@ class BasisStore:
         StoreLockedError
             Another process is creating or writing a store at ``path``.
         """
-        storage = open_storage(path, storage_options=storage_options)
-        creation = begin_store(storage, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
-                               chunk_bytes=chunk_bytes)
         self = cls.__new__(cls)
-        self._setup(storage, "a", creation.root_attrs, creation.lock, -1, None,
-                    creation.writer, creation)
+        self._setup(Session.begin(path, n=n, dtype=dtype, inner_fingerprint=inner_fingerprint,
+                                  chunk_bytes=chunk_bytes, storage_options=storage_options))
         return self
 
     @classmethod
@@ -197,47 +146,47 @@ class BasisStore:
     @property
     def path(self) -> Path | str:
         """Directory of the store (a Path), or its URL on an object store."""
-        return self._path
+        return self._session.path
 
     @property
     def storage(self) -> Storage:
         """The storage the store lives in (what a backend writes its own arrays to)."""
-        return self._storage
+        return self._session.storage
 
     @property
     def mode(self) -> str:
         """``"r"`` (read only) or ``"a"`` (read and commit)."""
-        return self._mode
+        return self._session.mode
 
     @property
     def format_version(self) -> int:
         """Format version of the store layout."""
-        return int(self._root_attrs["format_version"])
+        return int(self._session.root_attrs["format_version"])
 
     @property
     def generation(self) -> int:
         """Number of the current generation, as last seen by this handle."""
-        return self._generation
+        return self._session.generation
 
     @property
     def n(self) -> int:
         """Snapshot size recorded at creation."""
-        return int(self._root_attrs["n"])
+        return int(self._session.root_attrs["n"])
 
     @property
     def dtype(self) -> str:
         """Dtype of the stored arrays."""
-        return str(self._root_attrs["dtype"])
+        return str(self._session.root_attrs["dtype"])
 
     @property
     def inner_fingerprint(self) -> str:
         """Fingerprint of the inner product recorded at creation."""
-        return str(self._root_attrs["inner_fingerprint"])
+        return str(self._session.root_attrs["inner_fingerprint"])
 
     @property
     def root_attrs(self) -> dict[str, Any]:
         """Root attributes (format, version, n, dtype, fingerprint, created, ...)."""
-        return dict(self._root_attrs)
+        return dict(self._session.root_attrs)
 
     @property
     def closed(self) -> bool:
@@ -247,7 +196,7 @@ class BasisStore:
     @property
     def last_written(self) -> dict[str, int]:
         """Elements written per array name by the last :meth:`commit` of this handle."""
-        return dict(self._written)
+        return dict(self._session.written)
 
     # -------------------------------------------------------------------- reading
 
@@ -265,23 +214,19 @@ class BasisStore:
             substituted silently (the message names the last readable one).
         """
         self._check_open()
-        if self._generation < 0:
+        session = self._session
+        if session.generation < 0:
             raise StoreError(
-                f"`store` {self._path} is being created: nothing was committed yet. "
+                f"`store` {session.path} is being created: nothing was committed yet. "
                 "Commit its first generation before reading it."
             )
-        state, pointer = read_current(self._storage, self._load, generation,
-                                      retry=self._mode == "r")
-        self._generation = pointer["generation"]
-        previous = pointer.get("previous")
-        self._previous = previous if isinstance(previous, int) else None
+        state, pointer = read_current(session.storage, self._load, generation,
+                                      retry=session.mode == "r")
+        session.follow(pointer)
         return state
 
     def _load(self, k: int, attrs_sha256: str | None) -> StoreState:
-        state, doc = load_generation(self._storage, k, attrs_sha256, self._root_attrs,
-                                     previous=self._previous)
-        self._docs[k] = doc
-        return state
+        return self._session.load(k, attrs_sha256)
 
     # --------------------------------------------------------------------- writing
 
@@ -316,48 +261,22 @@ class BasisStore:
             The lock was taken over by another writer meanwhile (nothing was written).
         """
         self._check_open()
-        if self._mode != "a":
+        if self.mode != "a":
             raise StoreError(
-                f"`store` {self._path} was opened read-only (mode='r'); commit needs "
+                f"`store` {self.path} was opened read-only (mode='r'); commit needs "
                 "mode='a'. Reopen it with `open_store(path, mode='a')`."
             )
-        k = self._generation + 1
-        records, pieces = plan_commit(
-            arrays, appended, generation=k, dtype=np.dtype(self.dtype),
-            seal_bytes=int(self._root_attrs.get("chunk_bytes", DEFAULT_CHUNK_BYTES)),
-            current=lambda: self._current_doc()["streamsvd"]["arrays"],
-        )
+        k = self.generation + 1
+        records, pieces = self._session.plan(arrays, appended, k)
         user_attrs = normalise_attrs(attrs)
         self._write_generation(k, records, pieces, user_attrs)
         return k
 
-    def _current_doc(self) -> dict[str, Any]:
-        """Attributes of the current generation (its digest checked against the pointer)."""
-        k = self._generation
-        if k not in self._docs:
-            self._docs[k] = current_doc(self._storage, k)
-        return self._docs[k]
-
     def _write_generation(self, k: int, records: dict[str, Any], pieces: list[Piece],
                           user_attrs: dict[str, Any]) -> None:
-        writer = self._writer
-        if writer is None:  # pragma: no cover - commit checks the mode first
-            raise StoreError(f"`store` {self._path} was opened read-only (mode='r').")
-        previous = self._generation if self._generation >= 0 else None
-        adopted: list[dict[str, Any]] = []
-
-        def adopt(doc: dict[str, Any], pointer: dict[str, Any], written: dict[str, int]) -> None:
-            self._docs = {g: d for g, d in self._docs.items() if g == self._generation}
-            self._docs[k] = doc
-            self._previous, self._generation, self._written = previous, k, written
-            adopted.append(pointer)
-            if self._creation is not None:
-                self._creation.done = True  # the pointer names it: the store exists
-            logger.debug("committed generation %d of %s (%s)", k, self._path, written)
-
-        creation = self._creation
+        creation = self._session.creation
         try:
-            writer.write_generation(k, records, pieces, user_attrs, previous, adopt)
+            pointer = self._session.write(k, records, pieces, user_attrs)
         except BaseException as exc:
             if creation is None or creation.done:
                 raise
@@ -365,14 +284,14 @@ class BasisStore:
             if self._finalizer is not None:
                 self._finalizer.detach()  # the creation releases the lock as it undoes
             creation.abort(exc, f"writing generation {k} and its pointer")
-        writer.after_switch(k, adopted[0], self._keep())
+        self._session.settle(k, pointer)
 
     # --------------------------------------------------------------------- closing
 
     def _check_open(self) -> None:
         if self._closed:
             raise StoreError(
-                f"`store` {self._path} is closed. Open it again with `open_store(path)`."
+                f"`store` {self.path} is closed. Open it again with `open_store(path)`."
             )
 
     def close(self) -> None:
@@ -394,9 +313,9 @@ class BasisStore:
         self.close()
 
     def __repr__(self) -> str:
-        state = "closed" if self._closed else f"mode={self._mode!r}"
+        state = "closed" if self._closed else f"mode={self.mode!r}"
         return (
-            f"BasisStore({str(self._path)!r}, {state}, generation={self._generation}, "
+            f"BasisStore({str(self.path)!r}, {state}, generation={self.generation}, "
             f"n={self.n}, dtype={self.dtype!r})"
         )
 

@@ -1,4 +1,10 @@
-"""Reading a generation with every checksum verified, retrying while the pointer moves.
+"""Reading a store: what a location holds, its pointer, and its generations verified.
+
+:func:`history` tells a store that has ever committed from the leftovers of an
+interrupted creation (only those may be replaced). :func:`read_root` reads the pointer
+and checks the root attributes against the copy it records; a pointer that is missing or
+damaged is reported with the last readable generation (:func:`last_readable_hint`), and
+how to make it current again.
 
 The chain pointer -> generation attributes -> segment bytes is verified on every read:
 the pointer records the SHA-256 of the generation's attributes, which record the
@@ -10,29 +16,34 @@ names it is reported as damaged (:func:`read_current`).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any, cast
 
 import numpy as np
 import zarr
 
-from streamsvd.errors import InputError, StoreFormatError, StoreMismatchError, StreamSVDError
-from streamsvd.storage import Storage
+from streamsvd.errors import InputError, StoreFormatError
+from streamsvd.storage import PANELS, Storage
+from streamsvd.storage.lockfile import LOCK_NAME
 from streamsvd.store.format import (
+    FORMAT,
+    FORMAT_VERSION,
+    GENERATIONS,
+    LEASE_NAME,
+    MARKER_NAME,
     POINTER_NAME,
     READ_ERRORS,
     StoreState,
     attrs_digest,
+    check_root_against_pointer,
+    committed_generations,
     gen_key,
     generations,
-    last_readable_hint,
     named,
     read_generation_doc,
     read_marker,
-    read_pointer,
-    read_root,
     read_root_attrs,
 )
 from streamsvd.store.segments import assemble, digest
@@ -41,6 +52,123 @@ logger = logging.getLogger(__name__)
 
 MAX_MOVES = 10_000
 """A reader gives up after the pointer moved this many times during one read."""
+
+
+# ------------------------------------------------------------ what a location holds
+
+
+def history(storage: Storage) -> str:
+    """Tell what ``storage`` holds: ``"empty"``, ``"creation"``, ``"store"`` or ``"other"``.
+
+    ``"store"`` is a store that has a pointer or has ever committed (a generation above
+    0, or generation 0 marked as committed): such a store is never replaced. Leftovers of
+    an interrupted creation hold nothing but the root metadata, the lock or lease, an
+    unmarked generation 0, the panels written after the root metadata and temporary
+    files.
+    """
+    entries = storage.list()
+    if not entries:
+        return "empty"
+    if POINTER_NAME in entries or committed_generations(storage):
+        return "store"
+    ours = {"zarr.json", GENERATIONS, LOCK_NAME, LEASE_NAME, PANELS}
+    for name in entries:
+        if name not in ours and not name.startswith((f"{POINTER_NAME}.", f"{LOCK_NAME}.stale-")):
+            return "other"
+    if "zarr.json" not in entries:  # panels come after the root metadata
+        return "other" if PANELS in entries else "creation"
+    try:
+        doc = json.loads(storage.get("zarr.json"))
+    except (OSError, ValueError):
+        return "creation"
+    attrs = doc.get("attributes") if isinstance(doc, dict) else None
+    if not (isinstance(attrs, dict) and attrs.get("format") == FORMAT):
+        return "other"
+    return "creation"
+
+
+# ---------------------------------------------------------------------- the pointer
+
+
+def missing_pointer(storage: Storage) -> StoreFormatError:
+    """Return the error for a store without a pointer: an interrupted creation, or damage."""
+    path = named(storage)
+    done = committed_generations(storage)
+    if not done:
+        return StoreFormatError(
+            f"`path` {path} is an incomplete basis store: it has no {POINTER_NAME} (its "
+            "creation was interrupted). Create it again with `BasisStore.create`, which "
+            "replaces the leftovers."
+        )
+    return StoreFormatError(
+        f"`path` {path} is damaged: its pointer {POINTER_NAME} is missing, but it holds "
+        f"committed generations (up to {done[-1]}); nothing was deleted. "
+        f"{last_readable_hint(storage)}"
+    )
+
+
+def last_readable_hint(storage: Storage) -> str:
+    """Name the newest generation that still reads back with every checksum verified."""
+    path = named(storage)
+    k = last_readable(storage)
+    if k is None:
+        return "No generation is readable: restore the store from a copy."
+    return (
+        f"The last readable generation is {k}: copy {path}/{gen_key(k)}/{MARKER_NAME} to "
+        f"{path}/{POINTER_NAME} to make it current, or restore the store from a copy."
+    )
+
+
+def read_pointer_tagged(storage: Storage) -> tuple[dict[str, Any], str]:
+    """Return the pointer and its version tag (the ETag on an object store)."""
+    path = named(storage)
+    pointer = f"{path}/{POINTER_NAME}"
+    try:
+        seen = storage.get_tagged(POINTER_NAME)
+        if seen is None:
+            raise FileNotFoundError(pointer)
+        raw, tag = seen
+        doc = json.loads(raw)
+    except FileNotFoundError:
+        raise missing_pointer(storage) from None
+    except (OSError, ValueError) as exc:
+        raise StoreFormatError(
+            f"`path` {path} is a damaged basis store: {pointer} cannot be read ({exc}). "
+            f"{last_readable_hint(storage)}"
+        ) from exc
+    if (
+        not isinstance(doc, dict)
+        or doc.get("format") != FORMAT
+        or not isinstance(doc.get("generation"), int)
+        or not isinstance(doc.get("attrs_sha256"), str)
+    ):
+        raise StoreFormatError(
+            f"`path` {path} is a damaged basis store: {pointer} does not name a "
+            f"generation. {last_readable_hint(storage)}"
+        )
+    if doc.get("format_version") != FORMAT_VERSION:
+        raise StoreFormatError(
+            f"`path` {path} has a pointer of format version {doc.get('format_version')!r}; "
+            f"this version of streamsvd reads format version {FORMAT_VERSION}. Open it with "
+            "the streamsvd release that wrote it."
+        )
+    return doc, tag
+
+
+def read_pointer(storage: Storage) -> dict[str, Any]:
+    """Return the pointer of the store (checked)."""
+    return read_pointer_tagged(storage)[0]
+
+
+def read_root(storage: Storage) -> tuple[dict[str, Any], dict[str, Any], str]:
+    """Return the root attributes, the pointer and its tag, each checked against the other."""
+    attrs = read_root_attrs(storage)
+    pointer, tag = read_pointer_tagged(storage)
+    check_root_against_pointer(storage, attrs, pointer)
+    return attrs, pointer, tag
+
+
+# ------------------------------------------------------------------ the generations
 
 
 def load_generation(
@@ -206,9 +334,6 @@ def read_current(
     )
 
 
-# ---------------------------------------------------------------------- checking
-
-
 def last_readable(storage: Storage, *, tries: int = 8) -> int | None:
     """Return the newest generation with a commit record that reads back verified, or None.
 
@@ -226,95 +351,3 @@ def last_readable(storage: Storage, *, tries: int = 8) -> int | None:
             continue
         return k
     return None
-
-
-@dataclass
-class CheckReport:
-    """What :func:`check_store` found: one line per problem, and what verified."""
-
-    store: str
-    problems: list[str] = field(default_factory=list)
-    verified: list[str] = field(default_factory=list)
-
-    @property
-    def healthy(self) -> bool:
-        """Whether no problem was found."""
-        return not self.problems
-
-
-def check_store(storage: Storage) -> CheckReport:
-    """Verify every checksum of a store: root attributes, pointer, every retained generation.
-
-    Every generation that a pointer names (the current and the previous one) is read
-    with its segments verified; every other generation directory holding a commit record
-    is checked against it. A store that verifies and holds a compressor is then opened
-    read-only as ``streamsvd info`` and ``--resume`` open it (:func:`_check_opens`), so
-    that a store called healthy opens. Nothing is written or deleted.
-    """
-    path = named(storage)
-    report = CheckReport(str(path))
-    try:
-        root, pointer, _tag = read_root(storage)
-    except StoreFormatError as exc:
-        report.problems.append(str(exc))
-        return report
-    current = pointer["generation"]
-    previous = pointer.get("previous")
-    kind = None
-    for k, sha in ((current, pointer["attrs_sha256"]), (previous, None)):
-        if not isinstance(k, int):
-            continue
-        if sha is None:
-            marker = read_marker(storage, k)
-            sha = marker.get("attrs_sha256") if marker else None
-        try:
-            state, _doc = load_generation(storage, k, sha, root, hint="")
-        except StoreFormatError as exc:
-            report.problems.append(str(exc).strip())
-            continue
-        if k == current:
-            kind = state.attrs.get("kind")
-        role = "current" if k == current else "previous"
-        report.verified.append(
-            f"generation {k} ({role}): {len(state.arrays)} arrays, every checksum verified"
-        )
-    newer = [g for g in generations(storage) if g > current and read_marker(storage, g)]
-    if newer:
-        report.problems.append(
-            f"`path` {path} is damaged: {POINTER_NAME} names generation {current}, but "
-            f"generation {newer[-1]} was committed after it ({path}/{gen_key(newer[-1])}): "
-            f"{POINTER_NAME} was replaced by an older copy. Copy {path}/{gen_key(newer[-1])}/"
-            f"committed.json to {path}/{POINTER_NAME} to make it current."
-        )
-    if report.problems:
-        hint = last_readable_hint(storage)
-        report.problems = [p if hint in p else f"{p} {hint}".strip() for p in report.problems]
-    else:
-        _check_opens(storage, kind, report)
-    return report
-
-
-def _check_opens(storage: Storage, kind: Any, report: CheckReport) -> None:
-    """Open the compressor of ``kind`` a store holds, read-only; report why it does not open.
-
-    The compressor's own checks (what it commits, its options, its basis) are the ones
-    of opening it: the compressor classes open it (a store of another kind holds no
-    compressor, and only its checksums are verified). A store that needs its inner
-    product given to open (an earlier version's that does not keep it) is no problem.
-    """
-    from streamsvd.parallel.cluster import (
-        compressor_class,  # the compressors are built on the store
-    )
-
-    cls = compressor_class(kind)
-    if cls is None:
-        return
-    try:
-        with cls.open(storage, mode="r"):
-            pass
-    except StoreMismatchError:
-        return
-    except StreamSVDError as exc:
-        report.problems.append(str(exc).strip())
-        return
-    report.verified.append(f"the {cls.__name__} it holds opens")
