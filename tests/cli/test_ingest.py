@@ -20,7 +20,7 @@ from streamsvd.cli.wording import in_cli_words
 from streamsvd.plotting import compressor_figure
 from streamsvd.stream.compressor import StreamCompressor
 
-WORKTREE = Path(__file__).resolve().parents[1]
+WORKTREE = Path(__file__).resolve().parents[2]
 EPS = np.finfo(np.float64).eps
 
 # the ingest options of each mode, as a user picks them

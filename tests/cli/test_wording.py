@@ -13,11 +13,11 @@ import sys
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from test_cli import MODES, WORKTREE, assert_one_line_error, run_cli
 
 from streamsvd.algebra.inner import DiagonalInner
 from streamsvd.cli import main
 from streamsvd.cli.reading import open_readonly
+from tests.cli.test_ingest import MODES, WORKTREE, assert_one_line_error, run_cli
 
 
 def _files(path):

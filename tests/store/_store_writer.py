@@ -63,7 +63,7 @@ def _import_store() -> types.ModuleType:
     """Import ``streamsvd.store`` from this working tree, skipping the package's other
     modules (numba compilation and all), so that each restarted writer starts fast."""
     package = types.ModuleType("streamsvd")
-    package.__path__ = [str(Path(__file__).resolve().parents[1] / "streamsvd")]
+    package.__path__ = [str(Path(__file__).resolve().parents[2] / "streamsvd")]
     sys.modules["streamsvd"] = package
     return importlib.import_module("streamsvd.store")
 

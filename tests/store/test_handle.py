@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _store_writer import CHUNK_BYTES, CREATE_ATTRS, N, expected_generation
 
 import streamsvd.storage.local as storage_mod
 import streamsvd.store.commit as store_mod
@@ -32,6 +31,7 @@ from streamsvd.store import (
     StoreState,
     open_store,
 )
+from tests.store._store_writer import CHUNK_BYTES, CREATE_ATTRS, N, expected_generation
 
 FP = "f" * 64
 WRITER = Path(__file__).with_name("_store_writer.py")

@@ -6,9 +6,10 @@ import math
 from pathlib import Path
 
 import pytest
-from _figures import assert_drawn
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from tests._figures import assert_drawn
+
+BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 def test_bench_dask_tiny(monkeypatch, tmp_path):
     monkeypatch.syspath_prepend(str(BENCH))

@@ -6,11 +6,12 @@ import math
 from pathlib import Path
 
 import pytest
-from _figures import assert_drawn
+
+from tests._figures import assert_drawn
 
 pytest.importorskip("pymor")
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")

@@ -4,7 +4,7 @@ import importlib
 import json
 from pathlib import Path
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 
 def test_object_store_benchmark_tiny(s3, s3_server, tmp_path, monkeypatch):

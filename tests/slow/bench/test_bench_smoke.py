@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _figures import assert_drawn
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from tests._figures import assert_drawn
+
+BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 
 @pytest.fixture

@@ -5,9 +5,10 @@ import json
 from pathlib import Path
 
 import pytest
-from _figures import assert_drawn
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from tests._figures import assert_drawn
+
+BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import pytest
 import contact
 from contact.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_billet_example_runs_and_reproduces_the_paper_trends(tmp_path, capsys):

@@ -5,9 +5,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _figures import assert_drawn
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests._figures import assert_drawn
+
+ROOT = Path(__file__).resolve().parents[3]
 EXAMPLES = ROOT / "examples"
 EPS = np.finfo(float).eps
 

@@ -5,9 +5,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _figures import assert_drawn
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+from tests._figures import assert_drawn
+
+EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
 EPS = np.finfo(float).eps
 
 

@@ -567,7 +567,7 @@ def test_a_source_of_snapshots_of_size_zero_names_source(tmp_path, capsys):
 
 def test_the_fault_campaign_runs_its_damage_scenarios(monkeypatch, capsys):
     """The bench campaign (bench/fault_campaign.py) on its fastest group: every line passes."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[3] / "bench"))
     import fault_campaign
 
     assert fault_campaign.main(["--no-s3", "--only", "damage", "--seconds", "600"]) == 0

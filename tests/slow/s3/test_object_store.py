@@ -479,7 +479,7 @@ def test_local_stores_work_without_the_s3_extra_and_urls_name_it(tmp_path):
         "    print(exc)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=300, cwd=Path(__file__).resolve().parents[1])
+                         timeout=300, cwd=Path(__file__).resolve().parents[3])
     assert out.returncode == 0, out.stderr
     assert "pip install 'streamsvd[s3]'" in out.stdout
 
