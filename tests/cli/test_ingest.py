@@ -262,7 +262,7 @@ def _as_an_interrupted_creation(store):
     """Leave of ``store`` what a creation killed before its pointer switch leaves.
 
     A store that has committed generations is never replaced, pointer or not
-    (tests/test_store_faults.py): its generations above 0 go too.
+    (tests/slow/faults/test_store_faults.py): its generations above 0 go too.
     """
     (store / "current.json").unlink()
     for gen in (store / "generations").glob("g*"):

@@ -1,6 +1,6 @@
 """Commit generations of known content to a basis store in a loop, until killed.
 
-Used by the kill test of ``test_store.py``: generation ``k`` holds the arrays and the
+Used by the kill test of ``test_handle.py``: generation ``k`` holds the arrays and the
 attributes returned by :func:`expected_generation` (``k``), so a reader can check that
 whatever generation is current after a ``SIGKILL`` holds exactly what was committed.
 Besides arrays committed whole, each generation appends rows to the array ``T``
