@@ -194,6 +194,7 @@ def test_quiet_prints_nothing(tmp_path, npy, capsys, mode):
     assert (status, out, err) == (0, "", "")
 
 
+@pytest.mark.slow
 def test_tree_progress_stays_off_stdout_in_a_real_process(tmp_path, npy):
     """dask's bar writes to the process's stdout; the command sends it to stderr."""
     store = tmp_path / "b.zarr"

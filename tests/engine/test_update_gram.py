@@ -269,6 +269,7 @@ def _in_place(n, **kw):
     return ss.StreamCompressor(n, backend=MemoryBackend(compact_in_place=True), **kw)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("inner", [None, "weights"])
 def test_a_basis_compacting_in_place_keeps_the_expansion_with_one_buffer_less(inner, rng):
     """Written over the stored columns slab by slab, the Gram path's compaction gives the
@@ -596,6 +597,7 @@ def test_nearly_collinear_narrow_blocks_are_kept_only_where_u_keeps_its_digits(t
     assert sc.error_in_measure <= target
 
 
+@pytest.mark.slow
 def test_kept_blocks_are_committed_and_resumed_bit_for_bit(tmp_path, rng):
     """A commit while the basis holds kept blocks stores them as columns of the basis;
     reopened, the stream continues as the uninterrupted one, digit for digit."""

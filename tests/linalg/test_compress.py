@@ -169,6 +169,7 @@ def test_nan_or_inf_is_refused_before_any_work(bad):
         ss.orthonormalize(V, np.eye(3))
 
 
+@pytest.mark.slow
 def test_rbs480a_converges_to_lapack_accuracy(rbs480a_path):
     import scipy.io
 

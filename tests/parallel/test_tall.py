@@ -99,6 +99,7 @@ def three_chunkings(A):
     return [da.from_array(A, chunks=c) for c in ((A.shape[0], 7), (64, 30), (50, A.shape[1]))]
 
 
+@pytest.mark.slow
 def test_converged_tree_is_the_svd_for_any_chunking_and_scheduler(rng, client):
     A = low_rank(rng, n=200, m=96, rank=20, decades=8)
     s = np.linalg.svd(A, compute_uv=False)
@@ -237,6 +238,7 @@ class KillInMerge:
         return X.T @ Y
 
 
+@pytest.mark.slow
 def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, client):
     A = low_rank(rng, n=100, m=80, noise=1e-8)
     ref = tree_compress(A, block=10, leaf_columns=20, max_rank=8, store=tmp_path / "ref")
@@ -328,6 +330,7 @@ def test_tall_is_the_in_memory_stream(rng, opts):
         assert [h.rank for h in tc.history] == [h.rank for h in ref.history]
 
 
+@pytest.mark.slow
 def test_tall_converged_is_the_svd_for_any_chunking_and_scheduler(rng, client):
     A = low_rank(rng, n=256, m=72, rank=20, decades=8)
     s = np.linalg.svd(A, compute_uv=False)
@@ -841,6 +844,7 @@ def test_tall_replaced_panels_are_deleted(rng, tmp_path, with_store):
 # ----------------------------------------------------------------------- drivers
 
 
+@pytest.mark.slow
 def test_ingest_tree_and_tall_with_a_local_cluster(rng, tmp_path):
     A = low_rank(rng, n=90, m=50, noise=1e-8)
     np.save(tmp_path / "a.npy", A)

@@ -764,6 +764,7 @@ def run_kill_test(path, kills, seed, log_path):
     )
 
 
+@pytest.mark.slow
 def test_killed_writer_never_corrupts_the_store(tmp_path):
     run_kill_test(tmp_path / "kill.zarr", 30, 2026, tmp_path / "writer.log")
 

@@ -163,6 +163,7 @@ def test_rank_cap_below_true_rank_keeps_best_directions(rng):
         np.testing.assert_allclose(sc.expansion.amplitudes, s[:2], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_long_stream_orthogonality_stays_flat(rng):
     n = 40
     sc = ss.StreamCompressor(n, max_rank=6, rule="jacobi")

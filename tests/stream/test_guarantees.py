@@ -296,6 +296,7 @@ def test_property_targets_with_add_remove_merge(seed, measure, ops, scale):
         assert sc.target_met or sc.target_missed_by == "earlier_updates"
 
 
+@pytest.mark.slow
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(MEASURES),
        leaves=st.integers(16, 32), scale=st.sampled_from([1e-300, 1.0, 1e300]))

@@ -274,6 +274,7 @@ def test_tall_passes_overlap_their_waits(rng, monkeypatch):
     assert asked and set(asked) == {CPU_COUNT + 1}
 
 
+@pytest.mark.slow
 def test_local_modes_never_import_distributed(tmp_path):
     # without a client no default client can be in use: the threaded scheduler is
     # handed to dask as a function, which spares the import of distributed
