@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up a virtualenv with the project and its test extras, then run a tier of the tests:
 #   bash scripts/test.sh          the fast tier (-m "not slow"; hypothesis profile "fast")
-#   bash scripts/test.sh --slow   the slow tier: end-to-end work (profile "ci")
+#   bash scripts/test.sh --slow   the slow tier (-m slow): tests/slow/ and the tests marked slow
+#                                 (profile "ci")
 #   bash scripts/test.sh --all    both tiers (profile "ci"), on two processes (pytest-xdist)
 # Further arguments pass through to pytest.
 set -euo pipefail

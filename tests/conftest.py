@@ -21,24 +21,6 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
 
-# end-to-end work, the slow tier (`-m slow`): benchmarks' smoke runs, examples, pip
-# installs, kills and resumes, fault injection, the S3 server, creation crash points
-SLOW_FILES = frozenset({
-    "test_bench_brand.py", "test_bench_dask_smoke.py", "test_bench_hapod_smoke.py",
-    "test_bench_object_store_smoke.py", "test_bench_smoke.py", "test_bench_store_smoke.py",
-    "test_bench_stream_smoke.py", "test_window_bench.py", "test_outofcore_bench_smoke.py",
-    "test_examples.py", "test_window_example.py", "test_contact_examples.py",
-    "test_fresh_install.py", "test_persistence.py", "test_object_store.py",
-    "test_store_faults.py", "test_tall_creation.py",
-})
-
-
-def pytest_collection_modifyitems(config, items):
-    """Mark every test of :data:`SLOW_FILES` slow (a ``pytestmark`` cannot reach them all)."""
-    for item in items:
-        if item.path.name in SLOW_FILES:
-            item.add_marker(pytest.mark.slow)
-
 
 @pytest.fixture
 def rng():
