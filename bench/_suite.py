@@ -222,14 +222,14 @@ STUDIES: tuple[Study, ...] = (
               ("n", "n"), ("m", "m"), ("dtype", "dtype"), ("method", "method"),
               ("seconds", "seconds", ".1f"), ("x read", "vs_read", ".2f"),
               ("peak RSS MB", "peak_rss_mb", ".0f"), ("CPU s", "cpu_seconds", ".1f"),
-              ("err / opt", "error_over_optimum", ".6f"), ("load", "load_before", ".1f"),
+              ("err / opt", "error_over_optimum", ".9f"), ("load", "load_before", ".1f"),
           ]),)),
     Study("dask", "On dask (out of core, cluster)", ("bench_dask",),
           shown=("bench_dask.png",), files=("bench_dask*",),
           tables=(table("bench_dask.json", "runs", [
               ("method", "method"), ("workers", "workers"), ("time s", "seconds", ".1f"),
               ("peak GB", "peak_rss", ".2f", 1e-9), ("x read", "throughput_vs_read", ".2f"),
-              ("err / opt", "error_over_optimal", ".6f"), ("sv error", "sv_error", ".1e"),
+              ("err / opt", "error_over_optimal", ".9f"), ("sv error", "sv_error", ".1e"),
               ("update s", "update_seconds", ".2f"),
           ]),)),
 )
