@@ -1,15 +1,20 @@
 """Helpers shared by the benchmark scripts: paths, JSON output, timing, plotting setup.
 
 The scripts in ``bench/`` import this module by name; running ``python bench/NAME.py``
-puts ``bench/`` first on ``sys.path``.
+puts ``bench/`` first on ``sys.path`` (``python -m bench NAME`` puts it there too).
+Every study writes its results with :class:`Run`, in the envelope that ``_suite``
+describes and reads.
 """
 
 from __future__ import annotations
 
+import datetime
+import importlib.metadata
 import json
 import math
 import os
 import platform
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -18,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _suite import FORMAT
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO_ROOT / "bench" / "results"
@@ -64,23 +70,22 @@ def _to_json(obj: Any) -> Any:
     return str(obj)
 
 
-def write_json(path: Path, data: dict[str, Any]) -> Path:
+def write_json(path: Path, data: Any) -> Path:
     """Write ``data`` as indented JSON (numpy values converted, non-finite floats as null)."""
     path.write_text(json.dumps(_to_json(data), indent=1) + "\n")
     return path
 
 
-def machine_info() -> dict[str, Any]:
-    """Describe the machine and the BLAS the timings were taken with."""
-    import scipy
+def load_average() -> list[float] | None:
+    """The 1, 5 and 15 minute load averages of the machine (None where unknown)."""
+    return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
 
+
+def host_info() -> dict[str, Any]:
+    """The machine: platform, cores, CPU model and the BLAS the timings were taken with."""
     info: dict[str, Any] = {
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         "blas_env": {k: v for k, v in os.environ.items() if "BLAS" in k or "OMP" in k},
     }
     try:
@@ -100,6 +105,73 @@ def machine_info() -> dict[str, Any]:
     except OSError:
         info["cpu_model"] = None
     return info
+
+
+def machine_info() -> dict[str, Any]:
+    """Describe the machine, its load and the BLAS the timings were taken with."""
+    import scipy
+
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "load_average": load_average(), **host_info()}
+
+
+VERSIONED = ("streamsvd", "numpy", "scipy", "zarr", "numcodecs", "dask", "distributed",
+             "numba", "matplotlib", "threadpoolctl", "scikit-learn", "pymor", "s3fs")
+
+
+def versions() -> dict[str, str]:
+    """Python's version and those of the installed packages of :data:`VERSIONED`."""
+    found = {"python": platform.python_version()}
+    for name in VERSIONED:
+        try:
+            found[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    return found
+
+
+def git_commit() -> dict[str, Any] | None:
+    """The checkout's commit and whether tracked files differ from it (None without git)."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(REPO_ROOT), *args], capture_output=True,
+                              text=True, check=True, timeout=30).stdout.strip()
+
+    try:
+        return {"commit": git("rev-parse", "HEAD"),
+                "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+class Run:
+    """One run of a study, which writes its results in the suite's common envelope.
+
+    Made at the start of the study's ``main(argv)``, it notes the study's name, ``argv``
+    (``sys.argv[1:]`` when None), the date and the load average; :meth:`write` puts the
+    study's own payload under ``results`` beside them, the machine (with the load average
+    before and after), the versions of the libraries and the git commit.
+    """
+
+    def __init__(self, study: str, argv: Sequence[str] | None = None) -> None:
+        self.study = study
+        self.argv = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
+        self.date = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+        self.load_before = load_average()
+        self._start = time.perf_counter()
+
+    def envelope(self, results: Any) -> dict[str, Any]:
+        """The envelope of ``results``, as of now."""
+        return {
+            "format": FORMAT, "study": self.study, "argv": self.argv, "date": self.date,
+            "seconds": time.perf_counter() - self._start,
+            "machine": {**host_info(), "load_before": self.load_before,
+                        "load_after": load_average()},
+            "versions": versions(), "git": git_commit(), "results": results,
+        }
+
+    def write(self, path: Path, results: Any) -> Path:
+        """Write ``results`` in the envelope to ``path`` (see :func:`write_json`)."""
+        return write_json(path, self.envelope(results))
 
 
 @dataclass(frozen=True)

@@ -14,12 +14,12 @@ Writes ``pgd_choices.json`` and ``pgd_choices.png`` (CPU time and iterations per
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
 
 import numpy as np
+from _common import Run
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from threadpoolctl import threadpool_limits
@@ -93,6 +93,7 @@ def plot(rows, path):
 
 
 def main(argv=None):
+    record = Run("bench_contact_pgd", argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/contact")
     parser.add_argument("--level", type=float, default=1e-4)
@@ -118,7 +119,7 @@ def main(argv=None):
     load["end"] = os.getloadavg()
     result = {"problem": P.summary(), "level": args.level, "load_average": load,
               "rows": rows}
-    (out / "pgd_choices.json").write_text(json.dumps(result, indent=1))
+    record.write(out / "pgd_choices.json", result)
     plot(rows, out / "pgd_choices.png")
     return result
 

@@ -30,7 +30,6 @@ a tqdm bar per solve on stderr.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import os
 import resource
@@ -41,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+from _common import Run
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from tqdm import tqdm
@@ -353,6 +353,7 @@ def plot_k(result, path):
 
 
 def main(argv=None):
+    record = Run("bench_contact_scale", argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/contact")
     parser.add_argument("--study", choices=["scale", "cost", "breakdown", "k", "all"],
@@ -375,18 +376,18 @@ def main(argv=None):
     if args.study in ("k", "all"):
         factors = [0.3, 1.0, 3.0] if args.quick else [0.1, 0.3, 0.5, 1.0, 2.0, 3.0, 10.0]
         result["k"] = k_study(factors, 1e-6, 5000, dt=5e-2 if args.quick else 5e-3)
-        (out / "k.json").write_text(json.dumps(result["k"], indent=1))
+        record.write(out / "k.json", result["k"])
         plot_k(result["k"], out / "k.png")
     if args.study in ("cost", "all"):
         opts = {"refine": 1, "dt": 5e-2} if args.quick else {"refine": 4, "dt": 5e-3}
         result["cost"] = cost_study(opts, args.trunc[0], 60 if args.quick else 200)
-        (out / "cost.json").write_text(json.dumps(result["cost"], indent=1))
+        record.write(out / "cost.json", result["cost"])
         plot_cost(result["cost"], out / "cost.png")
     if args.study in ("breakdown", "all"):
         opts = ({"refine": 1, "dt": 5e-2} if args.quick else
                 {"refine": 8, "dt": 5e-3 / 4})
         result["breakdown"] = breakdown_study(opts, args.trunc[-1], 10 if args.quick else 60)
-        (out / "breakdown.json").write_text(json.dumps(result["breakdown"], indent=1))
+        record.write(out / "breakdown.json", result["breakdown"])
     if args.study in ("scale", "all"):
         cases = QUICK if args.quick else CASES
         if args.only:
@@ -394,7 +395,7 @@ def main(argv=None):
         rows = scale_study(cases, args.level, args.max_iter, trace=not args.no_trace,
                            repeat=1 if args.quick else args.repeat)
         result["scale"] = rows
-        (out / "scale.json").write_text(json.dumps(rows, indent=1))
+        record.write(out / "scale.json", rows)
         plot_scale(rows, out / "scale.png")
     return result
 

@@ -23,11 +23,11 @@ compressor discarded per update over the last 50, relative to ``D``. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from _common import Run
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -76,6 +76,7 @@ def truncated_indicator(P, R, svd, r):
 
 
 def main(argv=None):
+    record = Run("bench_contact_subspace", argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/contact")
     parser.add_argument("--iterations", type=int, default=400)
@@ -129,7 +130,7 @@ def main(argv=None):
         print(f"{trunc:6.0e} {row['min_indicator']:19.2e} {row['median_basis_size']:9.1f} "
               f"{str(tuple(row['optimal'].values())):>22s} "
               f"{row['discarded_per_update_over_D']:8.1e} {row['cpu_s']:6.2f}", flush=True)
-    (out / "subspace.json").write_text(json.dumps(result, indent=1))
+    record.write(out / "subspace.json", result)
     fig = Figure(figsize=(6, 4), layout="constrained")
     ax = fig.subplots()
     f = result["fixed"]

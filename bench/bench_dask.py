@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 
 GB = 1e9
 STREAM_METHODS = ("streamsvd tree", "streamsvd tall")
@@ -324,6 +324,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("bench_dask", argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="1000000x2000", help="n x m (rows x snapshots)")
     ap.add_argument("--k", type=int, default=20, help="rank of every method's result")
@@ -402,7 +403,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     report = summarise(cfg, runs, write_s)
     report["machine"] = machine_info()
     report["command"] = " ".join(["python bench/bench_dask.py", *(argv or sys.argv[1:])])
-    write_json(out / "bench_dask.json", report)
+    record.write(out / "bench_dask.json", report)
     plot(report, out / "bench_dask.png")
     print_table(*table(report), title=f"\nstreamsvd on dask, {n} x {m} ({n * m * 8 / GB:.2f} GB)")
     return report

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 import zarr.codecs
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 
 from streamsvd.store import BasisStore
 from streamsvd.store import commit as commit_module
@@ -104,6 +104,7 @@ def plot(report: dict[str, Any], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("commit_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200000)
     ap.add_argument("--k", type=int, default=70)
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                   f"{r['load']:.1f}"] for r in report["rows"]],
                 title=f"commit of a {args.n} x {args.k} basis")
     out = out_dir(args.out)
-    write_json(out / "commit_benchmark.json", report)
+    record.write(out / "commit_benchmark.json", report)
     plot(report, out / "commit_benchmark.png")
     return report
 

@@ -42,7 +42,6 @@ Writes ``bench/results/engine_benchmark.{json,png}``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import time
@@ -51,7 +50,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
+from _suite import read_payload
 from brand import BrandSVD, TunedBrandSVD
 from threadpoolctl import threadpool_limits
 
@@ -256,6 +256,7 @@ def plot(rows: list[dict[str, Any]], long: dict[str, Any], path: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    record = Run("engine_benchmark", argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", default="100000,50000", help="snapshot sizes")
     p.add_argument("--b", type=int, default=50, help="columns per update")
@@ -284,13 +285,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     name = "engine_benchmark_quick" if args.quick else "engine_benchmark"
     previous = out / f"{name}.json"
     if args.only and previous.exists():  # keep the part that was not run again
-        old = json.loads(previous.read_text())
+        old = read_payload(previous)
         rows = rows or old.get("block", [])
         long = long or old.get("long", {})
     plot(rows, long, out / f"{name}.png")
     result = {"machine": machine_info(), "args": {k: v for k, v in vars(args).items()},
               "block": rows, "long": long}
-    write_json(out / f"{name}.json", result)
+    record.write(out / f"{name}.json", result)
     print_table(
         ["n", "thr", "method", "ms/update", "GFLOP/s (floor)", "gemm GFLOP/s", "sv err",
          "orth", "peak/data"],

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 from threadpoolctl import threadpool_limits
 
 from streamsvd.sklearn.estimator import StreamingSVD
@@ -57,6 +57,7 @@ def run(make: Any, X: np.ndarray, batch: int, checkpoints: list[int], window: in
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    record = Run("estimator_benchmark", argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--features", type=int, default=300)
     p.add_argument("--batch", type=int, default=10)
@@ -100,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     fig.savefig(out / f"{name}.png", dpi=110)
     plt.close(fig)
     report = {"machine": machine_info(), "args": vars(args), "results": results}
-    write_json(out / f"{name}.json", report)
+    record.write(out / f"{name}.json", report)
     rows = []
     for label, res in results.items():
         first, last = res[str(cps[0])], res[str(cps[-1])]

@@ -24,7 +24,8 @@ an S3 server on localhost (moto, started by the script, ``streamsvd.testing.s3se
   exits 2, ``ingest --resume`` exits 2 and changes no file.
 
 The campaign stops starting new scenarios once ``--seconds`` have passed; ``--only``
-runs some groups of scenarios.
+runs some groups of scenarios. With ``--out DIR`` it also writes ``fault_campaign.json``
+there: every scenario's line and the count of scenarios and failures per kind and place.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Run, out_dir
 
 from streamsvd.cli import main as cli
 from streamsvd.engine.record import HISTORY_FIELDS
@@ -88,7 +90,7 @@ class Campaign:
         self.deadline = time.monotonic() + seconds
         self.s3 = s3
         self.rng = random.Random(SEED)
-        self.results: list[tuple[str, str, bool]] = []
+        self.results: list[tuple[str, str, bool, str]] = []
         self.source = root / "a.npy"
         A = np.random.default_rng(SEED).standard_normal((N, 30)) @ (
             np.random.default_rng(SEED + 1).standard_normal((30, M)))
@@ -102,7 +104,7 @@ class Campaign:
         return time.monotonic() < self.deadline
 
     def report(self, kind: str, where: str, ok: bool, detail: str) -> None:
-        self.results.append((kind, where, ok))
+        self.results.append((kind, where, ok, detail))
         print(f"{'PASS' if ok else 'FAIL'}  {kind:8s} {where:6s} {detail}", flush=True)
 
     def _args(self, store: Any, *extra: str) -> list[str]:
@@ -399,6 +401,7 @@ def _last_line(text: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    record = Run("fault_campaign", argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seconds", type=float, default=1500.0,
                    help="start no new scenario after this many seconds (default 1500)")
@@ -409,6 +412,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-s3", action="store_true", help="skip the S3 scenarios")
     p.add_argument("--only", default=",".join(GROUPS),
                    help=f"comma-separated groups to run (default: all, {','.join(GROUPS)})")
+    p.add_argument("--out", default=None,
+                   help="directory for fault_campaign.json (default: no JSON is written)")
     args = p.parse_args(argv)
     only = set(args.only.split(","))
     if only - set(GROUPS):
@@ -451,12 +456,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             server.stop()
         shutil.rmtree(root, ignore_errors=True)
     results = campaign.results
-    failed = sum(not ok for *_, ok in results)
+    failed = sum(not ok for _, _, ok, _ in results)
     kinds: dict[str, int] = {}
-    for kind, where, _ok in results:
+    failures: dict[str, int] = {}
+    for kind, where, ok, _ in results:
         kinds[f"{kind}/{where}"] = kinds.get(f"{kind}/{where}", 0) + 1
+        failures[f"{kind}/{where}"] = failures.get(f"{kind}/{where}", 0) + (not ok)
     print(f"{len(results)} scenarios, {failed} failed, in {time.monotonic() - started:.0f} s; "
           f"{kinds}; load after: {os.getloadavg()}", flush=True)
+    if args.out is not None:
+        record.write(out_dir(args.out) / "fault_campaign.json", {
+            "groups": sorted(only), "s3": server is not None, "seconds_limit": args.seconds,
+            "seconds": time.monotonic() - started, "failed": failed,
+            "scenarios": [{"kind": kind, "where": where, "passed": ok, "detail": detail}
+                          for kind, where, ok, detail in results],
+            "counts": [{"kind": key.split("/")[0], "where": key.split("/")[1], "count": count,
+                        "failed": failures[key]} for key, count in kinds.items()],
+        })
     return 1 if failed else 0
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 
 import streamsvd as ss
 
@@ -85,6 +85,7 @@ def iterate_f(
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    record = Run("fig1_pair_dynamics", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=None, help="output directory (default bench/results)")
     parser.add_argument("--steps", type=int, default=40, help="iterations xi per trajectory")
@@ -143,7 +144,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     }
 
     _plot(trajectories, out / "fig1_pair_dynamics.png")
-    write_json(out / "fig1_pair_dynamics.json", result)
+    record.write(out / "fig1_pair_dynamics.json", result)
     print_table(
         ["eta0", "alpha0", "delta", "eta_limit", "observed", "dev_eta", "dev_alpha"],
         [[t["eta0"], t["alpha0"], t["delta"], t["eta_limit"], t["observed_rate"],

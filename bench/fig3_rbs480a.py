@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.linalg as sla
-from _common import load_rbs480a, machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, load_rbs480a, machine_info, out_dir, print_table, pyplot
 
 import streamsvd as ss
 
@@ -115,6 +115,7 @@ def run_configuration(A_mod: np.ndarray, Uref: np.ndarray, s_mod: np.ndarray,
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    record = Run("fig3_rbs480a", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=None, help="output directory (default bench/results)")
     parser.add_argument("--data", default=None,
@@ -174,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     }
     _plot_spectra(configs, out / "fig2_rbs480a_spectra.png")
     _plot_convergence(results, out / "fig3_rbs480a.png")
-    write_json(out / "fig3_rbs480a.json", data)
+    record.write(out / "fig3_rbs480a.json", data)
 
     table = []
     for name, r in results.items():

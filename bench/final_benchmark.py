@@ -54,7 +54,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 if str(BENCH_DIR) not in sys.path:
     sys.path.insert(0, str(BENCH_DIR))
 
-from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 
 from streamsvd.cli import main as cli  # noqa: E402
 
@@ -114,6 +114,7 @@ def measure(A: np.ndarray, ref: tuple[np.ndarray, np.ndarray], k: int,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    record = Run("final_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=5000)
     ap.add_argument("--m", type=int, default=400)
@@ -162,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_table([c for c, _ in _COLUMNS],
                 [[f.format(r[c]) for c, f in _COLUMNS] for r in rows],
                 title=f"n = {args.n}, m = {args.m}, k = {args.k} (CLI defaults)")
-    write_json(out / "final_benchmark.json", {
+    record.write(out / "final_benchmark.json", {
         "n": args.n, "m": args.m, "k": args.k, "blocks": blocks, "rows": rows,
         "machine": machine_info(),
     })

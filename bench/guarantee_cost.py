@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import REPO_ROOT, Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 from hapod_benchmark import DEFAULT_CACHE, _projection_error2, generate  # noqa: E402
 
 TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
@@ -172,6 +172,7 @@ def _figure(rows: list[dict[str, Any]], before: list[dict[str, Any]] | None, pat
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("guarantee_cost", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="directory for the PNG and JSON")
     ap.add_argument("--cache", default=str(DEFAULT_CACHE), help="snapshot cache directory")
@@ -205,7 +206,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     name = "guarantee_cost" + ("_quick" if args.quick else "")
     data = {"machine": machine_info(), "load": os.getloadavg(), "against": args.against,
             "rows": rows, "before": before}
-    write_json(out / f"{name}.json", data)
+    record.write(out / f"{name}.json", data)
     _figure(rows, before, out / f"{name}.png", args.against)
     print(f"wrote {out / name}.json and .png")
     return data

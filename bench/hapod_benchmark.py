@@ -68,7 +68,7 @@ import numpy as np
 import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import REPO_ROOT, Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 
 DEFAULT_CACHE = REPO_ROOT / "bench" / "data" / "hapod"
 TARGETS = (1e-2, 1e-3, 1e-4)
@@ -576,6 +576,7 @@ def _print_tables(data: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("hapod_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="directory for the PNG and JSON")
     ap.add_argument("--cache", default=str(DEFAULT_CACHE), help="snapshot cache directory")
@@ -623,7 +624,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     finally:
         workers.close()
     data["machine"]["load_average_end"] = list(os.getloadavg())
-    write_json(out / "hapod_benchmark.json", data)
+    record.write(out / "hapod_benchmark.json", data)
     _plot(out, data)
     _print_tables(data)
     return data

@@ -28,7 +28,7 @@ import time
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 from threadpoolctl import threadpool_limits
 
 import streamsvd.stream.updates as stream_module
@@ -120,6 +120,7 @@ def plot(report: dict[str, Any], path: Any) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("merge_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200000)
     ap.add_argument("--m", type=int, default=1000)
@@ -139,7 +140,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                   f"{r['orthogonality']:.1e}", f"{r['load']:.1f}"] for r in report["rows"]],
                 title=f"merge, {args.n} x {args.m}")
     out = out_dir(args.out)
-    write_json(out / "merge_benchmark.json", report)
+    record.write(out / "merge_benchmark.json", report)
     plot(report, out / "merge_benchmark.png")
     return report
 

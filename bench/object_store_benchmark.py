@@ -45,7 +45,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 if str(BENCH_DIR) not in sys.path:
     sys.path.insert(0, str(BENCH_DIR))
 
-from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 from store_benchmark import _columns, _summary, timed_commits  # noqa: E402
 
 from streamsvd import StreamCompressor  # noqa: E402
@@ -123,6 +123,7 @@ def _plot(results: list[dict[str, Any]], path: Path) -> None:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Run the benchmark; return the report (also written as JSON, with a PNG)."""
+    record = Run("object_store_benchmark", argv)
     args = _parse(argv)
     out = out_dir(args.out)
     machine = machine_info()
@@ -158,7 +159,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             shutil.rmtree(tmp, ignore_errors=True)
     machine["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     report = {"machine": machine, "options": vars(args), "results": results}
-    write_json(out / "object_store_benchmark.json", report)
+    record.write(out / "object_store_benchmark.json", report)
     _plot(results, out / "object_store_benchmark.png")
     print_table(
         ["store", "commit ms (med/p90/max)", "create s", "reopen (lease) s", "read s"],

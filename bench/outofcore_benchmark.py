@@ -64,7 +64,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 
 # the cores this process may run on (its affinity), which the floor divides by
 CPU_COUNT = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
@@ -342,6 +342,7 @@ def plot(report: dict[str, Any], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("outofcore_benchmark", argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", default="200000x1000,200000x500")
     p.add_argument("--dtype", default="float64", choices=("float64", "float32"))
@@ -373,7 +374,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out = out_dir(args.out)
     for n, m, dtype, which in plan:  # the report is written after each array
         report["cases"].append(run_size(n, m, dtype, which, data, args.repeat))
-        write_json(out / "outofcore_benchmark.json", report)
+        record.write(out / "outofcore_benchmark.json", report)
         plot(report, out / "outofcore_benchmark.png")
     cases = report["cases"]
     rows = [[f"{c['n']}x{c['m']} {c['dtype']}", r["method"], f"{r['seconds']:.2f}",

@@ -51,15 +51,7 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
-from _common import (
-    best_time,
-    load_rbs480a,
-    machine_info,
-    out_dir,
-    print_table,
-    pyplot,
-    write_json,
-)
+from _common import Run, best_time, load_rbs480a, machine_info, out_dir, print_table, pyplot
 
 import streamsvd as ss
 
@@ -326,6 +318,7 @@ def study(name: str, A: np.ndarray, errors: Errors, args: argparse.Namespace,
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    record = Run("speed_vs_error", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=None, help="output directory (default bench/results)")
     parser.add_argument("--data", default=None,
@@ -384,9 +377,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             studies[name] = st
             st["seconds"] = time.perf_counter() - t_study
             _plot(st, ranks, out / f"speed_vs_error_{name}{suffix}.png")
-            write_json(out / f"speed_vs_error_{name}{suffix}.json",
-                       {"levels": LEVELS, "ranks": ranks, "args": vars(args), **st,
-                        "machine": machine_info()})
+            record.write(out / f"speed_vs_error_{name}{suffix}.json",
+                         {"levels": LEVELS, "ranks": ranks, "args": vars(args), **st,
+                          "machine": machine_info()})
             _print_summary(st)
             print(f"wrote speed_vs_error_{name}{suffix}.png and .json to {out} "
                   f"in {st['seconds']:.0f} s")

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import os
 import shutil
@@ -57,7 +56,8 @@ BENCH_DIR = Path(__file__).resolve().parent
 if str(BENCH_DIR) not in sys.path:
     sys.path.insert(0, str(BENCH_DIR))
 
-from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
+from _suite import read_payload  # noqa: E402
 
 from streamsvd import StreamCompressor  # noqa: E402
 
@@ -226,6 +226,7 @@ def _plot(
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Run the benchmark; return the report (also written as JSON, with a PNG)."""
+    record = Run("store_benchmark", argv)
     args = _parse(argv)
     out = out_dir(args.out)
     ms = [int(float(x)) for x in args.ms.split(",") if x.strip()]
@@ -245,10 +246,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     machine["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     baseline = None
     if args.baseline is not None:
-        baseline = json.loads(Path(args.baseline).read_text())["results"]
+        baseline = read_payload(args.baseline)["results"]
     report = {"machine": machine, "options": vars(args), "results": results}
     stem = "store_benchmark" if args.inner == "euclidean" else f"store_benchmark_{args.inner}"
-    write_json(out / f"{stem}.json", report)
+    record.write(out / f"{stem}.json", report)
     _plot(results, baseline, out / f"{stem}.png")
     print_table(
         ["m", "V0 MB", "commit ms (med/p90/max)", "update in memory ms", "update+commit ms",

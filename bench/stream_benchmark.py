@@ -119,7 +119,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 if str(BENCH_DIR) not in sys.path:
     sys.path.insert(0, str(BENCH_DIR))
 
-from _common import machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import Run, machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
 from brand import BrandSVD  # noqa: E402
 
 EPS = float(np.finfo(np.float64).eps)
@@ -882,6 +882,7 @@ def _parse_sweeps(text: str) -> list[int | None]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    record = Run("stream_benchmark", argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=None, help="output directory (default bench/results)")
     p.add_argument("--n", type=int, default=20000, help="snapshot size")
@@ -1023,7 +1024,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "targets": targets,
         "wall_s": time.perf_counter() - t_start,
     }
-    write_json(out / "stream_benchmark.json", report)
+    record.write(out / "stream_benchmark.json", report)
     plot(results, ortho, out / "stream_benchmark.png",
          title=f"stream n={n}, m={m}, {s.size} modes (1..1e-10), target rank {args.target}")
     _print_summary(report)

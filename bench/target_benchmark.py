@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, print_table, pyplot, write_json
+from _common import Run, machine_info, out_dir, print_table, pyplot
 from engine_benchmark import make_stream
 from threadpoolctl import threadpool_limits
 
@@ -83,6 +83,7 @@ def factors(sc: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    record = Run("target_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=20000)
     ap.add_argument("--m", type=int, default=2000)
@@ -124,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     data = {"machine": machine_info(), "n": args.n, "m": args.m, "block": args.block,
             "results": results}
     out = out_dir(args.out)
-    write_json(out / "target_benchmark.json", data)
+    record.write(out / "target_benchmark.json", data)
     plot(results, out / "target_benchmark.png")
     return data
 

@@ -36,7 +36,7 @@ import time
 from typing import Any
 
 import numpy as np
-from _common import machine_info, out_dir, pyplot, write_json
+from _common import Run, machine_info, out_dir, pyplot
 
 import streamsvd as ss
 
@@ -145,6 +145,7 @@ def run_forget(n: int, m: int, gamma: float, *, seed: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("window_benchmark", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=50_000)
     ap.add_argument("--m", type=int, default=10_000)
@@ -198,7 +199,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             },
         },
     }
-    write_json(out / "window_benchmark.json", report)
+    record.write(out / "window_benchmark.json", report)
     _figure(report, out / "window_benchmark.png")
     for k, v in report["summary"].items():
         print(f"{k:30s} {v}")

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, machine_info, out_dir, print_table, pyplot, write_json  # noqa: E402
+from _common import REPO_ROOT, Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 
 logger = logging.getLogger("zarr_io_benchmark")
 ROUTES = ("loops", "zarr")
@@ -109,6 +109,7 @@ def _run_child(*args: str) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    record = Run("zarr_io_benchmark", argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--source", default=str(DEFAULT_SOURCE))
     p.add_argument("--repeat", type=int, default=4)
@@ -150,11 +151,11 @@ def main(argv: list[str] | None = None) -> int:
                  for k, m in ops_med.items()],
                 title=f"{args.rows} x 100 float64 chunks alone")
     out = out_dir(args.out)
-    write_json(out / "zarr_io_benchmark.json",
-               {"machine": machine_info(), "source": args.source, "rows": args.rows,
-                "ops_count": args.ops, "tall": tall,
-                "tall_medians": tall_med, "ops": ops, "ops_medians": ops_med,
-                "load_after": os.getloadavg()})
+    record.write(out / "zarr_io_benchmark.json",
+                 {"machine": machine_info(), "source": args.source, "rows": args.rows,
+                  "ops_count": args.ops, "tall": tall,
+                  "tall_medians": tall_med, "ops": ops, "ops_medians": ops_med,
+                  "load_after": os.getloadavg()})
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
     labels = {"loops": "one loop per core (zarr_io)", "zarr": "zarr's own loop"}

@@ -20,7 +20,7 @@ def test_bench_dask_tiny(monkeypatch, tmp_path):
         "--workers", "1", "--inprocess", "--out", str(tmp_path), "--tmpdir", str(tmp_path),
     ])
     assert_drawn(tmp_path / "bench_dask.png")
-    data = json.loads((tmp_path / "bench_dask.json").read_text())
+    data = json.loads((tmp_path / "bench_dask.json").read_text())["results"]
     assert not any(p.name.startswith("streamsvd-bench-") for p in tmp_path.iterdir())
     runs = {(r["method"], r["workers"]): r for r in data["runs"]}
     assert set(runs) == {

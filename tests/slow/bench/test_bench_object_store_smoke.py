@@ -16,7 +16,7 @@ def test_object_store_benchmark_tiny(s3, s3_server, tmp_path, monkeypatch):
         "--endpoint", s3_server.endpoint, "--bucket", s3.split("://")[1],
     ])
     assert (tmp_path / "object_store_benchmark.png").stat().st_size > 0
-    saved = json.loads((tmp_path / "object_store_benchmark.json").read_text())
+    saved = json.loads((tmp_path / "object_store_benchmark.json").read_text())["results"]
     assert [r["store"] for r in saved["results"]] == ["local directory", "S3"]
     for r in report["results"]:
         assert r["reopens_bit_for_bit"] and len(r["commit_seconds_all"]) == 3

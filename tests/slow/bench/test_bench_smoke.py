@@ -25,7 +25,7 @@ def bench(monkeypatch):
 
 def _read(path):
     assert path.is_file() and path.stat().st_size > 0, path
-    return json.loads(path.read_text())
+    return json.loads(path.read_text())["results"]
 
 
 def test_fig1_pair_dynamics(bench, tmp_path):

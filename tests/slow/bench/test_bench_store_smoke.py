@@ -24,7 +24,7 @@ def test_store_benchmark_tiny(bench, tmp_path):
         "--n", "20", "--block", "3", "--updates", "4", "--max-rank", "6",
     ])
     assert_drawn(tmp_path / "store_benchmark.png")
-    saved = json.loads((tmp_path / "store_benchmark.json").read_text())
+    saved = json.loads((tmp_path / "store_benchmark.json").read_text())["results"]
     assert [r["m"] for r in saved["results"]] == [60, 600]
     for r in report["results"]:
         assert r["same_as_in_memory"] and r["store_reopens_bit_for_bit"]

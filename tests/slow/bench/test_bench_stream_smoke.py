@@ -42,7 +42,7 @@ def test_stream_benchmark_tiny(bench, tmp_path):
         "--ortho-updates", "200", "--long-n", "60", "--long-target", "5", "--long-chunk", "50",
     ])
     assert_drawn(tmp_path / "stream_benchmark.png")
-    data = json.loads((tmp_path / "stream_benchmark.json").read_text())
+    data = json.loads((tmp_path / "stream_benchmark.json").read_text())["results"]
     assert data["configurations"].keys() == {"block20", "block1"}
     assert data["configurations"]["block20"]["updates"] == 4
     assert data["configurations"]["block1"]["updates"] == 30 - 6 + 1
@@ -105,7 +105,7 @@ def test_engine_benchmark_tiny(bench, tmp_path):
     for res in report["long"].values():
         assert res["max_orthogonality"] < res["limit_50_n_eps"]
         assert len(res["mean_per_1000"]) == 2
-    saved = json.loads((tmp_path / "engine_benchmark.json").read_text())
+    saved = json.loads((tmp_path / "engine_benchmark.json").read_text())["results"]
     assert {r["method"] for r in saved["block"]} == set(rows)
     assert_drawn(tmp_path / "engine_benchmark.png")
 

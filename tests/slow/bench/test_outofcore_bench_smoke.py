@@ -22,7 +22,7 @@ def test_outofcore_benchmark_smoke(monkeypatch, tmp_path, dtype, methods):
     report = mod.main(["--sizes", "3000x250", "--dtype", dtype, "--methods",
                        ",".join(methods), "--data", str(tmp_path / "data"),
                        "--out", str(tmp_path)])
-    saved = json.loads((tmp_path / "outofcore_benchmark.json").read_text())
+    saved = json.loads((tmp_path / "outofcore_benchmark.json").read_text())["results"]
     assert_drawn(tmp_path / "outofcore_benchmark.png")
     (case,) = saved["cases"]
     assert case["dtype"] == dtype and (case["n"], case["m"]) == (3000, 250)

@@ -18,7 +18,7 @@ def test_window_benchmark_tiny(tmp_path, monkeypatch):
     mod.main(["--n", "600", "--m", "600", "--window", "60", "--block", "10",
               "--cost-windows", "20,100", "--check", "4", "--forget-m", "60",
               "--out", str(tmp_path)])
-    report = json.loads((tmp_path / "window_benchmark.json").read_text())
+    report = json.loads((tmp_path / "window_benchmark.json").read_text())["results"]
     s = report["summary"]
     assert report["runs"][0]["W"] == 60 and len(report["runs"][0]["checks"]) == 4
     assert s["gaps"]  # the four amplitude groups leave gaps of at least 10

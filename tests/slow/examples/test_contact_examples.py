@@ -104,7 +104,7 @@ def test_scale_bench_runs_on_small_sizes(tmp_path, monkeypatch, capsys):
     result = mod.main(["--quick", "--out", str(tmp_path), "--max-iter", "300"])
     for name in ("scale", "k", "cost"):
         assert (tmp_path / f"{name}.png").stat().st_size > 5_000
-        assert json.loads((tmp_path / f"{name}.json").read_text())
+        assert json.loads((tmp_path / f"{name}.json").read_text())["results"]
     for row in result["scale"]:
         assert row["latin"]["converged"] and row["latin-p3"]["converged"]
         assert row["latin-pgd"]["representation_bytes"] < row["full_field_bytes"] * 1.05
@@ -134,7 +134,7 @@ def test_subspace_bench_runs_on_a_small_size(tmp_path, monkeypatch, capsys):
     mod = importlib.import_module("bench_contact_subspace")
     result = mod.main(["--quick", "--out", str(tmp_path)])
     assert (tmp_path / "subspace.png").stat().st_size > 5_000
-    assert json.loads((tmp_path / "subspace.json").read_text())["fixed"]
+    assert json.loads((tmp_path / "subspace.json").read_text())["results"]["fixed"]
     for row in result["fixed"]:
         assert 0 < row["min_indicator"] <= row["last_indicator"]
         assert row["truncated_reference"] > 0
