@@ -595,7 +595,7 @@ def _profile_parts(stats: dict[Any, Any]) -> tuple[float, dict[str, float]]:
     absorb = 0.0
     parts: dict[str, float] = {}
     for (fname, _line, func), (_cc, _nc, _tt, ct, callers) in stats.items():
-        if func == "absorb" and _in_package(fname, "compressor.py"):
+        if func == "absorb" and _in_package(fname, "updates.py"):
             absorb += ct
         label = part_of.get(func)
         if label is None:
