@@ -28,7 +28,7 @@ move,
 
 so, to first order, ``|Delta eta| <= ||d||_{M_c} / D`` with ``D = ||(s + s_hat)/2||_k``
 the indicator's denominator (the relation is an equality when ``s = s_hat``, and it is
-checked on the converged billet in ``tests/test_contact_latin.py``). ``M_c`` is only
+checked on the converged billet in ``tests/contact/test_latin.py``). ``M_c`` is only
 semi-definite (it sees the contact dofs), so the modes are orthonormal in
 
 .. math:: M = 2k\, C_f^T L C_f + \beta A, \qquad \beta = 10^{-6},
