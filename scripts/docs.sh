@@ -7,4 +7,5 @@ cd "$(dirname "$0")/.."
 if ! .venv/bin/python -c "import mkdocs, material, mkdocstrings_handlers.python" 2>/dev/null; then
     venv_install docs
 fi
+export NO_MKDOCS_2_WARNING=1  # the theme's notice about its successor, not about this site
 exec .venv/bin/python -m mkdocs build --strict --site-dir site "$@"

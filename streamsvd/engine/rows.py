@@ -180,6 +180,9 @@ class RowFactor:
                     ) -> RowAppend:
         """Return the new rows ``N`` in the stored form, and the new ``Vp`` (writes nothing).
 
+        New columns of ``V0`` are zero in every old row, so the stored ``V`` is unchanged
+        until :meth:`commit`.
+
         Parameters
         ----------
         Vp_old_part : ndarray, shape (wv, p')
@@ -189,9 +192,6 @@ class RowFactor:
             The new rows in the update's coordinates.
         rebase : bool
             Whether ``V0 <- V0 Vp`` is written first (:attr:`wide`).
-
-        New columns of ``V0`` are zero in every old row, so the stored ``V`` is unchanged
-        until :meth:`commit`.
         """
         wv, p = Vp_old_part.shape
         b = N.shape[0]

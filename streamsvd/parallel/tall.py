@@ -86,7 +86,7 @@ class TallCompressor(metaclass=_TallMode):
     storage_options : dict, optional
         Options of the object store of a URL ``store`` or ``workdir`` (``s3://``:
         ``key``, ``secret``, ``endpoint_url``, ...).
-    **options
+    **options : Any
         ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
         ``reject_tol``, ``reorth_tol``, ``right_vectors``, ``commit_every``, ...: as for
         :class:`~streamsvd.StreamCompressor`.

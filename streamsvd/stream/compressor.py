@@ -174,14 +174,13 @@ class StreamCompressor:
         where other work runs (measured in ``bench/README.md``, "BLAS threads"); it is
         a setting of this process, not recorded in the store.
 
+    Notes
+    -----
     The result is the SVD: :meth:`close` (or the end of a ``with`` block that raised
     nothing) runs :meth:`finalize`, which converges the small core and truncates it
     optimally, then commits. Call ``close(finalize=False)`` to keep the streamed state
     as it is.
 
-
-    Notes
-    -----
     Its updates are :class:`~streamsvd.stream.updates.Updates`', its removals
     :class:`~streamsvd.stream.window.Window`'s, its read-only attributes
     :class:`~streamsvd.stream.view.ExpansionView`'s (one per option too).

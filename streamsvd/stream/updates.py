@@ -50,14 +50,6 @@ class Updates:
     def absorb(self, columns: Any, *, source_offset: int | None = None) -> UpdateRecord:
         """Append a block of snapshots (the columns of ``columns``, ``n x b``, ``b >= 1``).
 
-        Parameters
-        ----------
-        columns : array_like, shape (n, b)
-            The new snapshots.
-        source_offset : int, optional
-            Position in the source just after this block, recorded in the store so that
-            an interrupted ingestion resumes there; default: the previous offset + ``b``.
-
         With ``window``, the oldest snapshots that would fall out are removed first
         (:meth:`remove`, an update of its own in :attr:`history`); with ``forget``, the
         expansion is scaled by ``forget^b`` and the block's columns weighted
@@ -65,6 +57,14 @@ class Updates:
 
         On bad input an :class:`~streamsvd.errors.InputError` is raised and the state,
         in memory and in the store, is unchanged.
+
+        Parameters
+        ----------
+        columns : array_like, shape (n, b)
+            The new snapshots.
+        source_offset : int, optional
+            Position in the source just after this block, recorded in the store so that
+            an interrupted ingestion resumes there; default: the previous offset + ``b``.
         """
         t0 = time.perf_counter()
         life = self._life
@@ -80,6 +80,11 @@ class Updates:
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
         """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.
 
+        A term whose residual carries ``||r_j||_M ||v_j|| <= reject_tol * max_i
+        ||u_i||_M ||v_i||`` is rejected; the rejected residuals share the same columns, so
+        their norm ``||Res V_rej^T||`` is computed exactly from two small Gram matrices.
+        Needs ``right_vectors=True``.
+
         Parameters
         ----------
         U_k : array_like, shape (n, k)
@@ -93,11 +98,6 @@ class Updates:
             ``U`` last returned by :attr:`expansion` (its column ``i`` is the change of
             ``v_i``). It costs ``O(m p^2)`` instead of a Gram-Schmidt of ``U`` against
             itself. This is how a PGD solver updates its time functions.
-
-        A term whose residual carries ``||r_j||_M ||v_j|| <= reject_tol * max_i
-        ||u_i||_M ||v_i||`` is rejected; the rejected residuals share the same columns, so
-        their norm ``||Res V_rej^T||`` is computed exactly from two small Gram matrices.
-        Needs ``right_vectors=True``.
         """
         t0 = time.perf_counter()
         life = self._life

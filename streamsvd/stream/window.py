@@ -64,12 +64,6 @@ class Window:
     def remove(self, columns: Any) -> UpdateRecord:
         """Remove absorbed snapshots exactly: the result is as if they were never absorbed.
 
-        Parameters
-        ----------
-        columns : int or sequence of int
-            Indices of the snapshots in the order they were absorbed (0 is the first one
-            ever absorbed; :attr:`n_absorbed` the next), unchanged by earlier removals.
-
         Brand's downdate (:mod:`streamsvd.engine.downdate`): the removed rows of the orthonormal
         right factor ``Y`` are read, and the small core is downdated, swept and truncated
         like any update. ``U`` is unchanged. Cost ``O(r w k + (r + k)^3 + k^2 p)`` for
@@ -86,6 +80,12 @@ class Window:
         ``||A_rest - U V^T||_F <= error_bound`` still holds (module
         :mod:`streamsvd.engine.downdate`: the bound is kept, or lowered to the ledger's sum of
         the discards that still lie on remaining columns). Needs ``right_vectors=True``.
+
+        Parameters
+        ----------
+        columns : int or sequence of int
+            Indices of the snapshots in the order they were absorbed (0 is the first one
+            ever absorbed; :attr:`n_absorbed` the next), unchanged by earlier removals.
 
         Raises
         ------
