@@ -64,7 +64,7 @@ _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
 # the share of the budget's growth in an update that a block may spend on directions set
 # aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut
-_ASIDE_SHARE = 0.05
+_ASIDE_SHARE = 0.001
 
 
 # ---------------------------------------------------------------------------- planning
@@ -346,7 +346,10 @@ def _aside(opts: StepOptions, b: int) -> tuple[float, float]:
     trunc = opts.truncation
     if trunc.target is None or trunc.measure not in ("relative", "mean_l2"):
         return (0.0, 0.0)
-    rate = _ASIDE_SHARE * (trunc.share * trunc.target) ** 2
+    se = trunc.share * trunc.target
+    if not 0.0 < se < 2.0**400:  # its square past the range: nothing set aside
+        return (0.0, 0.0)
+    rate = _ASIDE_SHARE * se * se
     return (rate * b, 0.0) if trunc.measure == "mean_l2" else (0.0, rate)
 
 

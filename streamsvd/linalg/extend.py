@@ -221,11 +221,12 @@ def extend_basis(
     cross0 = basis.project(Z, None) if w else np.zeros((0, b))
     passes += 1 if w else 0
     MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
     if w:
+        # the residual's norms decide a second projection; its Gram is measured after
         along = cross0 if G is None else G.T @ cross0
         loss = np.sqrt(np.einsum("ij,ij->j", along, along))
-        if np.any(loss > _LOSS_MAX * np.sqrt(np.maximum(np.diag(S), 0.0))):
+        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Z, MZ), 0.0))
+        if np.any(loss > _LOSS_MAX * norms):
             basis.subtract(Z, G, along)
             C += along
             passes += 1
@@ -235,7 +236,7 @@ def extend_basis(
             else:
                 cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
             MZ = apply_into(Z, MY, inner)
-            S = gram(Z, inner, MZ)
+    S = gram(Z, inner, MZ)
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
@@ -332,5 +333,8 @@ def _split(S: np.ndarray, nu: np.ndarray, exps: np.ndarray, aside: tuple[float, 
     """
     top = int(exps.max())
     energy = float(np.sum(nu * nu * np.ldexp(1.0, 2 * (exps - top))))
-    budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
+    with np.errstate(over="ignore"):
+        budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
+    if not math.isfinite(budget):
+        return None
     return set_aside(S, budget, n, _ROUNDING_LAMBDA)
