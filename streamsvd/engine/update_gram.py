@@ -154,7 +154,7 @@ def plan_merge_by_gram(
     basis = state.basis
     if c == 0 or R_o.size == 0 or not _compaction_pays(basis.width, c, state.rank):
         return None
-    if _refused_before_block(state, trunc, m_o, n):
+    if _refused_before_block(state, trunc, m_o, n, width=c):
         return None
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
         S, C, H = _products(state, np.asfortranarray(Q_o), project=True)
