@@ -168,8 +168,9 @@ def target_rows(case: str, cache: Path, repeat: int, quick: bool) -> list[dict[s
 
 def cap_rows(cache: Path, repeat: int, quick: bool) -> list[dict[str, Any]]:
     """The rank cap: streamsvd (default and 20 extra terms) and HAPOD (0 and 10 extra)."""
-    import streamsvd as ss
     from hapod_benchmark import _pymor_capped_hapod, _pymor_space
+
+    import streamsvd as ss
 
     names = generate("synthetic", cache, quick)
     X = np.asfortranarray(np.load(names["X"]))

@@ -289,11 +289,12 @@ def set_aside(
     eigenvectors of ``S``; the tail ``Z W_t`` of smallest eigenvalues is rejected on the
     Gram alone (never formed, never orthonormalised) while its energy stays within
     ``budget``, among the directions below ``COND_SPLIT`` of the largest (those a
-    further round would treat). The energy is counted with the rounding of ``S``: a direction ``w`` of the
-    tail carries ``w^T S w + w^T dS w``, ``|dS_ij| <~ lam_factor sqrt(n) eps sqrt(S_ii
-    S_jj)`` (the probabilistic model of Higham and Mary), so ``d`` directions carry at most
-    ``sum lam_t + a`` with ``a = lam_factor (sqrt(d n) + d) eps trace(S)``: this update's
-    residual energy, not the energy absorbed before it.
+    further round would treat). The energy is counted with the rounding of ``S``: a
+    direction ``w`` of the tail carries ``w^T S w + w^T dS w`` with ``|dS_ij| <~
+    lam_factor sqrt(n) eps sqrt(S_ii S_jj)`` (the probabilistic model of Higham and
+    Mary), so ``d`` directions carry at most ``sum lam_t + a``, ``a = lam_factor
+    (sqrt(d n) + d) eps trace(S)``: this update's residual energy, not the energy
+    absorbed before it.
 
     Returns ``(W_k, lam_k, W_t, G_t)`` with ``G_t = diag(lam_t) + (a / d) I`` the Gram the
     tail is accounted with (``trace(D W_t G_t W_t^T D) >= sum_j ||z_j' d_j||^2`` for any

@@ -289,7 +289,7 @@ def _run_fast(
 
 
 def _preconditioned(Vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return ``(Q_v, Rt, Qt)``: the terms of ``U V^T`` as ``(U Qt^T) (Q_v Rt^T)^T``, preconditioned.
+    """Return ``(Q_v, Rt, Qt)``, the terms of ``U V^T`` as ``(U Qt^T) (Q_v Rt^T)^T``.
 
     ``V P = Q_v R`` (column pivoting), ``R^T = Q_2 R_2``: ``U V^T = (U P Q_2) (Q_v
     R_2^T)^T``, so the terms' rows are ``Rt = R_2`` and ``Qt = (P Q_2)^T``; then both are
