@@ -288,13 +288,13 @@ def set_aside(
     The residual ``Z`` (``Z^T M Z = S``) is ``Z W_k W_k^T + Z W_t W_t^T`` with ``W`` the
     eigenvectors of ``S``; the tail ``Z W_t`` of smallest eigenvalues is rejected on the
     Gram alone (never formed, never orthonormalised) while its energy stays within
-    ``budget``, among the directions below ``COND_SPLIT`` of the largest (those a
-    further round would treat). The energy is counted with the rounding of ``S``: a
-    direction ``w`` of the tail carries ``w^T S w + w^T dS w`` with ``|dS_ij| <~
-    lam_factor sqrt(n) eps sqrt(S_ii S_jj)`` (the probabilistic model of Higham and
-    Mary), so ``d`` directions carry at most ``sum lam_t + a``, ``a = lam_factor
-    (sqrt(d n) + d) eps trace(S)``: this update's residual energy, not the energy
-    absorbed before it.
+    ``budget`` (those below ``COND_SPLIT`` of the largest would otherwise need rounds of
+    their own; the core keeps fewer columns). The energy is counted with the rounding
+    of ``S``: a direction ``w`` of the tail carries ``w^T S w + w^T dS w`` with
+    ``|dS_ij| <~ lam_factor sqrt(n) eps sqrt(S_ii S_jj)`` (the probabilistic model of
+    Higham and Mary), so ``d`` directions carry at most ``sum lam_t + a``, with
+    ``a = lam_factor (sqrt(d n) + d) eps trace(S)``: this update's residual energy, not
+    the energy absorbed before it.
 
     Returns ``(W_k, lam_k, W_t, G_t)`` with ``G_t = diag(lam_t) + (a / d) I`` the Gram the
     tail is accounted with (``trace(D W_t G_t W_t^T D) >= sum_j ||z_j' d_j||^2`` for any
@@ -312,12 +312,9 @@ def set_aside(
     tails = np.cumsum(lam[::-1])  # tails[d - 1]: energy of the d smallest
     allow = lam_factor * (np.sqrt(d * n) + d) * _EPS * trace
     fits = np.flatnonzero(tails + allow <= budget)
-    # only directions a single round would not resolve (below COND_SPLIT of the
-    # largest): a well-conditioned residual is orthonormalised whole, as without a budget
-    below = int(np.count_nonzero(lam < COND_SPLIT * lam[0]))
-    if fits.size == 0 or below == 0:
+    if fits.size == 0:
         return None
-    t = min(int(fits[-1]) + 1, below)
+    t = int(fits[-1]) + 1
     k = b - t
     G_t = np.diag(lam[k:]) + (float(allow[t - 1]) / t) * np.eye(t)
     return W[:, :k], lam[:k], W[:, k:], G_t
