@@ -64,7 +64,7 @@ _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
 # the share of the budget's growth in an update that a block may spend on directions set
 # aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut
-_ASIDE_SHARE = 0.01
+_ASIDE_SHARE = 0.003
 
 
 # ---------------------------------------------------------------------------- planning
