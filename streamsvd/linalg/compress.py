@@ -179,7 +179,7 @@ def compress(
         R_2``, and the terms of ``R_2`` rotated onto its right singular vectors
         (LAPACK's ``gesdd``, :func:`_precondition`). The sweeps that follow (the same
         rule, stopping test and cuts) then restore the small terms' accuracy in one or
-        two sweeps instead of tens: 2.3x LAPACK's ``gesdd`` on rbs480a (22x without),
+        two sweeps instead of tens: 2.4x LAPACK's ``gesdd`` on rbs480a (24x without),
         ``bench/studies/tight-targets.md``. The iterates differ from Algorithm 2's,
         so the sweep counts of the paper's study are those without it (the default).
         Used when ``V`` has at least as many rows as there are terms.
