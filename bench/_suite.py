@@ -176,6 +176,26 @@ STUDIES: tuple[Study, ...] = (
               ("certified / target", "certified_over_target", ".3f"),
               ("true / target", "true_over_target", ".3f"), ("CPU s", "seconds", ".2f"),
           ]),)),
+    Study("tight-targets", "Tight targets, a rank cap and a full SVD", ("tight_targets",),
+          shown=("tight_targets.png",), files=("tight_targets*",),
+          tables=(table("tight_targets.json", "targets", [
+              ("case", "case"), ("measure", "measure"), ("target", "target", "g"),
+              ("streamsvd CPU s", "streamsvd_cpu", ".3f"), ("HAPOD CPU s", "hapod_cpu", ".3f"),
+              ("ratio", "ratio", ".2f"), ("modes", "streamsvd_modes"),
+              ("HAPOD modes", "hapod_modes"), ("true / target", "streamsvd_error", ".3f"),
+              ("bound / target", "bound", ".3f"), ("load", "load", ".1f"),
+          ], "targets against inc_vectorarray_hapod"), table("tight_targets.json", "cap", [
+              ("contender", "contender"), ("CPU s", "cpu", ".2f"), ("sv error", "sv_err", ".1e"),
+              ("err / opt", "err_opt", ".7f"), ("load", "load", ".1f"),
+          ], "rank cap 60"), table("tight_targets.json", "rbs480a", [
+              ("method", "method"), ("CPU s", "cpu", ".3f"), ("x gesdd", "over_gesdd", ".2f"),
+              ("sweeps", "sweeps"), ("residual", "residual", ".2f"),
+              ("orth. V", "orthogonality_v", ".2f"), ("sv", "singular_values", ".2f"),
+          ], "rbs480a"), table("tight_targets.json", "ingest", [
+              ("contender", "contender"), ("wall s", "wall", ".2f"), ("CPU s", "cpu", ".2f"),
+              ("wall / memory", "wall_over_memory", ".2f"),
+              ("CPU / memory", "cpu_over_memory", ".2f"), ("load", "load", ".1f"),
+          ], "ingest 200000 x 500"))),
     Study("target-benchmark", "A relative target error", ("target_benchmark",),
           shown=("target_benchmark.png",), files=("target_benchmark*",),
           tables=(table("target_benchmark.json", "results", [

@@ -68,15 +68,21 @@ def _apply() -> bool:
     mallopt = _glibc_mallopt()
     if mallopt is None:
         return False
-    from dask.system import CPU_COUNT  # the cores this process may use
-
-    arenas = CPU_COUNT
+    arenas = _usable_cores()
     done = (bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
             and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
             and bool(mallopt(_M_ARENA_MAX, arenas)))
     logger.debug("glibc malloc: mmap threshold %d, trim threshold %d, %d arenas: %s",
                  MMAP_THRESHOLD, TRIM_THRESHOLD, arenas, "set" if done else "refused")
     return done
+
+
+def _usable_cores() -> int:
+    """Return the cores this process may use (its CPU affinity; not importing dask)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return max(os.cpu_count() or 1, 1)
 
 
 def _glibc_mallopt() -> Callable[[int, int], int] | None:

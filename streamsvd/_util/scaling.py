@@ -38,7 +38,10 @@ def column_exponents(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     peak = np.zeros(X.shape[1])
     starts = row_slabs(X)
     for i in starts:
-        np.maximum(peak, np.max(np.abs(X[i:i + starts.step]), axis=0), out=peak)
+        slab = X[i:i + starts.step]
+        # max and -min: no temporary |X| (NaN propagates through both, as through abs)
+        np.maximum(peak, slab.max(axis=0), out=peak)
+        np.maximum(peak, -slab.min(axis=0), out=peak)
     exps = np.where(peak > 0, np.frexp(np.where(peak > 0, peak, 1.0))[1], 0)
     return exps.astype(np.int64), peak
 

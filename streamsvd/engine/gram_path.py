@@ -60,14 +60,27 @@ def _drift(H: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvalsh(E))))
 
 
-def _refused_before_block(state: State, trunc: Truncation, b: int, n: int) -> bool:
-    """Whether a ``mean_l2`` target refuses the update whatever the block holds.
+def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
+                          width: int | None = None) -> bool:
+    """Whether a ``mean_l2`` or ``relative`` target refuses the update whatever the block holds.
 
-    The rounding allowance grows with ``||F||^2 >= ||R||^2`` while the growth of the
-    budget (``b (share target)^2``) does not depend on the block: when the energy already
-    absorbed alone exceeds the share, the block's ``M`` product and Gram are not made.
+    The rounding allowance grows with ``||F||^2 = ||R||^2 + ||X||^2``. With ``mean_l2``
+    the growth of the budget (``b (share target)^2``) does not depend on the block: when
+    the energy already absorbed alone exceeds the share, the block's ``M`` product and
+    Gram are not made. With ``relative`` it is ``(share target)^2 ||X||^2``, and the
+    allowance at least ``c ||X||^2`` (``c = _allowance(1, k + b, n)``): when ``c`` alone
+    exceeds the share of ``(share target)^2`` the block is refused whatever its energy
+    (the check :func:`~streamsvd.engine.update_gram.plan_absorb_by_gram` makes after
+    measuring it would refuse it). ``b`` is the number of snapshots appended, ``width``
+    the block's columns (``b`` by default; a merge's basis is narrower).
     """
-    if trunc.target is None or trunc.measure != "mean_l2" or state.R.size == 0:
+    if trunc.target is None or trunc.measure not in GRAM_MEASURES:
+        return False
+    if trunc.measure == "relative":
+        se = trunc.share * trunc.target
+        cols = b if width is None else width
+        return _allowance(1.0, state.R.shape[0] + cols, n) > _ALLOWANCE_SHARE * se * se
+    if state.R.size == 0:
         return False
     e = pow2_exponent(state.R)
     if abs(e) > _MAX_SPREAD // 2:  # 4^e outside the range: left to the checks that follow

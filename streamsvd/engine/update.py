@@ -62,6 +62,9 @@ logger = logging.getLogger(__name__)
 # block beside the basis records that cost as already wasted).
 _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
+# the share of the budget's growth in an update that a block may spend on directions set
+# aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut
+_ASIDE_SHARE = 0.003
 
 
 # ---------------------------------------------------------------------------- planning
@@ -73,11 +76,11 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) ->
     ``R_new`` its residual's triangular factor).
     """
     state = state.as_settled()
+    b = X.shape[1]
     ext = extend_basis(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-        basis_gram=state.gram,
+        basis_gram=state.gram, aside=_aside(opts, b),
     )
-    b = X.shape[1]
     k, p = state.R.shape
     K = np.zeros((k + b, p + ext.rank))
     K[:k, :p] = state.R
@@ -329,6 +332,27 @@ def plan_rows(
 
 
 # ---------------------------------------------------------------------------- helpers
+def _aside(opts: StepOptions, b: int) -> tuple[float, float]:
+    """Return the energy ``(e0, e1)`` a block of ``b`` snapshots may set aside.
+
+    With a ``mean_l2`` or ``relative`` target the squared budget grows in this update by
+    ``(share target)^2 b`` or ``(share target)^2 ||X||^2``; ``_ASIDE_SHARE`` of it may be
+    rejected on the residual's Gram (:func:`streamsvd.linalg.extend.extend_basis`), its
+    rounding counted, so that directions far below the target are never orthonormalised.
+    What is set aside is discarded like any rejected residual (its norm enters ``d_t``)
+    and the cut that follows is sized after it. An absolute target, a rank cap alone
+    and no cut set nothing aside.
+    """
+    trunc = opts.truncation
+    if trunc.target is None or trunc.measure not in ("relative", "mean_l2"):
+        return (0.0, 0.0)
+    se = trunc.share * trunc.target
+    if not 0.0 < se < 2.0**400:  # its square past the range: nothing set aside
+        return (0.0, 0.0)
+    rate = _ASIDE_SHARE * se * se
+    return (rate * b, 0.0) if trunc.measure == "mean_l2" else (0.0, rate)
+
+
 def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     """``H`` of ``[Q, Q_new]`` from the blocks Gram-Schmidt measured (:class:`BasisExtension`)."""
     w, r = state.basis.width, ext.rank

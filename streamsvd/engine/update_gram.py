@@ -99,12 +99,17 @@ def plan_absorb_by_gram(
             return _declined(basis)
         Y = np.empty(X.shape, order="F")
         exps, zero = scale_into(X, Y)
-        if zero.any():
-            return _declined(basis)  # an empty or zero column: the exact path counts it
+        if zero.all():
+            return _declined(basis)  # nothing but zero columns: the exact path counts them
         S, C, H = _products(state, Y, project=not measured_first)
         norms2 = np.diag(S)
-    top = max(int(exps.max()), pow2_exponent(state.R) if state.R.size else int(exps.max()))
-    if top - int(exps.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
+    else:
+        zero = np.zeros(b, dtype=bool)
+    # a zero column (the first snapshot of a trajectory, often) adds nothing: its
+    # coefficient is 0, so it enters neither Phi nor the kept vectors
+    live = exps[~zero]
+    top = max(int(live.max()), pow2_exponent(state.R) if state.R.size else int(live.max()))
+    if top - int(live.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return _declined(basis)
     block_energy = float(np.sum(norms2 * np.ldexp(1.0, 2 * (exps - top))))
     if measured_first:
@@ -117,7 +122,8 @@ def plan_absorb_by_gram(
     if C is None:
         C = basis.project(Y, None) if basis.width else np.zeros((0, b))
     return _plan_by_gram(
-        state, opts, S=S, C=C, H=H, Zb=np.ldexp(1.0, exps - top), top=top,
+        state, opts, S=S, C=C, H=H, Zb=np.where(zero, 0.0, np.ldexp(1.0, exps - top)),
+        top=top,
         block_energy=block_energy, prior=state.bound, Y_appended=None, added=b,
         kind="absorb", t0=t0,
     )
@@ -154,7 +160,7 @@ def plan_merge_by_gram(
     basis = state.basis
     if c == 0 or R_o.size == 0 or not _compaction_pays(basis.width, c, state.rank):
         return None
-    if _refused_before_block(state, trunc, m_o, n):
+    if _refused_before_block(state, trunc, m_o, n, width=c):
         return None
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
         S, C, H = _products(state, np.asfortranarray(Q_o), project=True)
@@ -229,8 +235,9 @@ def _plan_by_gram(
     before = Before(prior, math.ldexp(math.sqrt(allowance), top))
     m = state.m + added
     keep = trunc.keep_count(amps, before=before, m=m)
+    # a block with a zero column is not kept beside the basis (its Gram would be singular)
     keeps = (basis.defers_gram and cast(DeferredGram, basis).block_beside
-             and _keeps_block(w, c, keep))
+             and _keeps_block(w, c, keep) and not (Zb.ndim == 1 and not Zb.all()))
     # Weyl: every eigenvalue of the computed Phi is within ||E||_F of the exact one
     perturbation = _ROUNDING_LAMBDA * (math.sqrt(n) + size) * _EPS * total
     if (keep == 0 or lam[keep - 1] < _SMALLEST_KEPT * perturbation

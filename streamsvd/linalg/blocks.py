@@ -149,19 +149,22 @@ def orthonormalize_in_rounds(
     inner: InnerProduct,
     reject_tol: float,
     ref: np.ndarray,
+    F0: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
     """Orthonormalise an ill-conditioned residual round by round (see :func:`extend_basis`).
 
     Returns the orthonormal parts, the coefficients ``Rz`` of the residual on them, the
     directions set aside below the floor ``(T, M T, F)`` and the passes made. ``C`` (the
     coefficients on the basis) receives what the re-projections of later rounds find.
+    ``F0`` (``s x b``), when given, says that ``Z`` holds ``s`` combinations of the ``b``
+    columns (``Z = Z_columns F0^T``, the directions :func:`set_aside` kept).
     """
-    b = Z.shape[1]
+    b = C.shape[1]
     parts: list[np.ndarray] = []
     mparts: list[np.ndarray] = []
     rows: list[np.ndarray] = []
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    Zc, Sc, Fc = Z, S, np.eye(b)
+    Zc, Sc, Fc = Z, S, (np.eye(b) if F0 is None else F0)
     passes = 0
     # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
     # directions are set aside (smallest first) while, in every column k, what they add
@@ -275,3 +278,43 @@ def complement(Wacc: np.ndarray, s: int) -> np.ndarray:
         return np.eye(s)
     Qf = np.linalg.qr(Wacc, mode="complete")[0]
     return Qf[:, r:]
+
+
+def set_aside(
+    S: np.ndarray, budget: float, n: int, lam_factor: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Split a residual's Gram ``S`` (``b x b``) into kept and set-aside directions.
+
+    The residual ``Z`` (``Z^T M Z = S``) is ``Z W_k W_k^T + Z W_t W_t^T`` with ``W`` the
+    eigenvectors of ``S``; the tail ``Z W_t`` of smallest eigenvalues is rejected on the
+    Gram alone (never formed, never orthonormalised) while its energy stays within
+    ``budget`` (those below ``COND_SPLIT`` of the largest would otherwise need rounds of
+    their own; the core keeps fewer columns). The energy is counted with the rounding
+    of ``S``: a direction ``w`` of the tail carries ``w^T S w + w^T dS w`` with
+    ``|dS_ij| <~ lam_factor sqrt(n) eps sqrt(S_ii S_jj)`` (the probabilistic model of
+    Higham and Mary), so ``d`` directions carry at most ``sum lam_t + a``, with
+    ``a = lam_factor (sqrt(d n) + d) eps trace(S)``: this update's residual energy, not
+    the energy absorbed before it.
+
+    Returns ``(W_k, lam_k, W_t, G_t)`` with ``G_t = diag(lam_t) + (a / d) I`` the Gram the
+    tail is accounted with (``trace(D W_t G_t W_t^T D) >= sum_j ||z_j' d_j||^2`` for any
+    column scaling ``D`` of norm at most one), or None when nothing fits.
+    """
+    b = S.shape[0]
+    if b == 0 or not budget > 0.0:
+        return None
+    lam, W = _eigh_desc(S)
+    lam = np.maximum(lam, 0.0)
+    trace = float(np.sum(np.maximum(np.diag(S), 0.0)))
+    if not math.isfinite(trace):
+        return None
+    d = np.arange(1, b + 1, dtype=np.float64)
+    tails = np.cumsum(lam[::-1])  # tails[d - 1]: energy of the d smallest
+    allow = lam_factor * (np.sqrt(d * n) + d) * _EPS * trace
+    fits = np.flatnonzero(tails + allow <= budget)
+    if fits.size == 0:
+        return None
+    t = int(fits[-1]) + 1
+    k = b - t
+    G_t = np.diag(lam[k:]) + (float(allow[t - 1]) / t) * np.eye(t)
+    return W[:, :k], lam[:k], W[:, k:], G_t

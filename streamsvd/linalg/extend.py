@@ -32,6 +32,7 @@ from streamsvd.linalg.blocks import (
     right_solve,
     scale_into,
     scaled_norm,
+    set_aside,
 )
 
 __all__ = ["BasisExtension", "default_reject_tol", "extend_basis"]
@@ -41,6 +42,8 @@ _EPS = np.finfo(np.float64).eps
 # own norm) is projected a second time; a smaller one is measured and kept in the basis
 # Gram, where the compressor's orthogonality check accounts for it
 _LOSS_MAX = 2.0**-26
+# Higham and Mary's constant of the probabilistic rounding model (as the Gram path's)
+_ROUNDING_LAMBDA = 4.0
 
 
 def default_reject_tol(n: int) -> float:
@@ -144,6 +147,7 @@ def extend_basis(
     reject_tol: float,
     reference: np.ndarray | None = None,
     basis_gram: np.ndarray | None = None,
+    aside: tuple[float, float] = (0.0, 0.0),
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
 
@@ -194,6 +198,13 @@ def extend_basis(
     basis_gram : ndarray, shape (w, w), optional
         ``Q^T M Q``, when the caller keeps it (saves measuring ``cross_gram`` again after
         a second projection).
+    aside : (float, float)
+        ``(e0, e1)``: an energy ``e0 + e1 ||X||_M^2`` the caller lets this block discard
+        on the residual's Gram alone, before any ``n``-sized orthonormalisation
+        (:func:`~streamsvd.linalg.blocks.set_aside`, rounding counted): the directions of
+        smallest energy within it are rejected (``rejected_gram``, ``rejected_map``), the
+        rest orthonormalised. A compressor with a target error passes a small share of
+        the budget's growth in this update; ``(0, 0)`` (the default) sets nothing aside.
     """
     n, b = X.shape
     w = basis.width
@@ -210,11 +221,12 @@ def extend_basis(
     cross0 = basis.project(Z, None) if w else np.zeros((0, b))
     passes += 1 if w else 0
     MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
     if w:
+        # the residual's norms decide a second projection; its Gram is measured after
         along = cross0 if G is None else G.T @ cross0
         loss = np.sqrt(np.einsum("ij,ij->j", along, along))
-        if np.any(loss > _LOSS_MAX * np.sqrt(np.maximum(np.diag(S), 0.0))):
+        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Z, MZ), 0.0))
+        if np.any(loss > _LOSS_MAX * norms):
             basis.subtract(Z, G, along)
             C += along
             passes += 1
@@ -224,14 +236,24 @@ def extend_basis(
             else:
                 cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
             MZ = apply_into(Z, MY, inner)
-            S = gram(Z, inner, MZ)
+    S = gram(Z, inner, MZ)
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
-    lam = np.linalg.eigvalsh(S)[::-1] if b else np.zeros(0)
-    well = b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
+    split = _split(S, nu, exps, aside, n) if b and (aside[0] > 0 or aside[1] > 0) else None
+    lam = np.linalg.eigvalsh(S)[::-1] if b and split is None else np.zeros(0)
+    well = split is None and b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    if well:
+    pre: list[tuple[np.ndarray, np.ndarray]] = []
+    if split is not None:
+        # the kept combinations Z W_k go through the rounds (the tail is never formed)
+        Wk, lam_k, Wt, Gt = split
+        pre.append((Wt.T, Gt))
+        Zk = np.asfortranarray(Z @ Wk)
+        parts, Rz, floor, more = orthonormalize_in_rounds(
+            basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T)
+        passes += more
+    elif well:
         # the common case: Z = Q_z L^T in place, Rz = L^T triangular
         Rz, cross_z, more = cholesky_qr_in_place(basis, Z, MZ, S, lam, cross0, inner)
         passes += more
@@ -248,6 +270,9 @@ def extend_basis(
         # the rejected part in the directions' coordinates, orthogonal to the kept ones
         maps.append(complement(Wacc, s).T @ Rz)
         grams.append(np.eye(s - r))
+    for F, Gt in pre:
+        maps.append(F)
+        grams.append(Gt)
     for T, MT, F in floor:
         maps.append(F)
         Gt = T.T @ MT
@@ -297,3 +322,19 @@ def extend_basis(
         gram_new=gram_new,
         passes=passes,
     )
+
+
+def _split(S: np.ndarray, nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float],
+           n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`set_aside` with the caller's energy ``aside`` in the block's scaled units.
+
+    The columns were scaled by ``2^-e``: an energy ``E`` of the scaled residual is at
+    most ``4^max(e) E`` of the block's, so the budget is scaled by ``4^-max(e)``.
+    """
+    top = int(exps.max())
+    energy = float(np.sum(nu * nu * np.ldexp(1.0, 2 * (exps - top))))
+    with np.errstate(over="ignore"):
+        budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
+    if not math.isfinite(budget):
+        return None
+    return set_aside(S, budget, n, _ROUNDING_LAMBDA)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import streamsvd as ss
+import streamsvd.engine.update as update_module
 import streamsvd.stream.updates as stream_module
 from streamsvd.parallel.cluster import tall_compress
 from streamsvd.testing import with_spectrum
@@ -81,6 +82,9 @@ def test_the_gram_path_keeps_the_exact_paths_modes_and_bound(monkeypatch):
     assert all(_by_gram(r) for r in fast.history)
     fast.finalize()
     monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    # the exact path as the Gram path's reference: nothing set aside before the cut
+    # (what setting aside changes is tested in tests/linalg/test_extend.py)
+    monkeypatch.setattr(update_module, "_ASIDE_SHARE", 0.0)
     exact = _stream(A, **kw)
     assert not any(_by_gram(r) for r in exact.history)
     exact.finalize()
@@ -676,3 +680,23 @@ def test_the_products_beside_the_basis_give_the_separate_ones_and_keep_the_block
         assert basis.width == w + b and not basis.block_beside
         np.testing.assert_array_equal(basis.Q[:, w:], X)
         np.testing.assert_array_equal(basis.MQ[:, w:], MX)
+
+
+@pytest.mark.parametrize("right_vectors", [True, False])
+def test_a_zero_first_snapshot_keeps_the_block_on_the_gram_path(right_vectors):
+    A = _pulses()
+    A[:, ::40] = 0.0  # every block starts from a zero initial condition
+    w = _weights(A.shape[0])
+    sc = ss.StreamCompressor(A.shape[0], inner=w, target_error=1e-3, error_measure="mean_l2",
+                             right_vectors=right_vectors)
+    for j in range(0, A.shape[1], 40):
+        rec = sc.absorb(A[:, j : j + 40])
+        assert _by_gram(rec)
+        if right_vectors:
+            E = sc.expansion
+            assert _mean_l2(A[:, : j + 40], E.U, E.V, w) <= sc.error_in_measure * (1 + 1e-9)
+            # the zero snapshot is reconstructed as zero, to working accuracy
+            top = np.sqrt(np.max(np.sum(w[:, np.newaxis] * A * A, axis=0)))
+            assert np.sqrt(w @ (E.U @ E.V[j]) ** 2) <= 100 * A.shape[0] * EPS * top
+    sc.finalize()
+    assert sc.error_in_measure <= 1e-3

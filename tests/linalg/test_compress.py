@@ -169,6 +169,43 @@ def test_nan_or_inf_is_refused_before_any_work(bad):
         ss.orthonormalize(V, np.eye(3))
 
 
+@pytest.mark.parametrize("name", sorted(HARD))
+def test_preconditioned_sweeps_reach_lapack_accuracy(name):
+    A = HARD[name]
+    for start, e in _both_starts(A):
+        for At, f in ((A, e), (A.T, ss.Expansion.canonical(A.T))):  # V tall and wide
+            r = ss.compress(f, rule="jacobi", max_sweeps=60, precondition=True)
+            assert r.converged, (name, start, r.max_cosine[-3:])
+            assert_svd_contract(At, r.expansion)
+
+
+def test_preconditioning_keeps_cuts_and_wide_factors():
+    rng = np.random.default_rng(3)
+    A = with_spectrum(np.logspace(0, -12, 20), 30, 20, rng)
+    e = ss.Expansion.canonical(A)
+    r = ss.compress(e, rule="jacobi", eps=1e-6, precondition=True)
+    plain = ss.compress(e, rule="jacobi", eps=1e-6)
+    assert r.expansion.rank == plain.expansion.rank
+    np.testing.assert_allclose(r.expansion.amplitudes, plain.expansion.amplitudes,
+                               rtol=0, atol=100 * 30 * EPS)
+    assert np.linalg.norm(A - r.expansion.U @ r.expansion.V.T) <= r.error_bound + 100 * 30 * EPS
+    # more terms than rows of V: the plain start (nothing to precondition)
+    W = ss.Expansion(np.linalg.qr(rng.standard_normal((40, 25)))[0], rng.standard_normal((10, 25)))
+    w = ss.compress(W, rule="jacobi", precondition=True)
+    assert w.converged
+
+
+@pytest.mark.slow
+def test_rbs480a_preconditioned_to_lapack_accuracy(rbs480a_path):
+    import scipy.io
+
+    A = scipy.io.mmread(rbs480a_path).toarray()
+    r = ss.compress(ss.Expansion.canonical(A), rule="jacobi", max_sweeps=40, precondition=True)
+    assert r.converged
+    assert_svd_contract(A, r.expansion)
+    assert r.expansion.amplitudes[0] == pytest.approx(857.4829, rel=1e-6)
+
+
 @pytest.mark.slow
 def test_rbs480a_converges_to_lapack_accuracy(rbs480a_path):
     import scipy.io

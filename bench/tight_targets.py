@@ -1,0 +1,470 @@
+"""Tight targets, a rank cap and a full SVD: streamsvd against pyMOR's HAPOD and LAPACK.
+
+```
+python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a] [--repeat 3]
+       [--ingest ZARR] [--against REV] [--out DIR] [--quick]
+```
+
+One process, one BLAS thread, CPU time (``time.process_time``: the machine is shared),
+the contenders interleaved (repeat ``r`` of each before repeat ``r + 1`` of any), medians
+of ``--repeat``; ``os.getloadavg()`` recorded with every row.
+
+* ``heat``: pyMOR's ``heat_equation_example(grid_intervals=50, nt=90)`` (5101 dofs),
+  22 trajectories of 91 snapshots at ``parameters.space(1, 100).sample_randomly(22)``,
+  its ``l2_product``; one trajectory per update. ``burgers``: the snapshots of
+  ``hapod_benchmark.py`` (7200 x 2020, 20 trajectories of 101). At each target
+  1e-2 .. 1e-6 in the ``mean_l2`` and ``relative`` measures: streamsvd (the Jacobi rule
+  converged, ``right_vectors=False``, ``finalize()``) against
+  ``inc_vectorarray_hapod(steps, U, eps, 0.9, product=l2)`` with ``eps`` the target
+  (``mean_l2``) or ``target ||A||_M / sqrt(m)`` (``relative``, the same budget). Reported:
+  CPU seconds, their ratio, the modes, the true error over the target (the
+  ``M``-orthogonal projection on the modes) and streamsvd's certified bound over it.
+* ``cap``: the synthetic stream of ``hapod_benchmark.py`` (n 20000, m 2000, blocks of
+  100, ``max_rank=60``): streamsvd with its default oversampling and with 20, pyMOR's
+  incremental HAPOD tree with ``pod(modes=60)`` and with 70 modes per step; the largest
+  relative error of the 60 leading singular values of ``Q^T A`` (``sv_err``).
+* ``rbs480a``: ``compress(Expansion.canonical(A), rule="jacobi")`` with and without
+  ``precondition=True`` against ``scipy.linalg.svd(A, lapack_driver="gesdd")``, and the
+  LAPACK test ratios of the result.
+* ``--ingest ZARR``: ``streamsvd ingest ZARR S --max-rank 60 --block 100`` (a process,
+  wall and CPU time with start-up) against the in-memory API on the array already loaded
+  (``StreamCompressor`` over blocks of 100, finalised) and the raw read (the array read
+  by blocks of 100 columns and summed), each in its own process.
+
+``--against REV`` runs the same rows on revision ``REV`` (a git worktree, a child
+process, after this version's rows) and prints its ratios beside these.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import REPO_ROOT, Run, load_rbs480a, machine_info, out_dir, print_table, pyplot  # noqa: E402
+from hapod_benchmark import DEFAULT_CACHE, _projection_error2, generate  # noqa: E402
+
+TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
+MEASURES = ("mean_l2", "relative")
+OMEGA = 0.9
+
+
+# ------------------------------------------------------------------------------ data
+def heat_snapshots(cache: Path, quick: bool) -> dict[str, Path]:
+    """pyMOR's heat example, 22 trajectories of 91 snapshots (written once to ``cache``)."""
+    grid, nt, k = (8, 10, 4) if quick else (50, 90, 22)
+    tag = f"heat_g{grid}_nt{nt}_k{k}"
+    names = {"X": cache / f"{tag}_X.npy", "M": cache / f"{tag}_M.npz",
+             "meta": cache / f"{tag}_len.npy"}
+    if all(p.is_file() for p in names.values()):
+        return names
+    from pymor.core.logger import set_log_levels
+    from pymor.models.examples import heat_equation_example
+
+    set_log_levels({"pymor": "WARN"})
+    cache.mkdir(parents=True, exist_ok=True)
+    fom = heat_equation_example(grid_intervals=grid, nt=nt)
+    U = fom.solution_space.empty()
+    lengths = []
+    for mu in fom.parameters.space(1, 100).sample_randomly(k):
+        Ui = fom.solve(mu)
+        lengths.append(len(Ui))
+        U.append(Ui)
+    X = U.to_numpy()
+    X = X if X.shape[1] == sum(lengths) else X.T
+    np.save(names["X"], np.asfortranarray(X))
+    sp.save_npz(names["M"], sp.csr_matrix(fom.l2_product.matrix))
+    np.save(names["meta"], np.array(lengths))
+    return names
+
+
+def _load_case(case: str, cache: Path, quick: bool) -> tuple[np.ndarray, Any, np.ndarray]:
+    names = heat_snapshots(cache, quick) if case == "heat" else {
+        k: Path(v) for k, v in generate(case, cache, quick).items()}
+    X = np.asfortranarray(np.load(names["X"]))
+    return X, sp.load_npz(names["M"]).tocsr(), np.load(names["meta"])
+
+
+# ------------------------------------------------------------------------ contenders
+def _streamsvd_target(X: np.ndarray, M: Any, lengths: np.ndarray, target: float,
+                      measure: str) -> tuple[float, np.ndarray, float]:
+    import streamsvd as ss
+
+    starts = np.concatenate([[0], np.cumsum(lengths)])
+    c0 = time.process_time()
+    sc = ss.StreamCompressor(X.shape[0], target_error=target, error_measure=measure,
+                             inner=M, rule="jacobi", sweeps=None, right_vectors=False)
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        sc.absorb(X[:, a:b])
+    sc.finalize()
+    return time.process_time() - c0, sc.left_vectors, sc.error_bound
+
+
+def _hapod_target(U: Any, prod: Any, steps: int, eps: float) -> tuple[float, np.ndarray]:
+    from pymor.algorithms.hapod import inc_vectorarray_hapod
+
+    c0 = time.process_time()
+    modes = inc_vectorarray_hapod(steps, U, eps, OMEGA, product=prod)[0]
+    return time.process_time() - c0, modes.to_numpy()
+
+
+def target_rows(case: str, cache: Path, repeat: int, quick: bool) -> list[dict[str, Any]]:
+    """Every measure and target of ``case``: streamsvd and HAPOD interleaved."""
+    from pymor.core.logger import set_log_levels
+    from pymor.operators.numpy import NumpyMatrixOperator
+    from pymor.vectorarrays.numpy import NumpyVectorSpace
+
+    set_log_levels({"pymor": "WARN"})
+    X, M, lengths = _load_case(case, cache, quick)
+    n, m = X.shape
+    U = NumpyVectorSpace(n).from_numpy(X)
+    prod = NumpyMatrixOperator(M)
+    norm = math.sqrt(float(np.sum(_projection_error2(X, np.zeros((n, 0)), M))))
+    _streamsvd_target(X[:, :20], M, np.array([10, 10]), 1e-3, "mean_l2")  # warm-up
+    _hapod_target(U[:20], prod, 2, 1e-3)
+    rows = []
+    for measure in MEASURES:
+        scale = math.sqrt(m) if measure == "mean_l2" else norm
+        for target in TARGETS:
+            eps = target if measure == "mean_l2" else target * norm / math.sqrt(m)
+            ts, th = [], []
+            for _ in range(repeat):
+                t, Q, bound = _streamsvd_target(X, M, lengths, target, measure)
+                ts.append(t)
+                t, H = _hapod_target(U, prod, len(lengths), eps)
+                th.append(t)
+            err_s = math.sqrt(float(np.sum(_projection_error2(X, Q, M)))) / scale
+            err_h = math.sqrt(float(np.sum(_projection_error2(X, H, M)))) / scale
+            row = {"case": case, "measure": measure, "target": target,
+                   "streamsvd_cpu": statistics.median(ts), "hapod_cpu": statistics.median(th),
+                   "streamsvd_modes": int(Q.shape[1]), "hapod_modes": int(H.shape[1]),
+                   "streamsvd_error": err_s / target, "hapod_error": err_h / target,
+                   "bound": bound / scale / target, "load": os.getloadavg()[0],
+                   "streamsvd_runs": ts, "hapod_runs": th}
+            row["ratio"] = row["streamsvd_cpu"] / row["hapod_cpu"]
+            rows.append(row)
+            print(f"{case} {measure} {target:g}: ratio {row['ratio']:.2f}, modes "
+                  f"{row['streamsvd_modes']}/{row['hapod_modes']}, bound/target "
+                  f"{row['bound']:.3f}", file=sys.stderr, flush=True)
+    return rows
+
+
+def cap_rows(cache: Path, repeat: int, quick: bool) -> list[dict[str, Any]]:
+    """The rank cap: streamsvd (default and 20 extra terms) and HAPOD (0 and 10 extra)."""
+    from hapod_benchmark import _pymor_capped_hapod, _pymor_space
+
+    import streamsvd as ss
+
+    names = generate("synthetic", cache, quick)
+    X = np.asfortranarray(np.load(names["X"]))
+    s = np.load(names["s"])
+    n, m = X.shape
+    cap, block = (10, 20) if quick else (60, 100)
+    cols = [slice(j, min(j + block, m)) for j in range(0, m, block)]
+
+    def streamsvd_run(extra: int | None) -> tuple[float, np.ndarray]:
+        kw = {} if extra is None else {"oversampling": extra}
+        c0 = time.process_time()
+        sc = ss.StreamCompressor(n, max_rank=cap, rule="jacobi", sweeps=None,
+                                 right_vectors=False, **kw)
+        for c in cols:
+            sc.absorb(X[:, c])
+        sc.finalize()
+        return time.process_time() - c0, sc.left_vectors
+
+    U, _ = _pymor_space(X, None)
+
+    def hapod_run(extra: int) -> tuple[float, np.ndarray]:
+        blocks = [U[c] for c in cols]
+        c0 = time.process_time()
+        modes = _pymor_capped_hapod(blocks, cap + extra)[:cap]
+        return time.process_time() - c0, modes.to_numpy()
+
+    contenders = {"streamsvd (default)": lambda: streamsvd_run(None),
+                  "streamsvd oversampling=20": lambda: streamsvd_run(20),
+                  "HAPOD pod(modes=k)": lambda: hapod_run(0),
+                  "HAPOD pod(modes=k+10)": lambda: hapod_run(10)}
+    times: dict[str, list[float]] = {k: [] for k in contenders}
+    last: dict[str, np.ndarray] = {}
+    streamsvd_run(None)  # warm-up (numba's cache)
+    for _ in range(repeat):
+        for name, fn in contenders.items():
+            t, Q = fn()
+            times[name].append(t)
+            last[name] = Q
+    rows = []
+    for name, Q in last.items():
+        C = Q.T @ X
+        amps = np.linalg.svd(C, compute_uv=False)[:cap]
+        err = float(np.linalg.norm(X - Q @ C))
+        rows.append({"contender": name, "cpu": statistics.median(times[name]),
+                     "sv_err": float(np.max(np.abs(amps - s[:cap]) / s[:cap])),
+                     "err_opt": err / float(np.linalg.norm(s[cap:])), "runs": times[name],
+                     "load": os.getloadavg()[0]})
+    return rows
+
+
+def rbs480a_rows(repeat: int, quick: bool) -> list[dict[str, Any]]:
+    """The full SVD of rbs480a: plain and preconditioned sweeps against gesdd."""
+    import scipy.linalg
+
+    import streamsvd as ss
+    from streamsvd.testing.contract import svd_ratios
+
+    A = load_rbs480a(None)
+    if quick:
+        A = A[:60, :60]
+    e = ss.Expansion.canonical(A)
+    runs: dict[str, Any] = {
+        "gesdd": lambda: scipy.linalg.svd(A, lapack_driver="gesdd"),
+        "compress (jacobi)": lambda: ss.compress(e, rule="jacobi", max_sweeps=60),
+        "compress (jacobi, precondition)": lambda: ss.compress(
+            e, rule="jacobi", max_sweeps=60, precondition=True),
+    }
+    for fn in runs.values():
+        fn()  # warm-up
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    out: dict[str, Any] = {}
+    for _ in range(repeat):
+        for name, fn in runs.items():
+            c0 = time.process_time()
+            out[name] = fn()
+            times[name].append(time.process_time() - c0)
+    base = statistics.median(times["gesdd"])
+    rows = []
+    for name in runs:
+        row: dict[str, Any] = {"method": name, "cpu": statistics.median(times[name]),
+                               "runs": times[name], "load": os.getloadavg()[0]}
+        row["over_gesdd"] = row["cpu"] / base
+        if name != "gesdd":
+            r = out[name]
+            ratios = svd_ratios(A, r.expansion)
+            row.update(sweeps=r.sweeps, residual=float(ratios.residual),
+                       orthogonality_u=float(ratios.orthogonality_u),
+                       orthogonality_v=float(ratios.orthogonality_v),
+                       singular_values=float(ratios.singular_values))
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------ ingest
+def _child(what: str, path: str) -> None:
+    """``--child read|memory PATH``: one out-of-core contender, its times as JSON."""
+    import zarr
+
+    z = zarr.open_array(path, mode="r")
+    if what == "read":
+        t0, c0 = time.perf_counter(), time.process_time()
+        total = 0.0
+        for j in range(0, z.shape[1], 100):
+            total += float(z[:, j : j + 100].sum())
+    else:
+        import streamsvd as ss
+
+        A = np.asfortranarray(z[:])
+        t0, c0 = time.perf_counter(), time.process_time()
+        sc = ss.StreamCompressor(A.shape[0], max_rank=60)
+        for j in range(0, A.shape[1], 100):
+            sc.absorb(A[:, j : j + 100])
+        sc.finalize()
+    print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0}))
+
+
+def ingest_rows(path: str, repeat: int) -> list[dict[str, Any]]:
+    """The command line's ingest against the in-memory API and the raw read."""
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
+    times: dict[str, list[dict[str, float]]] = {"read": [], "memory": [], "cli": []}
+    for _ in range(repeat):
+        for what in ("read", "memory"):
+            out = subprocess.run([sys.executable, __file__, "--child", what, path],
+                                 check=True, capture_output=True, text=True, env=env)
+            times[what].append(json.loads(out.stdout.strip().splitlines()[-1]))
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            r0 = os.times()
+            subprocess.run([sys.executable, "-m", "streamsvd.cli", "ingest", path,
+                            str(Path(tmp) / "S.svd"), "--max-rank", "60", "--block", "100",
+                            "--quiet"], check=True, env=env)
+            r1 = os.times()
+            times["cli"].append({"wall": time.perf_counter() - t0,
+                                 "cpu": (r1.children_user - r0.children_user)
+                                 + (r1.children_system - r0.children_system)})
+    rows = []
+    for what, runs in times.items():
+        rows.append({"contender": what, "wall": statistics.median(r["wall"] for r in runs),
+                     "cpu": statistics.median(r["cpu"] for r in runs), "runs": runs,
+                     "load": os.getloadavg()[0]})
+    mem = rows[1]
+    for row in rows:
+        row["wall_over_memory"] = row["wall"] / mem["wall"]
+        row["cpu_over_memory"] = row["cpu"] / mem["cpu"]
+    return rows
+
+
+# ------------------------------------------------------------------------ driver
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    logging.disable(logging.WARNING)
+    cases = args.cases.split(",")
+    cache = Path(args.cache)
+    data: dict[str, Any] = {"targets": [], "cap": [], "rbs480a": [], "ingest": []}
+    for case in cases:
+        if case in ("heat", "burgers"):
+            data["targets"] += target_rows(case, cache, args.repeat, args.quick)
+        elif case == "cap":
+            data["cap"] = cap_rows(cache, args.repeat, args.quick)
+        elif case == "rbs480a":
+            data["rbs480a"] = rbs480a_rows(args.repeat, args.quick)
+    if args.ingest:
+        data["ingest"] = ingest_rows(args.ingest, args.repeat)
+    return data
+
+
+def _against(rev: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The rows of revision ``rev``, measured in a child process over a git worktree."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
+                        str(tree), rev], check=True)
+        try:
+            out = Path(tmp) / "rows.json"
+            env = dict(os.environ, PYTHONPATH=str(tree))
+            cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
+            subprocess.run([sys.executable, __file__, "--rows-only", str(out), "--cases",
+                            cases, "--cache", args.cache, "--repeat", str(args.repeat)]
+                           + (["--quick"] if args.quick else []), check=True, env=env)
+            return dict(json.loads(out.read_text()))
+        finally:
+            subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
+                            str(tree)], check=True)
+
+
+def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
+    old = {(r["case"], r["measure"], r["target"]): r for r in (before or {}).get("targets", [])}
+    rows = []
+    for r in data["targets"]:
+        o = old.get((r["case"], r["measure"], r["target"]))
+        rows.append([r["case"], r["measure"], f"{r['target']:g}", f"{r['streamsvd_cpu']:.3f}",
+                     f"{r['hapod_cpu']:.3f}", f"{r['ratio']:.2f}",
+                     "" if o is None else f"{o['ratio']:.2f}",
+                     f"{r['streamsvd_modes']}/{r['hapod_modes']}",
+                     f"{r['streamsvd_error']:.3f}/{r['hapod_error']:.3f}", f"{r['bound']:.3f}",
+                     f"{r['load']:.1f}"])
+    if rows:
+        print_table(["case", "measure", "target", "streamsvd CPU s", "HAPOD CPU s", "ratio",
+                     "ratio before", "modes s/H", "true err/target s/H", "bound/target",
+                     "load"], rows, title="\ntargets: streamsvd against inc_vectorarray_hapod")
+    if data["cap"]:
+        print_table(["contender", "CPU s", "sv_err", "err/opt", "load"],
+                    [[r["contender"], f"{r['cpu']:.2f}", f"{r['sv_err']:.1e}",
+                      f"{r['err_opt']:.7f}", f"{r['load']:.1f}"] for r in data["cap"]],
+                    title="\nrank cap 60, blocks of 100")
+    if data["rbs480a"]:
+        print_table(["method", "CPU s", "x gesdd", "sweeps", "LAPACK ratios (res/U/V/s)", "load"],
+                    [[r["method"], f"{r['cpu']:.3f}", f"{r['over_gesdd']:.2f}",
+                      r.get("sweeps", ""),
+                      "" if "residual" not in r else
+                      f"{r['residual']:.2f}/{r['orthogonality_u']:.2f}/"
+                      f"{r['orthogonality_v']:.2f}/{r['singular_values']:.2f}",
+                      f"{r['load']:.1f}"] for r in data["rbs480a"]],
+                    title="\nrbs480a: the full SVD")
+    if data["ingest"]:
+        print_table(["contender", "wall s", "CPU s", "wall / memory", "CPU / memory", "load"],
+                    [[r["contender"], f"{r['wall']:.2f}", f"{r['cpu']:.2f}",
+                      f"{r['wall_over_memory']:.2f}", f"{r['cpu_over_memory']:.2f}",
+                      f"{r['load']:.1f}"] for r in data["ingest"]],
+                    title="\ningest 200000 x 500 (--max-rank 60 --block 100)")
+
+
+def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> None:
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    ax = axes[0]
+    old = (before or {}).get("targets", [])
+    for case in sorted({r["case"] for r in data["targets"]}):
+        for measure, mk in zip(MEASURES, ("o", "s"), strict=True):
+            pts = [(r["target"], r["ratio"]) for r in data["targets"]
+                   if r["case"] == case and r["measure"] == measure]
+            if pts:
+                x, y = zip(*pts, strict=True)
+                line, = ax.plot(x, y, marker=mk, label=f"{case} {measure}")
+            prev = [(r["target"], r["ratio"]) for r in old
+                    if r["case"] == case and r["measure"] == measure]
+            if prev and pts:
+                x, y = zip(*prev, strict=True)
+                ax.plot(x, y, marker=mk, ls=":", color=line.get_color(), alpha=0.6,
+                        label=f"{case} {measure} (before)")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("target error")
+    ax.set_ylabel("CPU time streamsvd / HAPOD")
+    ax.set_title("targets (dotted: before)")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    ax = axes[1]
+    if data["rbs480a"]:
+        names = [r["method"] for r in data["rbs480a"]]
+        ax.bar(range(len(names)), [r["cpu"] for r in data["rbs480a"]])
+        ax.set_xticks(range(len(names)), [n.replace(" (", "\n(") for n in names], fontsize=7)
+        ax.set_yscale("log")
+        ax.set_ylabel("CPU time (s)")
+        ax.set_title("rbs480a: full SVD")
+    loads = [r["load"] for key in ("targets", "cap", "rbs480a") for r in data[key]]
+    if loads:
+        fig.suptitle(f"1 BLAS thread, CPU time; load {min(loads):.1f}-{max(loads):.1f}",
+                     fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    record = Run("tight_targets", argv)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="heat,burgers,cap,rbs480a")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--cache", default=str(DEFAULT_CACHE), help="snapshot cache directory")
+    ap.add_argument("--ingest", default=None, help="a 200000 x 500 zarr array")
+    ap.add_argument("--against", default=None, help="git revision to compare with")
+    ap.add_argument("--out", default=None, help="directory for the PNG and JSON")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
+    ap.add_argument("--rows-only", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        _child(*args.child)
+        return {}
+    data = measure(args)
+    if args.rows_only:
+        Path(args.rows_only).write_text(json.dumps(data))
+        return data
+    before = _against(args.against, args) if args.against else None
+    _print(data, before)
+    out = out_dir(args.out)
+    name = "tight_targets" + ("_quick" if args.quick else "")
+    payload = {"machine": machine_info(), "load": os.getloadavg(), "against": args.against,
+               **data, "before": before}
+    record.write(out / f"{name}.json", payload)
+    _figure(data, before, out / f"{name}.png")
+    print(f"wrote {out / name}.json and .png")
+    return payload
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""Tests of streamsvd.linalg.extend: setting directions aside on the residual's Gram."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from streamsvd.algebra.inner import as_inner
+from streamsvd.algebra.memory import MemoryBasis
+from streamsvd.linalg.blocks import set_aside
+from streamsvd.linalg.extend import default_reject_tol, extend_basis
+
+EPS = np.finfo(np.float64).eps
+
+
+def _collinear(n=400, b=30, seed=0):
+    """Snapshots of a drifting pulse: a residual spanning many decades."""
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 0.3, b)[np.newaxis, :]
+    rng = np.random.default_rng(seed)
+    return np.exp(-((x - 0.3 - t) / 0.1) ** 2) * (1 + 1e-9 * rng.standard_normal((1, b)))
+
+
+def _mass(n):
+    h = 1.0 / n
+    return sp.diags([np.full(n - 1, h / 6), np.full(n, 2 * h / 3), np.full(n - 1, h / 6)],
+                    [-1, 0, 1], format="csr")
+
+
+def test_set_aside_takes_the_tail_within_the_budget():
+    rng = np.random.default_rng(1)
+    W, _ = np.linalg.qr(rng.standard_normal((8, 8)))
+    lam = np.array([1.0, 1e-3, 1e-6, 1e-14, 1e-16, 1e-18, 1e-20, 0.0])
+    S = (W * lam) @ W.T
+    S = 0.5 * (S + S.T)
+    assert set_aside(S, 0.0, 1000, 4.0) is None
+    Wk, lam_k, Wt, Gt = set_aside(S, 1e-6, 1000, 4.0)
+    # the smallest directions whose energy, rounding counted, fits the budget
+    assert Wt.shape[1] == 5 and np.all(lam_k >= 0.5e-6)
+    np.testing.assert_allclose(Wk.T @ Wk, np.eye(Wk.shape[1]), atol=10 * EPS)
+    # the tail's account: its eigenvalues and the rounding allowance, within the budget
+    assert np.trace(Gt) <= 1e-6
+    assert np.trace(Gt) >= np.sum(np.linalg.eigvalsh(Wt.T @ S @ Wt).clip(0))
+    # a budget below the allowance sets nothing aside
+    assert set_aside(S, 1e-15, 1000, 4.0) is None
+
+
+@pytest.mark.parametrize("euclidean", [True, False])
+def test_a_block_with_a_budget_keeps_x_within_the_rejected_norm(euclidean):
+    n = 400
+    X = _collinear(n)
+    M = None if euclidean else _mass(n)
+    ip = as_inner(M, n)
+    energy = float(np.sum(X * ip.apply(X)))
+    basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
+    plain = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n))
+    basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
+    budget = 1e-12 * energy
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                       aside=(budget, 0.0))
+    r = ext.rank
+    assert r <= plain.rank
+    Q = basis.workspace(X.shape[1])[0][:, :r].copy()
+    # the new directions are M-orthonormal
+    G = Q.T @ ip.apply(Q)
+    assert np.linalg.norm(G - np.eye(r), 2) <= 100 * n * EPS
+    # X = Q_new R_new + Res, and ||Res|| is within the reported rejected norm (rounding
+    # counted) and within the budget given
+    res = X - Q @ ext.R_new
+    true = float(np.sqrt(max(np.sum(res * ip.apply(res)), 0.0)))
+    reported = ext.rejected_norm()
+    assert true <= reported * (1 + 1e-6) + 10 * n * EPS * np.sqrt(energy)
+    assert reported**2 <= budget * (1 + 1e-9) + plain.rejected_norm() ** 2
+
+
+def test_no_budget_is_the_plain_extension():
+    n = 300
+    X = _collinear(n, b=20)
+    ip = as_inner(None, n)
+    exts = []
+    for aside in ((0.0, 0.0), None):
+        basis = MemoryBasis(n, ip, capacity=40)
+        kw = {} if aside is None else {"aside": aside}
+        exts.append(extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n), **kw))
+    np.testing.assert_array_equal(exts[0].R_new, exts[1].R_new)
+    assert exts[0].rejected_norm() == exts[1].rejected_norm()
+
+
+def test_the_budget_sets_directions_aside():
+    n = 400
+    X = _collinear(n)
+    ip = as_inner(_mass(n), n)
+    energy = float(np.sum(X * ip.apply(X)))
+    ranks = []
+    for budget in (0.0, 1e-12 * energy):
+        basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
+        ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                           aside=(budget, 0.0))
+        ranks.append(ext.rank)
+    assert ranks[1] < ranks[0]
+
+
+@pytest.mark.parametrize("measure", ["mean_l2", "relative"])
+def test_a_stream_at_a_tight_target_holds_its_bound_on_the_exact_path(monkeypatch, measure):
+    import streamsvd as ss
+    import streamsvd.stream.updates as stream_module
+
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    n, m = 300, 120
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 1.0, m)[np.newaxis, :]
+    A = np.exp(-((x - 0.2 - 0.6 * t) / (0.05 + 0.05 * t)) ** 2)
+    M = _mass(n)
+    sc = ss.StreamCompressor(n, inner=M, target_error=1e-6, error_measure=measure,
+                             rule="jacobi", sweeps=None)
+    for j in range(0, m, 30):
+        sc.absorb(A[:, j : j + 30])
+        E = sc.expansion
+        R = A[:, : j + 30] - E.U @ E.V.T
+        err = float(np.sqrt(max(np.sum(R * (M @ R)), 0.0)))
+        assert err <= sc.error_bound * (1 + 1e-9) + 10 * n * EPS * np.linalg.norm(A)
+    sc.finalize()
+    assert sc.error_in_measure <= 1e-6

@@ -1,0 +1,33 @@
+"""bench/tight_targets.py runs on its tiny size beside pyMOR (skipped without pyMOR)."""
+
+import importlib
+import json
+from pathlib import Path
+
+import pytest
+
+from tests._figures import assert_drawn
+
+pytest.importorskip("pymor")
+
+BENCH = Path(__file__).resolve().parents[3] / "bench"
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_tight_targets_quick(monkeypatch, tmp_path, rbs480a_path):
+    monkeypatch.syspath_prepend(str(BENCH))
+    mod = importlib.import_module("tight_targets")
+    mod.main(["--quick", "--repeat", "1", "--out", str(tmp_path),
+              "--cache", str(tmp_path / "cache")])
+    assert_drawn(tmp_path / "tight_targets_quick.png")
+    data = json.loads((tmp_path / "tight_targets_quick.json").read_text())["results"]
+    assert len(data["targets"]) == 20
+    for r in data["targets"]:
+        # the certified bound holds and covers the true error; never more modes than HAPOD
+        assert r["streamsvd_error"] <= r["bound"] * (1 + 1e-9) <= 1.0 + 1e-9, r
+        assert r["streamsvd_modes"] <= r["hapod_modes"], r
+        assert r["streamsvd_cpu"] > 0 and r["hapod_cpu"] > 0
+    assert {r["contender"] for r in data["cap"]} >= {"streamsvd (default)", "HAPOD pod(modes=k)"}
+    for r in data["rbs480a"]:
+        if "residual" in r:
+            assert max(r["residual"], r["orthogonality_u"], r["singular_values"]) < 50, r
