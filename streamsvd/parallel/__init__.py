@@ -17,7 +17,7 @@ _EXPORTS = {
     "execute": "cluster",
     "open_compressor": "cluster",
     "stored_kind": "cluster",
-    "tall_compress": "cluster",
+    "tall_compress": "tall",
     "TallCompressor": "tall",
     "SourceSpec": "spec",
     "tree_compress": "tree",

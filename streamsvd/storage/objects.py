@@ -16,7 +16,7 @@ from typing import Any, TypeVar, cast
 
 from streamsvd.errors import InputError, OptionalDependencyError, StoreError
 
-__all__ = ["ObjectStorage", "remote_errors"]
+__all__ = ["SECRET_OPTIONS", "ObjectStorage", "remote_errors", "without_secrets"]
 
 logger = logging.getLogger(__name__)
 
@@ -116,7 +116,9 @@ class ObjectStorage:
         return self.url
 
     def __reduce__(self) -> Any:
-        return (_rebuild, (self.url, self.storage_options, self.argument))
+        # what is pickled is sent to dask workers through the scheduler: no secrets; a
+        # worker uses its own credentials (environment, profile, instance role)
+        return (_rebuild, (self.url, without_secrets(self.storage_options), self.argument))
 
     def _full(self, key: str) -> str:
         return f"{self.path}/{key}" if key else self.path
@@ -248,6 +250,25 @@ class ObjectStorage:
         from streamsvd.storage.lease import Lease
 
         return Lease(self, key)
+
+
+SECRET_OPTIONS = frozenset({
+    "key", "secret", "token", "password", "session_token", "aws_access_key_id",
+    "aws_secret_access_key", "aws_session_token", "access_key", "secret_key",
+})
+"""Names of ``storage_options`` (at any depth) that are never pickled."""
+
+
+def without_secrets(options: Mapping[str, Any]) -> dict[str, Any]:
+    """Return ``options`` without the credentials of :data:`SECRET_OPTIONS` (at any depth).
+
+    What is left (``endpoint_url``, ``profile``, ``client_kwargs.region_name``, ...) is
+    what a worker needs besides its own credentials.
+    """
+    return {
+        name: (without_secrets(value) if isinstance(value, Mapping) else value)
+        for name, value in options.items() if name.lower() not in SECRET_OPTIONS
+    }
 
 
 def _rebuild(url: str, storage_options: dict[str, Any], argument: str) -> ObjectStorage:
