@@ -168,7 +168,9 @@ def _url_of(array: Any) -> tuple[str, dict[str, Any], str | None] | None:
     if protocols[0] in ("file", "local", "memory"):
         return None
     url = f"{protocols[0]}://{str(store.path).rstrip('/')}"
-    return url, dict(getattr(fs, "storage_options", {})), (array.path or None)
+    options = {k: v for k, v in getattr(fs, "storage_options", {}).items()
+               if k not in ("asynchronous", "loop")}  # zarr's own: reopened as a user would
+    return url, options, (array.path or None)
 
 
 # ---------------------------------------------------------------------- validation

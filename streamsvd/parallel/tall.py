@@ -175,7 +175,7 @@ def tall_compress(
     client: Any = None,
     progress: bool = False,
     storage_options: dict[str, Any] | None = None,
-    finalize: bool = True,
+    finalize: bool = False,
     **options: Any,
 ) -> StreamCompressor:
     """Stream every column of a source into a :class:`TallCompressor`, block by block.
@@ -210,10 +210,12 @@ def tall_compress(
     storage_options : dict, optional
         Options of the object store of a URL ``store``.
     finalize : bool
-        Converge the core and cut to ``max_rank`` (and the other truncation rules) before
-        returning, committed with ``store`` (:meth:`~streamsvd.StreamCompressor.finalize`):
-        at most ``max_rank`` terms (default). ``False`` hands back the streamed state,
-        which keeps the oversampling (``finalized`` is then False).
+        ``True``: converge the core and cut to ``max_rank`` (and the other truncation
+        rules) before returning, committed with ``store``
+        (:meth:`~streamsvd.StreamCompressor.finalize`): at most ``max_rank`` terms.
+        ``False`` (default): the streamed state is handed back uncut, with its
+        oversampling (``max_rank + oversampling`` terms) and ``finalized`` False, until
+        :meth:`~streamsvd.StreamCompressor.finalize` or :meth:`close`.
     **options
         :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
         ``rule``, ``sweeps``, ``reject_tol``, ``reorth_tol``,

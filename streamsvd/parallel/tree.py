@@ -65,7 +65,7 @@ def tree_compress(
     resume: bool = False,
     progress: bool = False,
     storage_options: dict[str, Any] | None = None,
-    finalize: bool = True,
+    finalize: bool = False,
     checkpoints: bool = True,
     **options: Any,
 ) -> StreamCompressor:
@@ -105,12 +105,13 @@ def tree_compress(
     storage_options : dict, optional
         Options of the object store of a URL ``store``.
     finalize : bool
-        Converge the root and cut it to ``max_rank`` (and the other truncation rules)
-        before returning it, committed with ``store``
-        (:meth:`~streamsvd.StreamCompressor.finalize`): the result then has at most
-        ``max_rank`` terms (default). ``False`` hands back the uncut root, whose nodes
-        keep ``max_rank + 2 oversampling`` terms (``finalized`` is then False), to go on
-        absorbing before cutting.
+        ``True``: converge the root and cut it to ``max_rank`` (and the other truncation
+        rules) before returning it, committed with ``store``
+        (:meth:`~streamsvd.StreamCompressor.finalize`): at most ``max_rank`` terms.
+        ``False`` (default): the root is handed back uncut, with the
+        ``max_rank + 2 oversampling`` terms its nodes keep, and ``finalized`` False, to go
+        on absorbing; its :attr:`~streamsvd.StreamCompressor.amplitudes` and ``factors``
+        then have more than ``max_rank`` terms until :meth:`finalize` or :meth:`close`.
     checkpoints : bool
         With ``store``: commit every finished leaf and merge beside it (``<store>.tree``,
         removed once the root is committed), so that the same call run again after a
@@ -124,7 +125,8 @@ def tree_compress(
         and merges keep ``max_rank + 2 oversampling`` terms (on a spectrum decaying
         slowly through the cap the tree then cuts within 1e-5 of the optimal error,
         against 2e-4 with the compressor's own oversampling); the root is handed back
-        with the compressor's options, cut to ``max_rank`` unless ``finalize=False``.
+        with the compressor's options, cut to ``max_rank`` by ``finalize=True``, by its
+        :meth:`~streamsvd.StreamCompressor.finalize` or by closing it.
 
     Returns
     -------

@@ -36,7 +36,7 @@ CREDENTIALS_HINT = (
     "Give every worker its own credentials: AWS_ACCESS_KEY_ID/AWS_SECRET_ACCESS_KEY (and "
     "AWS_ENDPOINT_URL for a non-AWS endpoint) in the environment the worker is started "
     "with, AWS_PROFILE with ~/.aws on its machine, or an instance role; secrets passed in "
-    "`storage_options` (--storage-option) are not sent to workers."
+    "`storage_options` are not sent to workers."
 )
 
 

@@ -108,9 +108,10 @@ def test_api_on_isolated_workers_with_source_and_store_on_s3(client, data, mode)
         run, kw = tree_compress, {"leaf_columns": 40}
     else:
         run, kw = tall_compress, {"chunk_rows": 32}
-    with run(url, block=10, max_rank=8, client=client, store=store, **kw) as sc:
+    with run(url, block=10, max_rank=8, client=client, store=store, finalize=True,
+             **kw) as sc:
         assert sc.rank <= 8
-    with run(A, block=10, max_rank=8, **kw) as ref:  # the same mode in this process
+    with run(A, block=10, max_rank=8, finalize=True, **kw) as ref:  # the same, here
         with open_compressor(store) as back:
             _same(back, ref, A, exact=mode == "tree")
 

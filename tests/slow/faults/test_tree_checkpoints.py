@@ -7,13 +7,12 @@ the same).
 """
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import textwrap
 import time
-
-import shutil
 
 import numpy as np
 
