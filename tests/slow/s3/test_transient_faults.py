@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from streamsvd.storage import open_storage
-from streamsvd.storage.objects import transient
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
 
@@ -62,12 +61,3 @@ def test_a_conditional_write_applied_before_a_failure_is_recognised(faulty):
     tag = storage.get_tagged("k1")[1]
     assert storage.put_if_match("k1", b"new", tag) is not None
     assert storage.get("k1") == b"new"
-
-
-def test_what_is_transient():
-    assert transient(OSError("An error occurred (SlowDown): Please reduce your request rate."))
-    assert transient(OSError("An error occurred (InternalError) when calling PutObject"))
-    assert transient(ConnectionResetError())
-    assert not transient(FileNotFoundError("k"))
-    assert not transient(OSError("An error occurred (PreconditionFailed)"))
-    assert not transient(PermissionError("AccessDenied"))
