@@ -7,11 +7,16 @@ workers get their credentials from their own environment, never from the task gr
 Covered: the tree and the tall mode through the API and the CLI (equal to the same modes
 run in this process), errors that name the worker and the remedy (a path the workers
 cannot see, workers without credentials, the tall mode's temporary panels), BLAS threads
-from the workers' own cores, and the tree's default leaves following the workers.
+from the workers' own cores, the tree's default leaves following the workers, and a
+client killed midway whose workers' committed nodes the next run resumes from.
 """
 
 import os
+import signal
+import subprocess
+import sys
 import tempfile
+import time
 
 import numpy as np
 import pytest
@@ -198,3 +203,54 @@ def test_blas_threads_and_default_leaves_follow_the_workers(client):
     assert worker_threads(client) == 2
     # 120 columns in blocks of 10 on 2 workers: two leaves of 60, not one of 100 and 20
     assert default_leaf_columns(120, 10, tasks=worker_threads(client)) == 60
+
+
+CLIENT = """
+import sys
+from distributed import Client
+from streamsvd.parallel import tree_compress
+with Client(sys.argv[1]) as client:
+    with tree_compress(sys.argv[2], block=10, leaf_columns=10, max_rank=8, client=client,
+                       store=sys.argv[3]):
+        pass
+"""
+
+
+def test_a_killed_client_leaves_the_workers_nodes_to_the_next_run(cluster, data):
+    """The workers commit the nodes to S3: a new client resumes from them (bit for bit)."""
+    import s3fs
+
+    from streamsvd.parallel import tree_compress
+    from streamsvd.store import POINTER_NAME
+    from streamsvd.stream.compressor import StreamCompressor
+
+    A, url = data
+    store = f"s3://{BUCKET}/killed"
+    fs = s3fs.S3FileSystem()
+    proc = subprocess.Popen([sys.executable, "-c", CLIENT, cluster.address, url, store],
+                            env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        fs.invalidate_cache()
+        if fs.exists(f"{BUCKET}/killed.tree") and any(
+                fs.exists(f"{p}/{POINTER_NAME}") for p in fs.ls(f"{BUCKET}/killed.tree")):
+            break
+        time.sleep(0.05)
+    if proc.poll() is None:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    fs.invalidate_cache()
+    if fs.exists(f"{BUCKET}/killed") and not fs.exists(f"{BUCKET}/killed/{POINTER_NAME}"):
+        fs.rm(f"{BUCKET}/killed", recursive=True)  # killed within the store's creation
+    from distributed import Client
+
+    with Client(cluster.address, timeout="30s") as client:
+        if not fs.exists(f"{BUCKET}/killed/{POINTER_NAME}"):
+            with tree_compress(url, block=10, leaf_columns=10, max_rank=8, client=client,
+                               store=store):
+                pass
+    with tree_compress(A, block=10, leaf_columns=10, max_rank=8, finalize=True) as whole:
+        with StreamCompressor.open(store, mode="r") as resumed:
+            _same(resumed, whole, A, exact=True)
+    fs.invalidate_cache()
+    assert not fs.exists(f"{BUCKET}/killed.tree")
