@@ -44,10 +44,8 @@ from typing import Any
 
 import numpy as np
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from bench._common import Run, load_average, out_dir, print_table, pyplot
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import Run, load_average, out_dir, print_table, pyplot  # noqa: E402
 
 BUCKET = "cluster-bench"
 CONTENDERS = ("tree", "tall", "svd_compressed", "dist_hapod")

@@ -15,8 +15,8 @@ def test_bench_cluster_tiny(monkeypatch, tmp_path):
     pytest.importorskip("distributed")
     pytest.importorskip("moto.server")
     pytest.importorskip("s3fs")
-    monkeypatch.syspath_prepend(str(BENCH.parent))
-    mod = importlib.import_module("bench.cluster_benchmark")
+    monkeypatch.syspath_prepend(str(BENCH))
+    mod = importlib.import_module("cluster_benchmark")
     mod.main(["--quick", "--contenders", "tree,tall,svd_compressed", "--out", str(tmp_path)])
     assert_drawn(tmp_path / "cluster_benchmark_quick.png")
     data = json.loads((tmp_path / "cluster_benchmark_quick.json").read_text())["results"]
