@@ -10,11 +10,17 @@ one's and composes the error bounds. This is the hierarchical approximate POD (H
 Himpe, Leibner and Rave (2018), as pyMOR distributes it.
 
 Determinism. The tree depends only on the number of columns, ``start``, ``block`` and
-``leaf_columns``, never on the scheduler or on the number of workers; every task is a
-deterministic function of its inputs. The result is therefore the same with the threaded
-scheduler, on a :class:`distributed.LocalCluster` or on a remote cluster, up to the
-rounding differences of the BLAS (a worker process may use a different number of BLAS
-threads than the client process).
+the leaves' width, never on the scheduler; every task is a deterministic function of its
+inputs. The default width gives every thread of a cluster a leaf
+(:func:`~streamsvd.parallel.spec.default_leaf_columns`), so it depends on the number of
+workers: pass ``leaf_columns`` for a result that does not. With a given width the result
+is the same with the threaded scheduler, on a :class:`distributed.LocalCluster` or on a
+remote cluster (tested bit for bit on isolated workers), up to the rounding differences
+of the BLAS (each task's BLAS threads are its worker's cores over the threads of the
+workers on its host: :mod:`streamsvd.parallel.workers`).
+
+Checkpoints. With a store, every finished node is committed beside it and a run killed
+midway resumes from them (:mod:`streamsvd.parallel.checkpoints`).
 
 Error bound. Leaves cover disjoint columns, so when a merge appends the right operand
 ``B ~ K_B`` to the left one ``A ~ K_A``, the errors ``E_A`` and ``E_B`` occupy disjoint
@@ -81,9 +87,10 @@ def tree_compress(
     block : int
         Columns absorbed per update inside a leaf.
     leaf_columns : int, optional
-        Columns per leaf; default ``10 * block`` (never fewer than ``block``). The result
-        depends on it (each merge is an update with its own truncation), never on the
-        scheduler or on the number of workers.
+        Columns per leaf; default ``10 * block``, cut down to whole blocks so that every
+        thread of ``client``'s cluster gets a leaf (never fewer than ``block``). The
+        result depends on it (each merge is an update with its own truncation), never on
+        the scheduler: pass it for a result that does not depend on the workers.
     dataset : str, optional
         Dataset of an HDF5 file or array of a zarr group (see ``open_source``).
     client : distributed.Client, optional
