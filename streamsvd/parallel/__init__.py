@@ -21,6 +21,7 @@ _EXPORTS = {
     "TallCompressor": "tall",
     "SourceSpec": "spec",
     "tree_compress": "tree",
+    "tall_tree_compress": "tall_tree",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

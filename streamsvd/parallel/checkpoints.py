@@ -28,7 +28,7 @@ from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.store import POINTER_NAME
 from streamsvd.stream.compressor import StreamCompressor
 
-__all__ = ["Checkpoints", "checkpoints_beside"]
+__all__ = ["Checkpoints", "checkpoints_beside", "child_storage"]
 
 logger = logging.getLogger(__name__)
 
@@ -44,8 +44,9 @@ def checkpoints_beside(store: LocalStorage | ObjectStorage) -> LocalStorage | Ob
                         argument="store")
 
 
-def _node_storage(root: LocalStorage | ObjectStorage, name: str
+def child_storage(root: LocalStorage | ObjectStorage, name: str
                   ) -> LocalStorage | ObjectStorage:
+    """Return the storage of ``root``'s sub-directory or prefix ``name`` (same options)."""
     if isinstance(root, LocalStorage):
         return LocalStorage(root.root / name)
     return open_storage(f"{root.url}/{name}", storage_options=root.storage_options or None,
@@ -102,7 +103,7 @@ class Checkpoints:
 
     def save(self, name: str, sc: StreamCompressor) -> None:
         """Commit node ``name`` (on the worker that computed it); ``sc`` is unchanged."""
-        place = _node_storage(self.root, name)
+        place = child_storage(self.root, name)
         place.delete("")  # what a killed writer of this node left (never a committed node)
         copy = sc._copy_with()
         try:
@@ -112,7 +113,7 @@ class Checkpoints:
 
     def load(self, name: str) -> StreamCompressor:
         """Return the committed node ``name``, in memory, as it was computed."""
-        with StreamCompressor.open(_node_storage(self.root, name), mode="r") as stored:
+        with StreamCompressor.open(child_storage(self.root, name), mode="r") as stored:
             return stored._copy_with(backend=MemoryBackend(compact_in_place=True))
 
     def remove(self) -> None:

@@ -254,3 +254,20 @@ def test_a_killed_client_leaves_the_workers_nodes_to_the_next_run(cluster, data)
             _same(resumed, whole, A, exact=True)
     fs.invalidate_cache()
     assert not fs.exists(f"{BUCKET}/killed.tree")
+
+
+def test_tall_tree_on_isolated_workers_with_panels_on_s3(client, data):
+    """Tall leaves in parallel on the workers, every panel on S3: the tree's result."""
+    from streamsvd.parallel import tall_tree_compress, tree_compress
+
+    A, url = data
+    tall = tall_tree_compress(url, workdir=f"s3://{BUCKET}/scratch", block=10,
+                              leaf_columns=30, chunk_rows=32, max_rank=8, client=client,
+                              store=f"s3://{BUCKET}/tall-tree", finalize=True)
+    tree = tree_compress(A, block=10, leaf_columns=30, max_rank=8, finalize=True)
+    tol = 50 * max(A.shape) * np.finfo(float).eps
+    assert tall.rank == tree.rank == 8
+    assert np.abs(tall.amplitudes - tree.amplitudes).max() <= tol * tree.amplitudes[0]
+    U = np.asarray(tall.factors()[0])
+    assert np.abs(np.abs(U.T @ tree.expansion.U) - np.eye(8)).max() <= tol
+    tall.close()
