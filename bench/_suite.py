@@ -233,14 +233,17 @@ STUDIES: tuple[Study, ...] = (
               ("update s", "update_seconds", ".2f"),
           ]),)),
     Study("cluster-benchmark", "On a shared-nothing cluster", ("cluster_benchmark",),
-          shown=("cluster_benchmark.png",), files=("cluster_benchmark*",),
-          tables=(table("cluster_benchmark.json", "summary/*contender", [
+          shown=("cluster_benchmark.png", "cluster_benchmark_n1e5.png"),
+          files=("cluster_benchmark*",),
+          tables=tuple(table(f"{name}.json", "summary/*contender", [
               ("contender", "contender"), ("time s", "seconds", ".1f"),
               ("client CPU s", "client_cpu", ".1f"), ("modes", "modes"),
               ("err / opt", "err_over_opt", ".6f"),
               ("client +MB", "client_growth_mb", ".0f"),
               ("worker MB", "worker_peak_mb", ".0f"), ("load", "load", ".1f"),
-          ]),)),
+          ], title) for name, title in (
+              ("cluster_benchmark", "20000 x 2000"), ("cluster_benchmark_n1e5", "100000 x 500"),
+          ))),
 )
 
 

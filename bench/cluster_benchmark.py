@@ -13,6 +13,9 @@ own environment. Contenders, interleaved (repeat r of each before repeat r + 1 o
   columns from S3 on its worker; nodes committed beside the store);
 * ``tall``: ``tall_compress(URL, client=..., store=s3://..., max_rank=k, finalize=True)``
   (the workers read the source's row chunks and the panels from S3);
+* ``tall_tree``: ``tall_tree_compress(URL, workdir=s3://..., client=..., store=s3://...,
+  max_rank=k, finalize=True)``: tall leaves in parallel on the workers, every panel on
+  S3, each leaf's row-chunk products on its own worker;
 * ``svd_compressed``: ``dask.array.linalg.svd_compressed(da.from_zarr(URL), k,
   n_power_iter=2)`` computed on the same cluster (the workers read S3), the factors
   gathered to this process;
@@ -48,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Run, load_average, out_dir, print_table, pyplot  # noqa: E402
 
 BUCKET = "cluster-bench"
-CONTENDERS = ("tree", "tall", "svd_compressed", "dist_hapod")
+CONTENDERS = ("tree", "tall", "tall_tree", "svd_compressed", "dist_hapod")
 
 
 class Peaks:
@@ -123,6 +126,13 @@ def run_one(name: str, r: int, cfg: dict[str, Any], client: Any, url: str) -> di
         with tall_compress(url, block=block, client=client, max_rank=k, finalize=True,
                            chunk_rows=cfg["chunk_rows"], store=f"s3://{BUCKET}/tall-{r}") as sc:
             out["Q"] = np.asarray(sc.factors()[0])
+    elif name == "tall_tree":
+        from streamsvd.parallel import tall_tree_compress
+
+        with tall_tree_compress(url, workdir=f"s3://{BUCKET}/scratch-{r}", block=block,
+                                chunk_rows=cfg["chunk_rows"], client=client, max_rank=k,
+                                finalize=True, store=f"s3://{BUCKET}/tall-tree-{r}") as sc:
+            out["Q"] = np.asarray(sc.factors()[0])
     elif name == "svd_compressed":
         import dask
         import dask.array as da
@@ -159,6 +169,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--contenders", default=",".join(CONTENDERS))
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default=None)
+    parser.add_argument("--tag", default="", help="suffix of the results' file names")
     args = parser.parse_args(argv)
     run = Run("cluster_benchmark", argv)
     if args.quick:
@@ -243,7 +254,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "read_seconds": ok[-1].get("read_seconds"), "runs": len(ok)}
     results = {"config": cfg, "hidden": bool(isolated.can_hide()), "summary": summary,
                "runs": rows}
-    name = "cluster_benchmark_quick" if args.quick else "cluster_benchmark"
+    name = ("cluster_benchmark_quick" if args.quick else
+            "cluster_benchmark" + (f"_{args.tag}" if args.tag else ""))
     run.write(out / f"{name}.json", results)
     headers = ["contender", "time s", "client CPU s", "modes", "err/opt",
                "client +MB", "worker MB", "load"]
