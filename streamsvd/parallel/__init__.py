@@ -1,6 +1,7 @@
 """Scale-out on dask.
 
-The tree of leaves (:func:`tree_compress`), the tall mode (:class:`TallCompressor`,
+The tree of leaves (:func:`tree_compress`), the tree of tall leaves
+(:func:`tall_tree_compress`), the tall mode (:class:`TallCompressor`,
 :func:`tall_compress`), and opening (or checking) the compressor a store holds.
 """
 
