@@ -252,6 +252,18 @@ STUDIES: tuple[Study, ...] = (
               ("err / opt", "error_over_optimal", ".9f"), ("sv error", "sv_error", ".1e"),
               ("update s", "update_seconds", ".2f"),
           ]),)),
+    Study("cluster-benchmark", "On a shared-nothing cluster", ("cluster_benchmark",),
+          shown=("cluster_benchmark.png", "cluster_benchmark_n1e5.png"),
+          files=("cluster_benchmark*",),
+          tables=tuple(table(f"{name}.json", "summary/*contender", [
+              ("contender", "contender"), ("time s", "seconds", ".1f"),
+              ("client CPU s", "client_cpu", ".1f"), ("modes", "modes"),
+              ("err / opt", "err_over_opt", ".6f"),
+              ("client +MB", "client_growth_mb", ".0f"),
+              ("worker MB", "worker_peak_mb", ".0f"), ("load", "load", ".1f"),
+          ], title) for name, title in (
+              ("cluster_benchmark", "20000 x 2000"), ("cluster_benchmark_n1e5", "100000 x 500"),
+          ))),
 )
 
 

@@ -313,7 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="tall mode: keep U out of core in panels on disk, for snapshots too "
                      "long for memory; on --scheduler, threads by default (default: off)")
     ing.add_argument("--leaf-columns", metavar="L", type=positive_int,
-                     help="columns per leaf, tree mode only (default: 10 blocks)")
+                     help="columns per leaf, tree mode only (default: 10 blocks, fewer so "
+                     "that every worker thread gets a leaf)")
     ing.add_argument("--chunk-rows", metavar="R", type=positive_int,
                      help="rows per chunk of the panels, tall mode only (default: the "
                      "source's row chunks, else 16384)")

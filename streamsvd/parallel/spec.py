@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from streamsvd.errors import InputError
 from streamsvd.io.formats import open_zarr_url
 from streamsvd.io.open import open_source
 from streamsvd.io.sources import Source
-from streamsvd.storage import is_url
+from streamsvd.storage import is_url, without_secrets
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.stream.options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 from streamsvd.stream.options import CompressorOptions
@@ -103,8 +103,8 @@ class SourceSpec:
             )
         with open_source(source, dataset=dataset) as src:
             n, m, desc = src.n, src.m, src.description
-        if is_url(source):  # a zarr array at a URL: shipped as is, reopened by its URL
-            return cls("zarr", open_zarr_url(source, dataset=dataset), None, n, m, desc)
+        if is_url(source):  # a zarr array at a URL: reopened by its URL where it runs
+            return cls("url", (source, {}), dataset, n, m, desc)
         if isinstance(source, str | os.PathLike):
             return cls("path", os.fspath(Path(source).resolve()), dataset, n, m, desc)
         module = type(source).__module__ or ""
@@ -114,6 +114,9 @@ class SourceSpec:
         if module.startswith("dask"):
             return cls("dask", source, None, n, m, desc)
         if module.startswith("zarr"):
+            at = _url_of(source)
+            if at is not None:  # reopened by its URL (pickled without secrets)
+                return cls("url", at[:2], at[2], n, m, desc)
             return cls("zarr", source, None, n, m, desc)
         return cls("array", np.asarray(source), None, n, m, desc)
 
@@ -130,10 +133,44 @@ class SourceSpec:
             return open_source(self.obj, dataset=self.dataset)
         if self.kind == "window":
             return Source(self.obj, self.description)
+        if self.kind == "url":
+            url, options = self.obj
+            array = open_zarr_url(url, dataset=self.dataset, storage_options=options or None)
+            return open_source(array)
         return open_source(self.obj)
+
+    def __reduce__(self) -> Any:
+        # sent to workers through the scheduler: a URL's options travel without secrets
+        obj = self.obj
+        if self.kind == "url":
+            obj = (obj[0], without_secrets(obj[1]))
+        return (SourceSpec, (self.kind, obj, self.dataset, self.n, self.m, self.description))
+
+    def local_path(self) -> str | None:
+        """Return the local file every task opens (None for other sources)."""
+        return cast(str, self.obj) if self.kind == "path" else None
+
+    def url(self) -> tuple[str, dict[str, Any]] | None:
+        """Return the object-store URL every task opens, with its options, or None."""
+        return cast(tuple[str, dict[str, Any]], self.obj) if self.kind == "url" else None
 
     def __repr__(self) -> str:
         return f"SourceSpec({self.kind}, {self.description}, n={self.n}, m={self.m})"
+
+
+def _url_of(array: Any) -> tuple[str, dict[str, Any], str | None] | None:
+    """Return the URL, options and path of a zarr array in an object store (else None)."""
+    store: Any = getattr(array, "store", None)
+    fs = getattr(store, "fs", None)
+    if fs is None or not hasattr(store, "path"):
+        return None
+    protocols = fs.protocol if isinstance(fs.protocol, tuple | list) else (fs.protocol,)
+    if protocols[0] in ("file", "local", "memory"):
+        return None
+    url = f"{protocols[0]}://{str(store.path).rstrip('/')}"
+    options = {k: v for k, v in getattr(fs, "storage_options", {}).items()
+               if k not in ("asynchronous", "loop")}  # zarr's own: reopened as a user would
+    return url, options, (array.path or None)
 
 
 # ---------------------------------------------------------------------- validation
@@ -187,9 +224,19 @@ def _node_options(opts: dict[str, Any], *, columns: int) -> dict[str, Any]:
     return node
 
 
-def default_leaf_columns(columns: int, block: int) -> int:
-    """Return ten blocks per leaf (at least one): a function of the data, not of workers."""
-    return max(block, min(10 * block, max(columns, 1)))
+def default_leaf_columns(columns: int, block: int, *, tasks: int = 1) -> int:
+    """Return the default columns per leaf: ten blocks, fewer to give ``tasks`` tasks work.
+
+    Ten blocks per leaf (never fewer than one block, never more than ``columns``), cut down
+    to whole blocks so that there are at least ``tasks`` leaves (the tasks the cluster runs
+    at once) when the columns allow it.
+    """
+    columns = max(columns, 1)
+    width = min(10 * block, columns)
+    if tasks > 1:
+        share = block * math.ceil(math.ceil(columns / tasks) / block)
+        width = min(width, share)
+    return max(block, width)
 
 
 def leaf_ranges(start: int, stop: int, leaf_columns: int) -> list[tuple[int, int]]:

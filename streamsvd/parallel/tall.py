@@ -34,14 +34,21 @@ panels included, are replaced by the next creation), never half of it
 
 from __future__ import annotations
 
-from typing import Any
+import os
+from typing import Any, cast
 
+from streamsvd._util.malloc import keep_freed_memory
 from streamsvd._util.scheduling import check_client
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.panels.backend import KIND, PanelBackend
+from streamsvd.errors import InputError, ShapeMismatchError
+from streamsvd.io.provenance import SourceRecord
+from streamsvd.parallel.spec import SourceSpec
+from streamsvd.parallel.workers import check_workers_see, source_places
 from streamsvd.stream.compressor import StreamCompressor
+from streamsvd.stream.ingest import ingest as ingest_blocks
 
-__all__ = ["TallCompressor"]
+__all__ = ["TallCompressor", "tall_compress"]
 
 
 class _TallMode(type):
@@ -152,3 +159,141 @@ class TallCompressor(metaclass=_TallMode):
             backend=lambda attrs, root: PanelBackend.for_store(attrs, root, client=client),
             storage_options=storage_options,
         )
+
+
+# ------------------------------------------------------------------------- tall driver
+
+
+def tall_compress(
+    source: Any,
+    *,
+    block: int = 100,
+    dataset: str | None = None,
+    store: Any = None,
+    resume: bool = False,
+    chunk_rows: int | None = None,
+    client: Any = None,
+    progress: bool = False,
+    storage_options: dict[str, Any] | None = None,
+    finalize: bool = False,
+    **options: Any,
+) -> StreamCompressor:
+    """Stream every column of a source into a :class:`TallCompressor`, block by block.
+
+    Parameters
+    ----------
+    source : array_like, str, os.PathLike, h5py.Dataset, zarr.Array or dask array
+        The ``n x m`` snapshot matrix, absorbed block by block by
+        :func:`streamsvd.stream.ingest.ingest`; each block is handed over unread
+        (:meth:`~streamsvd.io.sources.Source.lazy`) and read once, by chunks of
+        ``chunk_rows`` rows, in the update's pass over the panels (into memory first when
+        the update takes the exact path: see :class:`TallCompressor`).
+    block : int
+        Columns per update.
+    dataset : str, optional
+        Dataset of an HDF5 file or array of a zarr group.
+    store : str or path-like, optional
+        Store of the basis: created, or continued from its recorded source offset with
+        ``resume=True``. Updates are committed as ``commit_every`` says (every update
+        by default); a failure leaves the store at its last commit. The source is
+        recorded in the store (:attr:`~streamsvd.StreamCompressor.source_record`).
+    resume : bool
+        Continue the existing store (its options and weights are used; ``inner``, if
+        passed, is checked against them).
+    chunk_rows : int, optional
+        Rows per chunk of the panels: by default the source's row chunks when it is a
+        dask, zarr or HDF5 array chunked uniformly by rows, else 16384.
+    client : distributed.Client, optional
+        Run the row-chunk products on this cluster.
+    progress : bool
+        Show a progress bar over the columns (tqdm, on stderr).
+    storage_options : dict, optional
+        Options of the object store of a URL ``store``.
+    finalize : bool
+        ``True``: converge the core and cut to ``max_rank`` (and the other truncation
+        rules) before returning, committed with ``store``
+        (:meth:`~streamsvd.StreamCompressor.finalize`): at most ``max_rank`` terms.
+        ``False`` (default): the streamed state is handed back uncut, with its
+        oversampling (``max_rank + oversampling`` terms) and ``finalized`` False, until
+        :meth:`~streamsvd.StreamCompressor.finalize` or :meth:`close`.
+    **options
+        :class:`TallCompressor` options (``inner``, ``eps``, ``rtol``, ``max_rank``,
+        ``rule``, ``sweeps``, ``reject_tol``, ``reorth_tol``,
+        ``commit_every``, and ``workdir`` without a store).
+
+    Returns
+    -------
+    TallCompressor
+        It holds the store's writer lock when ``store`` is given: close it when done.
+
+    Notes
+    -----
+    Memory. From the first call on, this process's allocator keeps freed memory for the
+    next arrays (on Linux with glibc: its mmap threshold fixed at 32 MiB and its trim
+    threshold at 256 MiB, unless ``MALLOC_*_`` variables or ``GLIBC_TUNABLES`` tune
+    malloc already): the row chunks allocated and freed at every update were otherwise
+    zeroed again by the kernel, 400000 page faults on a 200000 x 1000 array, about 10%
+    of the wall time (``bench/README.md``).
+    """
+    block = cast(int, check_positive_int(block, "block"))
+    keep_freed_memory()
+    spec = SourceSpec.of(source, dataset=dataset)
+    record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
+                             description=spec.description)
+    if resume:
+        inner = options.pop("inner", None)
+        if store is None or options:
+            raise InputError(
+                f"`resume` needs `store` and no options but `inner` (the store's are used); "
+                f"got store={store!r} and options {sorted(options)}. Pass only the store."
+            )
+    with spec.open() as src:
+        if resume:
+            tc = TallCompressor.open(store, inner=inner, client=client,
+                                     storage_options=storage_options)
+            if tc.n != spec.n:
+                tc.close(finalize=False)
+                raise ShapeMismatchError(
+                    f"`source` must have snapshots of size {tc.n} (the store's n); got "
+                    f"{spec.n} from {spec.description}. Pass the source the store was "
+                    "built from."
+                )
+            tc.source_record = record
+        else:
+            rows = chunk_rows if chunk_rows is not None else src.row_chunks
+            tc = TallCompressor(spec.n, store=store, storage_options=storage_options,
+                                chunk_rows=rows, client=client, source_record=record,
+                                **options)
+        try:
+            _check_tall_workers(tc, spec, client, store)
+            ingest_blocks(src, tc, block=block, rows=tc.chunk_rows, progress=progress,
+                          desc="tall")
+            tc.flush()
+            if finalize and not tc.finalized:
+                tc.finalize(progress=progress)
+        except BaseException:
+            tc.close(finalize=False)
+            raise
+    return tc
+
+
+def _check_tall_workers(tc: StreamCompressor, spec: SourceSpec, client: Any,
+                        store: Any) -> None:
+    """Check that the workers see the panels and the source they read (see ``workers``).
+
+    The workers read and write the panels; they read a zarr source (a local directory or
+    a URL) by row chunks themselves. An ``.npy`` or HDF5 source is read here.
+    """
+    if client is None:
+        return
+    places = source_places(spec)
+    path = spec.local_path()
+    if path is not None and not os.path.isdir(path):
+        places["paths"] = []
+    backend = cast(PanelBackend, tc._life.backend)
+    root = backend.root
+    root.prepare()
+    name = ("`store`" if store is not None else "`workdir`" if not backend.temporary else
+            "the panels' temporary directory (no `store` or `workdir` given)")
+    check_workers_see(client, paths=places["paths"],
+                      storages=[*places["storages"], (name, root)])

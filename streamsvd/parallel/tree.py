@@ -10,11 +10,17 @@ one's and composes the error bounds. This is the hierarchical approximate POD (H
 Himpe, Leibner and Rave (2018), as pyMOR distributes it.
 
 Determinism. The tree depends only on the number of columns, ``start``, ``block`` and
-``leaf_columns``, never on the scheduler or on the number of workers; every task is a
-deterministic function of its inputs. The result is therefore the same with the threaded
-scheduler, on a :class:`distributed.LocalCluster` or on a remote cluster, up to the
-rounding differences of the BLAS (a worker process may use a different number of BLAS
-threads than the client process).
+the leaves' width, never on the scheduler; every task is a deterministic function of its
+inputs. The default width gives every thread of a cluster a leaf
+(:func:`~streamsvd.parallel.spec.default_leaf_columns`), so it depends on the number of
+workers: pass ``leaf_columns`` for a result that does not. With a given width the result
+is the same with the threaded scheduler, on a :class:`distributed.LocalCluster` or on a
+remote cluster (tested bit for bit on isolated workers), up to the rounding differences
+of the BLAS (each task's BLAS threads are its worker's cores over the threads of the
+workers on its host: :mod:`streamsvd.parallel.workers`).
+
+Checkpoints. With a store, every finished node is committed beside it and a run killed
+midway resumes from them (:mod:`streamsvd.parallel.checkpoints`).
 
 Error bound. Leaves cover disjoint columns, so when a merge appends the right operand
 ``B ~ K_B`` to the left one ``A ~ K_A``, the errors ``E_A`` and ``E_B`` occupy disjoint
@@ -26,102 +32,29 @@ guaranteed bound on ``||A - U V^T||_F`` over every column compressed.
 
 from __future__ import annotations
 
+import hashlib
 import logging
-import uuid
+import os
 from typing import Any, cast
 
-from threadpoolctl import threadpool_limits
+import numpy as np
 
 from streamsvd._util.malloc import keep_freed_memory
-from streamsvd._util.scheduling import blas_threads_per_task, check_client, execute
+from streamsvd._util.scheduling import check_client
 from streamsvd._util.validation import check_positive_int
-from streamsvd.algebra.memory import MemoryBackend
-from streamsvd.errors import BrokenStateError, InputError, ShapeMismatchError, StoreError
+from streamsvd.errors import InputError, ShapeMismatchError, StoreError
 from streamsvd.io.provenance import SourceRecord
-from streamsvd.linalg.rotations import load_kernels_in_background
-from streamsvd.parallel.spec import (
-    _NODE_CHANGES,
-    SourceSpec,
-    _node_options,
-    check_options,
-    default_leaf_columns,
-    leaf_ranges,
-    options_of,
-)
-from streamsvd.storage import open_storage
+from streamsvd.parallel.checkpoints import Checkpoints, checkpoints_beside
+from streamsvd.parallel.spec import SourceSpec, check_options, options_of
+from streamsvd.parallel.tree_graph import run_tree
+from streamsvd.parallel.workers import check_workers_see, source_places
+from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.stream.compressor import StreamCompressor
-from streamsvd.stream.ingest import ingest
 from streamsvd.stream.options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 
 __all__ = ["COMPRESSOR_OPTIONS", "tree_compress"]
 
 logger = logging.getLogger(__name__)
-
-
-# ---------------------------------------------------------------------------- tasks
-
-
-def _compress_leaf(
-    spec: SourceSpec,
-    start: int,
-    stop: int,
-    block: int,
-    options: dict[str, Any],
-    blas_threads: int,
-    in_place: bool = True,
-) -> StreamCompressor:
-    """Compress columns ``start:stop`` of the source (runs on a worker).
-
-    The leaf compacts in place (one ``n x k`` buffer less); should an update leave its
-    basis broken (:class:`~streamsvd.errors.BrokenStateError`), the leaf is compressed
-    again with compactions written aside (``in_place=False``).
-    """
-    sc = StreamCompressor(spec.n, backend=MemoryBackend(compact_in_place=in_place), **options)
-    try:
-        with threadpool_limits(limits=blas_threads, user_api="blas"), spec.open() as src:
-            # the other leaves keep the cores busy: no read-ahead, one block per leaf; the
-            # root is finalised by the caller, maybe in another process: no kernels here
-            ingest(src, sc, start=start, stop=stop, block=block, prefetch=False,
-                   preload_sweeps=False)
-    except BrokenStateError:
-        if not in_place:
-            raise
-        logger.warning("leaf %d:%d compressed again, compacting aside", start, stop)
-        return _compress_leaf(spec, start, stop, block, options, blas_threads, False)
-    sc._drop_scratch()  # it waits for its merge: its compaction buffer is not needed
-    logger.info("leaf %d:%d compressed to rank %d (bound %.3e)", start, stop, sc.rank,
-                sc.error_bound)
-    return sc
-
-
-def _merge_pair(
-    left: StreamCompressor, right: StreamCompressor, blas_threads: int,
-    preload_sweeps: bool = False,
-) -> StreamCompressor:
-    """Return a new compressor: ``left`` with ``right``'s columns appended (on a worker).
-
-    Neither input is modified (a task's inputs may be shared with the threaded scheduler
-    or re-used when a task is retried after a crash), so a merge that fails or is re-run
-    starts again from the same inputs: the copy compacts in place, and is made again
-    compacting aside should the merge leave it broken. With ``preload_sweeps`` (the root's
-    merge, run in the caller's process) the compiled sweep kernels that the root's
-    ``finalize`` needs load in the background meanwhile, on the core the leaves left.
-    """
-    if preload_sweeps:
-        load_kernels_in_background()
-    with threadpool_limits(limits=blas_threads, user_api="blas"):
-        try:
-            out = left._copy_with(backend=MemoryBackend(compact_in_place=True))
-            out.merge(right, spend_target=False)
-        except BrokenStateError:
-            logger.warning("merge up to column %d made again, compacting aside",
-                           right.source_offset)
-            out = left._copy_with(backend=MemoryBackend())
-            out.merge(right, spend_target=False)
-    out._drop_scratch()
-    logger.info("merged columns up to %d: rank %d (bound %.3e)", out.source_offset,
-                out.rank, out.error_bound)
-    return out
 
 
 # ----------------------------------------------------------------------------- API
@@ -138,6 +71,8 @@ def tree_compress(
     resume: bool = False,
     progress: bool = False,
     storage_options: dict[str, Any] | None = None,
+    finalize: bool = False,
+    checkpoints: bool = True,
     **options: Any,
 ) -> StreamCompressor:
     """Compress the columns of a source on dask: leaves on workers, merged in a tree.
@@ -152,9 +87,10 @@ def tree_compress(
     block : int
         Columns absorbed per update inside a leaf.
     leaf_columns : int, optional
-        Columns per leaf; default ``10 * block`` (never fewer than ``block``). The result
-        depends on it (each merge is an update with its own truncation), never on the
-        scheduler or on the number of workers.
+        Columns per leaf; default ``10 * block``, cut down to whole blocks so that every
+        thread of ``client``'s cluster gets a leaf (never fewer than ``block``). The
+        result depends on it (each merge is an update with its own truncation), never on
+        the scheduler: pass it for a result that does not depend on the workers.
     dataset : str, optional
         Dataset of an HDF5 file or array of a zarr group (see ``open_source``).
     client : distributed.Client, optional
@@ -175,6 +111,19 @@ def tree_compress(
         Show dask's progress bar.
     storage_options : dict, optional
         Options of the object store of a URL ``store``.
+    finalize : bool
+        ``True``: converge the root and cut it to ``max_rank`` (and the other truncation
+        rules) before returning it, committed with ``store``
+        (:meth:`~streamsvd.StreamCompressor.finalize`): at most ``max_rank`` terms.
+        ``False`` (default): the root is handed back uncut, with the
+        ``max_rank + 2 oversampling`` terms its nodes keep, and ``finalized`` False, to go
+        on absorbing; its :attr:`~streamsvd.StreamCompressor.amplitudes` and ``factors``
+        then have more than ``max_rank`` terms until :meth:`finalize` or :meth:`close`.
+    checkpoints : bool
+        With ``store``: commit every finished leaf and merge beside it (``<store>.tree``,
+        removed once the root is committed), so that the same call run again after a
+        crash resumes from them (:mod:`streamsvd.parallel.checkpoints`); skipped, with a
+        warning, when the workers of ``client`` cannot reach that location.
     **options
         Options of every :class:`~streamsvd.StreamCompressor` of the tree: ``inner``,
         ``eps``, ``rtol``, ``max_rank``, ``oversampling``, ``rule``, ``sweeps``,
@@ -183,8 +132,8 @@ def tree_compress(
         and merges keep ``max_rank + 2 oversampling`` terms (on a spectrum decaying
         slowly through the cap the tree then cuts within 1e-5 of the optimal error,
         against 2e-4 with the compressor's own oversampling); the root is handed back
-        with the compressor's options, and closing it (or
-        :meth:`~streamsvd.StreamCompressor.finalize`) cuts to ``max_rank``.
+        with the compressor's options, cut to ``max_rank`` by ``finalize=True``, by its
+        :meth:`~streamsvd.StreamCompressor.finalize` or by closing it.
 
     Returns
     -------
@@ -260,9 +209,15 @@ def tree_compress(
                 "another path."
             )
     try:
-        root = _run_tree(spec, start, block, leaf_columns, opts, client, progress)
+        check_workers_see(client, **source_places(spec))
+        saved = (None if path is None or not checkpoints else
+                 _checkpoints(path, spec, client))
+        root = run_tree(spec, start, block, leaf_columns, opts, client, progress, saved)
         if target is None and path is None:
-            return root if root is not None else StreamCompressor(spec.n, **opts)
+            out = root if root is not None else StreamCompressor(spec.n, **opts)
+            if finalize and not out.finalized:
+                out.finalize()
+            return out
         if target is None:
             # a new store: the root is written as it is (one commit, no further update)
             target = root if root is not None else StreamCompressor(spec.n, **opts)
@@ -271,6 +226,10 @@ def tree_compress(
         elif root is not None:
             target.source_record = record
             target.merge(root, spend_target=False)
+        if saved is not None:  # the root is committed: its parts are not needed
+            saved.remove()
+        if finalize and not target.finalized:
+            target.finalize()
     except BaseException:
         if target is not None:
             target.close(finalize=False)
@@ -278,57 +237,32 @@ def tree_compress(
     return target
 
 
-def _run_tree(
-    spec: SourceSpec,
-    start: int,
-    block: int,
-    leaf_columns: int | None,
-    opts: dict[str, Any],
-    client: Any,
-    progress: bool,
-) -> StreamCompressor | None:
-    import dask
-
-    stop = spec.m
-    if start >= stop:
-        logger.info("nothing to compress: the source offset %d is the end of %s", start,
-                    spec.description)
+def _checkpoints(path: LocalStorage | ObjectStorage, spec: SourceSpec, client: Any
+                 ) -> Checkpoints | None:
+    """Return where the tree commits its nodes, or None if the workers cannot reach it."""
+    root = checkpoints_beside(path)
+    try:
+        root.prepare()
+        check_workers_see(client, storages=[("the checkpoints of `store`", root)])
+    except StoreError as exc:
+        logger.warning("the tree runs without checkpoints: %s", exc)
         return None
-    width = leaf_columns if leaf_columns is not None else default_leaf_columns(stop - start,
-                                                                               block)
-    ranges = leaf_ranges(start, stop, width)
-    tag = uuid.uuid4().hex[:12]
-    blas = blas_threads_per_task(client)
-    node_opts = opts if len(ranges) == 1 else _node_options(opts, columns=stop)
-    nodes = [
-        dask.delayed(_compress_leaf, pure=False)(
-            spec.window(a, b), a, b, block, node_opts, blas,
-            dask_key_name=f"streamsvd-leaf-{a}-{b}-{tag}",
-        )
-        for a, b in ranges
-    ]
-    spans = list(ranges)
-    level = 0
-    while len(nodes) > 1:
-        level += 1
-        merged, merged_spans = [], []
-        for i in range(0, len(nodes) - 1, 2):
-            a, b = spans[i][0], spans[i + 1][1]
-            merged.append(dask.delayed(_merge_pair, pure=False)(
-                nodes[i], nodes[i + 1], blas, len(nodes) == 2 and client is None,
-                dask_key_name=f"streamsvd-merge-{a}-{b}-{tag}",
-            ))
-            merged_spans.append((a, b))
-        if len(nodes) % 2:
-            merged.append(nodes[-1])
-            merged_spans.append(spans[-1])
-        nodes, spans = merged, merged_spans
-    logger.info(
-        "tree of %d leaves of %d columns (%d levels) over columns %d:%d of %s on %s",
-        len(ranges), width, level, start, stop, spec.description,
-        "the threaded scheduler" if client is None else client,
-    )
-    (root,) = execute(nodes, client=client, progress=progress)
-    # the user's copy compacts aside again: an interrupted update leaves it as it was
-    return cast(StreamCompressor, root)._copy_with(
-        backend=MemoryBackend(), **{name: opts[name] for name in _NODE_CHANGES})
+    return Checkpoints(root, {"n": spec.n, "m": spec.m, "source": spec.description,
+                              "identity": _identity(spec)})
+
+
+def _identity(spec: SourceSpec) -> str:
+    """Return what tells the data of a source apart beyond its description.
+
+    The bytes' digest of an in-memory array, a dask array's name (a digest of its graph),
+    a local file's size and modification time; for a URL, nothing (its description).
+    """
+    if spec.kind == "array":
+        return hashlib.sha256(np.ascontiguousarray(spec.obj).data).hexdigest()
+    if spec.kind == "dask":
+        return str(spec.obj.name)
+    path = spec.local_path()
+    if path is not None:
+        stat = os.stat(path)
+        return f"{stat.st_size}-{stat.st_mtime_ns}"
+    return ""

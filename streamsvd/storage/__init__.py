@@ -22,6 +22,10 @@ one:
   (:class:`streamsvd.storage.lease.Lease`) and the pointer switch use; they are implemented
   for ``s3://`` (through s3fs); other fsspec protocols can be read but not written.
 
+A storage pickles without the secrets of its ``storage_options`` (``key``, ``secret``,
+``token``, ...: :func:`without_secrets`): what dask sends to workers through the
+scheduler carries no credentials, and a worker reaches the store with its own.
+
 An object store needs the optional packages of the ``s3`` extra
 (``pip install 'streamsvd[s3]'``); a missing one is reported by name.
 
@@ -38,7 +42,7 @@ from typing import Any, Protocol
 
 from streamsvd.errors import InputError
 from streamsvd.storage.local import LocalStorage
-from streamsvd.storage.objects import ObjectStorage, remote_errors
+from streamsvd.storage.objects import ObjectStorage, remote_errors, without_secrets
 
 __all__ = [
     "PANELS",
@@ -48,6 +52,7 @@ __all__ = [
     "is_url",
     "open_storage",
     "remote_errors",
+    "without_secrets",
 ]
 
 PANELS = "panels"

@@ -1,6 +1,10 @@
 """A basis store's storage under a prefix of an object store (see :mod:`streamsvd.storage`).
 
-An object store has no rename: an overwrite is a single ``PUT``. Writing needs
+An object store has no rename: an overwrite is a single ``PUT``. Transient failures
+(throttling such as ``503 SlowDown``, other 5xx answers, dropped connections) are retried
+with a doubling back-off (:data:`RETRIES` attempts); every operation is idempotent, a
+conditional ``PUT`` refused because the server had applied the same write before the
+failure recognises its own bytes. Writing needs
 conditional writes (``If-None-Match: *``, ``If-Match: <ETag>``), implemented for
 ``s3://`` through s3fs; other fsspec protocols can be read but not written. A failure to
 reach the store is reported as a :class:`~streamsvd.errors.StoreError` naming it.
@@ -11,12 +15,13 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, TypeVar, cast
 
 from streamsvd.errors import InputError, OptionalDependencyError, StoreError
 
-__all__ = ["ObjectStorage", "remote_errors"]
+__all__ = ["SECRET_OPTIONS", "ObjectStorage", "remote_errors", "transient", "without_secrets"]
 
 logger = logging.getLogger(__name__)
 
@@ -48,14 +53,57 @@ def _reaching(named: str) -> Iterator[None]:
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 
+RETRIES = 6
+"""Attempts of an operation that fails transiently (:func:`transient`), backing off."""
+BACKOFF = 0.2
+"""Seconds before the second attempt, doubled for every further one (at most 10 s)."""
+
+_TRANSIENT_WORDS = (
+    "SlowDown", "reduce your request rate", "InternalError", "ServiceUnavailable",
+    "RequestTimeout", "Service Unavailable", "Internal Server Error", "Bad Gateway",
+    "Gateway Timeout", "Connection reset", "Connection was closed", "ConnectionClosed",
+    "EndpointConnectionError", "ReadTimeout", "timed out",
+)
+
+
+def transient(exc: BaseException) -> bool:
+    """Whether ``exc`` is an object-store failure worth retrying (throttling, 5xx, network).
+
+    Missing objects, refused preconditions and authorisation failures are not.
+    """
+    if isinstance(exc, FileNotFoundError | PermissionError) or _precondition_failed(exc):
+        return False
+    if isinstance(exc, TimeoutError | ConnectionError):
+        return True
+    text = f"{type(exc).__name__}: {exc}"
+    return any(word in text for word in _TRANSIENT_WORDS)
+
 
 def _reached(method: _F) -> _F:
-    """Run an :class:`ObjectStorage` method under :func:`_reaching`."""
+    """Run an :class:`ObjectStorage` method under :func:`_reaching`, retrying transients.
+
+    Every wrapped operation is idempotent (a read, a listing, a plain ``PUT``, a delete,
+    or a conditional ``PUT`` that recognises its own earlier write:
+    :meth:`ObjectStorage._conditional_put`), so a retry after a failure the server had
+    applied gives the same result.
+    """
 
     @functools.wraps(method)
     def wrapper(self: ObjectStorage, *args: Any, **kwargs: Any) -> Any:
+        errors: tuple[type[BaseException], ...] = (OSError, *remote_errors())
         with _reaching(self.named):
-            return method(self, *args, **kwargs)
+            for attempt in range(RETRIES):
+                try:
+                    return method(self, *args, **kwargs)
+                except errors as exc:
+                    if attempt == RETRIES - 1 or not transient(exc):
+                        raise
+                    delay = min(BACKOFF * 2 ** attempt, 10.0)
+                    logger.warning("%s: %s %s failed transiently (%s: %s); again in %.1f s",
+                                   self.named, method.__name__, args[:1], type(exc).__name__,
+                                   exc, delay)
+                    time.sleep(delay)
+            raise AssertionError("unreachable")  # pragma: no cover
 
     return cast(_F, wrapper)
 
@@ -91,6 +139,12 @@ class ObjectStorage:
 
         self.url = url.rstrip("/")
         self.storage_options = dict(storage_options)
+        if url.lower().startswith(("s3://", "s3a://")):
+            # botocore retries throttling (503 SlowDown) and 5xx answers of every request,
+            # zarr's included, with its standard back-off, unless the options say otherwise
+            config = dict(self.storage_options.get("config_kwargs") or {})
+            config.setdefault("retries", {"mode": "standard", "max_attempts": RETRIES})
+            self.storage_options["config_kwargs"] = config
         self.argument = argument
         self.named = f"`{argument}` {self.url}"
         try:
@@ -116,7 +170,9 @@ class ObjectStorage:
         return self.url
 
     def __reduce__(self) -> Any:
-        return (_rebuild, (self.url, self.storage_options, self.argument))
+        # what is pickled is sent to dask workers through the scheduler: no secrets; a
+        # worker uses its own credentials (environment, profile, instance role)
+        return (_rebuild, (self.url, without_secrets(self.storage_options), self.argument))
 
     def _full(self, key: str) -> str:
         return f"{self.path}/{key}" if key else self.path
@@ -182,11 +238,20 @@ class ObjectStorage:
                 "put_object", Bucket=bucket, Key=name, Body=data, **condition
             )
         except OSError as exc:
-            if _precondition_failed(exc):
-                return None
-            if isinstance(exc, FileNotFoundError) and "IfMatch" in condition:
-                return None  # If-Match on an object deleted meanwhile: not matched either
-            raise
+            refused = _precondition_failed(exc) or (
+                # If-Match on an object deleted meanwhile: not matched either
+                isinstance(exc, FileNotFoundError) and "IfMatch" in condition)
+            if not refused:
+                raise
+            # refused: by another writer's object, or by this very write, applied by the
+            # server before a failure made it (or the client) send it again; the object
+            # holds exactly these bytes only in the second case (a writer's objects name
+            # it: a lease its token, a pointer its generation)
+            mine = self.get_tagged(key)
+            if mine is not None and mine[0] == data:
+                logger.info("%s: %s was written by this writer already", self.named, key)
+                return mine[1]
+            return None
         return str(out["ETag"])
 
     def create(self, key: str, data: bytes) -> None:
@@ -248,6 +313,25 @@ class ObjectStorage:
         from streamsvd.storage.lease import Lease
 
         return Lease(self, key)
+
+
+SECRET_OPTIONS = frozenset({
+    "key", "secret", "token", "password", "session_token", "aws_access_key_id",
+    "aws_secret_access_key", "aws_session_token", "access_key", "secret_key",
+})
+"""Names of ``storage_options`` (at any depth) that are never pickled."""
+
+
+def without_secrets(options: Mapping[str, Any]) -> dict[str, Any]:
+    """Return ``options`` without the credentials of :data:`SECRET_OPTIONS` (at any depth).
+
+    What is left (``endpoint_url``, ``profile``, ``client_kwargs.region_name``, ...) is
+    what a worker needs besides its own credentials.
+    """
+    return {
+        name: (without_secrets(value) if isinstance(value, Mapping) else value)
+        for name, value in options.items() if name.lower() not in SECRET_OPTIONS
+    }
 
 
 def _rebuild(url: str, storage_options: dict[str, Any], argument: str) -> ObjectStorage:

@@ -7,7 +7,7 @@ import pytest
 from dask.system import CPU_COUNT
 
 import streamsvd._util.malloc as malloc
-from streamsvd.parallel import cluster as parallel
+from streamsvd.parallel import tall as parallel
 from streamsvd.parallel import tree as parallel_tree
 
 

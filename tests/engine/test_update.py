@@ -269,7 +269,7 @@ def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
     the leaves are rejected relative to the energy they carry, so the tree's rank is the
     stream's; a merge task returns a new compressor and leaves both inputs as they were."""
     from streamsvd.parallel.cluster import tree_compress
-    from streamsvd.parallel.tree import _merge_pair
+    from streamsvd.parallel.tree_graph import _merge_pair
 
     A = with_spectrum(np.logspace(0, -10, 80), 4000, 240, rng)
     opts = dict(rule="jacobi", sweeps=None)

@@ -273,7 +273,7 @@ def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, 
 def test_the_root_merge_loads_the_sweep_kernels_that_finalize_needs(rng, monkeypatch):
     """On the threaded scheduler the root's merge (only it: the leaves keep both cores
     busy) starts loading the compiled sweep kernels, which the root's ``finalize`` uses."""
-    import streamsvd.parallel.tree as parallel_tree
+    import streamsvd.parallel.tree_graph as parallel_tree
 
     calls = []
     monkeypatch.setattr(parallel_tree, "load_kernels_in_background",

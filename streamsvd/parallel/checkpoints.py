@@ -1,0 +1,121 @@
+"""The tree's checkpoints: every finished leaf and merge committed beside the store.
+
+A tree with a ``store`` writes each node it finishes (a leaf, a merge) as a basis store of
+its own under ``<store>.tree/<node>`` (a directory beside a local store, a prefix beside
+an ``s3://`` one), from the worker that computed it. A store's creation is atomic (its
+pointer is written last, :mod:`streamsvd.store.create`): a node killed while it is
+written does not exist, never half of it. The same call run again (after a crash of a
+worker, of the client, or a kill) finds the plan it wrote (``plan.json``: the source's
+shape and description, the columns, ``block``, the leaves' width and the options) and
+builds its graph from the top: a node already committed is loaded, and nothing below
+it is computed or read again. The loaded nodes are the computed ones bit for bit, so the
+resumed result is the uninterrupted one. Another plan (other data, other options)
+replaces the checkpoints. They are removed once the root is committed to the store.
+
+The client is therefore not a single point of failure for the finished work: what the
+workers committed stays, whoever asks for it next.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from typing import Any
+
+from streamsvd.algebra.memory import MemoryBackend
+from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
+from streamsvd.store import POINTER_NAME
+from streamsvd.stream.compressor import StreamCompressor
+
+__all__ = ["Checkpoints", "checkpoints_beside", "child_storage"]
+
+logger = logging.getLogger(__name__)
+
+PLAN = "plan.json"
+SUFFIX = ".tree"
+
+
+def checkpoints_beside(store: LocalStorage | ObjectStorage) -> LocalStorage | ObjectStorage:
+    """Return the storage of the checkpoints of a tree writing ``store``: ``<store>.tree``."""
+    if isinstance(store, LocalStorage):
+        return LocalStorage(store.root.with_name(store.root.name + SUFFIX))
+    return open_storage(store.url + SUFFIX, storage_options=store.storage_options or None,
+                        argument="store")
+
+
+def child_storage(root: LocalStorage | ObjectStorage, name: str
+                  ) -> LocalStorage | ObjectStorage:
+    """Return the storage of ``root``'s sub-directory or prefix ``name`` (same options)."""
+    if isinstance(root, LocalStorage):
+        return LocalStorage(root.root / name)
+    return open_storage(f"{root.url}/{name}", storage_options=root.storage_options or None,
+                        argument="store")
+
+
+class Checkpoints:
+    """The committed nodes of one tree (see the module docstring); picklable.
+
+    Parameters
+    ----------
+    root : LocalStorage or ObjectStorage
+        Where the nodes live (:func:`checkpoints_beside`).
+    plan : dict
+        What the tree computes (JSON-serialisable): checkpoints of another plan are
+        removed by :meth:`start`.
+    """
+
+    def __init__(self, root: LocalStorage | ObjectStorage, plan: dict[str, Any]) -> None:
+        self.root = root
+        self.plan = plan
+        self.done: frozenset[str] = frozenset()
+
+    @staticmethod
+    def fingerprint(options: dict[str, Any]) -> str:
+        """Return a digest of a tree's node options (the inner product by its fingerprint)."""
+        described = {k: (getattr(v, "fingerprint", None) or repr(v)) if k == "inner" else v
+                     for k, v in sorted(options.items())}
+        return hashlib.sha256(repr(described).encode()).hexdigest()[:16]
+
+    def start(self) -> frozenset[str]:
+        """Keep the nodes of this plan (removing another plan's); return the committed ones."""
+        wanted = json.dumps(self.plan, sort_keys=True).encode()
+        try:
+            found = self.root.get(PLAN)
+        except (FileNotFoundError, OSError):
+            found = None
+        if found is not None and found != wanted:
+            logger.warning("checkpoints at %s belong to another tree: removed", self.root.url)
+            self.root.delete("")
+            found = None
+        if found is None:
+            self.root.prepare()
+            self.root.put(PLAN, wanted)
+            self.done = frozenset()
+            return self.done
+        names = [name for name in self.root.list("") if name != PLAN]
+        self.done = frozenset(name for name in names
+                              if POINTER_NAME in self.root.list(name))
+        if self.done:
+            logger.info("%d committed nodes found at %s: resumed from them",
+                        len(self.done), self.root.url)
+        return self.done
+
+    def save(self, name: str, sc: StreamCompressor) -> None:
+        """Commit node ``name`` (on the worker that computed it); ``sc`` is unchanged."""
+        place = child_storage(self.root, name)
+        place.delete("")  # what a killed writer of this node left (never a committed node)
+        copy = sc._copy_with()
+        try:
+            copy.save(place)
+        finally:
+            copy.close(finalize=False)
+
+    def load(self, name: str) -> StreamCompressor:
+        """Return the committed node ``name``, in memory, as it was computed."""
+        with StreamCompressor.open(child_storage(self.root, name), mode="r") as stored:
+            return stored._copy_with(backend=MemoryBackend(compact_in_place=True))
+
+    def remove(self) -> None:
+        """Remove every checkpoint (the root is committed to the store)."""
+        self.root.delete("")
