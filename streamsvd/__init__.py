@@ -56,7 +56,9 @@ if TYPE_CHECKING:
     from streamsvd.linalg.rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
     from streamsvd.storage import open_storage
     from streamsvd.store import BasisStore, open_store
+    from streamsvd.dynamics import DMDResult
     from streamsvd.stream.compressor import StreamCompressor, UpdateRecord
+    from streamsvd.stream.dynamics import dmd
 
 from streamsvd._version import __version__
 
@@ -81,6 +83,8 @@ _LAZY = {
     "pair_dynamics": "linalg.rotations",
     "rotate_pair": "linalg.rotations",
     "StreamCompressor": "stream.compressor",
+    "dmd": "stream.dynamics",
+    "DMDResult": "dynamics",
     "BasisStore": "store",
     "open_store": "store",
     "open_storage": "storage",
@@ -89,7 +93,7 @@ _LAZY = {
 
 # the layers, reachable as attributes (``streamsvd.store``) without importing them first
 _SUBPACKAGES = frozenset({
-    "algebra", "cli", "engine", "errors", "io", "linalg", "parallel", "plotting",
+    "algebra", "cli", "dynamics", "engine", "errors", "io", "linalg", "parallel", "plotting",
     "sklearn", "storage", "store", "stream", "testing",
 })
 
@@ -179,6 +183,7 @@ __all__ = [
     "BasisStore",
     "BrokenStateError",
     "CompressResult",
+    "DMDResult",
     "ConvergenceError",
     "DiagonalInner",
     "Euclidean",
@@ -206,6 +211,7 @@ __all__ = [
     "__version__",
     "as_inner",
     "compress",
+    "dmd",
     "orthonormalize",
     "open_store",
     "open_storage",
