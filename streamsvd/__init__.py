@@ -46,6 +46,7 @@ if TYPE_CHECKING:
         MatrixInner,
         as_inner,
     )
+    from streamsvd.dynamics import DMDResult
     from streamsvd.linalg.compress import CompressResult, SweepState, compress
     from streamsvd.linalg.expansion import Expansion
     from streamsvd.linalg.gram_schmidt import (
@@ -56,7 +57,6 @@ if TYPE_CHECKING:
     from streamsvd.linalg.rotations import PairDynamics, PairRotation, pair_dynamics, rotate_pair
     from streamsvd.storage import open_storage
     from streamsvd.store import BasisStore, open_store
-    from streamsvd.dynamics import DMDResult
     from streamsvd.stream.compressor import StreamCompressor, UpdateRecord
     from streamsvd.stream.dynamics import dmd
 

@@ -19,7 +19,8 @@ state, each update's run and commit, the store), an
 :class:`~streamsvd.stream.updates.Updates` (``absorb``, ``add``, ``merge``,
 ``finalize``), a :class:`~streamsvd.stream.window.Window` (``remove``, the window,
 forgetting), an :class:`~streamsvd.stream.view.ExpansionView` (every read-only
-attribute) and a :class:`~streamsvd.stream.dynamics.Dynamics` (``dmd``); its options are :class:`~streamsvd.stream.options.CompressorOptions`.
+attribute) and a :class:`~streamsvd.stream.dynamics.Dynamics` (``dmd``); its options
+are :class:`~streamsvd.stream.options.CompressorOptions`.
 
 Store contents: besides the state, the first commit writes the data of the inner
 product (weights, a dense matrix or a sparse one's CSR arrays), which later commits

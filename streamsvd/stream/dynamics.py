@@ -136,7 +136,8 @@ def dmd(source: Any, *, rank: int | None = None, rtol: float | None = None,
         A store or compressor without right vectors (name the option
         ``right_vectors``/``dynamics``), or fewer than two snapshots.
     """
-    options = {"rank": rank, "rtol": rtol, "model_error": model_error, "dt": dt}
+    options: dict[str, Any] = {"rank": rank, "rtol": rtol, "model_error": model_error,
+                               "dt": dt}
     if hasattr(source, "dmd"):
         return source.dmd(modes=modes, **options)
     if hasattr(source, "U") and hasattr(source, "V"):
