@@ -67,14 +67,14 @@ def run(args: Any) -> int:
         _check_npz(args.modes, "--modes")
     want_basis = args.modes is not None or steps is not None
     with open_readonly(args.store, inner=load_inner(args)) as sc:
-        if sc.right_vectors is False:
+        if not sc.options.right_vectors:
             raise InputError(
                 f"STORE {args.store} keeps no right vectors, from which `dmd` reads the "
                 "snapshot pairs; write it with `streamsvd ingest --dynamics`."
             )
         res = sc.dmd(rank=args.rank, rtol=args.rtol, model_error=args.model_error,
                      dt=args.dt, modes=want_basis)
-        recorded = bool(sc.dynamics)
+        recorded = bool(sc.options.dynamics)
     import numpy as np
 
     if args.modes is not None:
