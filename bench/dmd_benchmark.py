@@ -179,26 +179,24 @@ def cost(ns: list[int], m: int, b: int, noise: float, seed: int, repeat: int,
         sysm = system(n, seed)
         k = sysm.D.shape[0]
         runs: dict[str, list[tuple[float, float]]] = {}
-
-        def keep(name: str, cpu: float, peak: float) -> None:
-            runs.setdefault(name, []).append((cpu, peak))
-
         for _ in range(repeat):
             for dyn in (True, False):
                 _, peak, (sc, _, cpu) = measured(
-                    lambda dyn=dyn: stream(sysm, m, b, noise, seed, dynamics=dyn, query=False))
-                keep("stream_dynamics" if dyn else "stream_plain", cpu, peak)
+                    lambda s=sysm, d=dyn: stream(s, m, b, noise, seed, dynamics=d, query=False))
+                runs.setdefault("stream_dynamics" if dyn else "stream_plain", []).append(
+                    (cpu, peak))
                 if dyn:
-                    qcpu, qpeak, _ = measured(lambda sc=sc: sc.dmd(rank=k, modes=False))
-                    keep("stream_query", qcpu, qpeak)
+                    qcpu, qpeak, _ = measured(lambda sc=sc, k=k: sc.dmd(rank=k, modes=False))
+                    runs.setdefault("stream_query", []).append((qcpu, qpeak))
             if n * m <= pydmd_max:
                 X = whole(sysm, m, noise, seed)
-                cpu, peak, _ = measured(lambda X=X: pydmd_eigs(X, k))
-                keep("pydmd", cpu, peak + X.nbytes / 1e6)  # the matrix it needs, made outside
+                cpu, peak, _ = measured(lambda X=X, k=k: pydmd_eigs(X, k))
+                # with the matrix it needs, made outside the measurement
+                runs.setdefault("pydmd", []).append((cpu, peak + X.nbytes / 1e6))
                 del X
             if n <= odmd_max_n:
-                cpu, peak, _ = measured(lambda: odmd_full(sysm, m, noise, seed))
-                keep("odmd_full", cpu, peak)
+                cpu, peak, _ = measured(lambda s=sysm: odmd_full(s, m, noise, seed))
+                runs.setdefault("odmd_full", []).append((cpu, peak))
         row: dict[str, Any] = {"n": n, "m": m, "b": b}
         for name, vals in runs.items():
             arr = np.array(vals)
