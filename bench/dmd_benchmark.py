@@ -108,13 +108,22 @@ def odmd_full(sysm: LinearSystem, m: int, noise: float, seed: int) -> np.ndarray
     from odmd import OnlineDMD
 
     n = sysm.Q.shape[0]
-    X = whole(sysm, m, noise, seed)
-    if m - 1 < n + 1 or np.linalg.matrix_rank(X[:, :n]) < n:
+    if m - 1 < n + 1:
+        return None
+    cols = blocks(sysm, m, 100, noise, seed)  # made as they are needed, as the stream's
+    first = [next(cols)]
+    while sum(x.shape[1] for x in first) < n + 1:
+        first.append(next(cols))
+    X = np.hstack(first)
+    if np.linalg.matrix_rank(X[:, :n]) < n:
         return None
     model = OnlineDMD(n, 1.0)
     model.initialize(X[:, :n], X[:, 1:n + 1])
-    for j in range(n, m - 1):
-        model.update(X[:, j], X[:, j + 1])
+    prev = X[:, n]
+    for B in [X[:, n + 1:], *cols]:
+        for j in range(B.shape[1]):
+            model.update(prev, B[:, j])
+            prev = B[:, j]
     return np.asarray(np.linalg.eigvals(model.A))
 
 
