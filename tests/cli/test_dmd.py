@@ -53,3 +53,16 @@ def test_dmd_refusals(tmp_path, trajectory, capsys):
     assert main(["ingest", str(tmp_path / "x.npy"), str(tmp_path / "t.zarr"), "--dynamics",
                  "--scheduler", "threads", "--quiet"]) == 2
     assert "--dynamics applies to the in-memory and tall modes only" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # dask and panels on disk
+def test_dmd_of_a_tall_store(tmp_path, trajectory, capsys):
+    store = str(tmp_path / "t.zarr")
+    assert main(["ingest", str(tmp_path / "x.npy"), store, "--dynamics", "--tall",
+                 "--block", "20", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["dmd", store, "--json", "--forecast", "2", str(tmp_path / "f.npz")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    lam = np.array([complex(*z) for z in out["eigenvalues"]])
+    assert np.max(match_eigenvalues(lam, trajectory.eigenvalues)) < 1e-12
+    assert np.load(tmp_path / "f.npz")["forecast"].shape == (40, 2)
