@@ -218,6 +218,22 @@ def cost(ns: list[int], m: int, b: int, noise: float, seed: int, repeat: int,
     return rows
 
 
+def memory_vs_m(n: int, ms: list[int], b: int, noise: float, seed: int
+                ) -> list[dict[str, Any]]:
+    """Peak of the memory the stream allocates (and its query's) against the stream's length."""
+    sysm = system(n, seed)
+    k = sysm.D.shape[0]
+    rows = []
+    for m in ms:
+        cpu, peak, (sc, _, _) = measured(
+            lambda m=m: stream(sysm, m, b, noise, seed, query=False))
+        qcpu, qpeak, _ = measured(lambda sc=sc: sc.dmd(rank=k, modes=False))
+        rows.append({"n": n, "m": m, "b": b, "peak_mb": peak, "query_peak_mb": qpeak,
+                     "cpu_per_snapshot": cpu / m, "query_cpu": qcpu,
+                     "n_k_plus_b_mb": n * (2 * k + b) * 8 / 1e6})
+    return rows
+
+
 def figure(path: Any, acc: list[dict[str, Any]], sysm: LinearSystem, shown: float) -> None:
     """Eigenvalues with their eta discs at noise ``shown``; error against noise."""
     plt = pyplot()
@@ -269,9 +285,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--pydmd-max-entries", type=float, default=4e7)
     ap.add_argument("--odmd-max-n", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--memory-m", default=None,
+                    help="only measure the stream's peak memory at --cost-n's first n for "
+                    "these stream lengths (comma-separated); writes dmd_benchmark_memory.json")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     out = out_dir(args.out)
+    if args.memory_m is not None:
+        rows = memory_vs_m(int(args.cost_n.split(",")[0]),
+                           [int(x) for x in args.memory_m.split(",")], args.block,
+                           args.cost_noise, args.seed)
+        print_table(["n", "m", "peak MB", "query peak MB", "n (2k + b) 8 bytes, MB"],
+                    [[r["n"], r["m"], f"{r['peak_mb']:.1f}", f"{r['query_peak_mb']:.2f}",
+                      f"{r['n_k_plus_b_mb']:.1f}"] for r in rows], title="peak memory")
+        record.write(out / "dmd_benchmark_memory.json", {"memory": rows})
+        return {"memory": rows}
     noises = [float(x) for x in args.noises.split(",")]
     acc = accuracy(args.n, args.m, args.block, noises, args.seed)
     print_table(["noise", "delta", "stream", "max eta", "certified", "PyDMD", "odmd POD",
