@@ -1,10 +1,14 @@
 """The dynamics of a stream: trajectories and the DMD query of a compressor.
 
 :class:`Dynamics` is the part of the :class:`~streamsvd.StreamCompressor` facade that
-answers :meth:`Dynamics.dmd`. The snapshot pairs are read from the right vectors at query
-time (``V = Y R``, the rows of the snapshots still in the expansion), reduced to their
-``2k x 2k`` triangular factor (``O(m k^2)``, :mod:`streamsvd.dynamics.pairs`), then solved
-and certified in ``O(k^3)`` (:mod:`streamsvd.dynamics.solve`). The trajectories are the
+answers :meth:`Dynamics.dmd`. The snapshot pairs come from the right vectors ``V = V0 Vp R``
+(:mod:`streamsvd.engine.rows`): the triangular factor of the pairs of the stored rows
+``V0``, which only grow between two rewrites, is extended by the rows stored since the
+last query and multiplied by ``Vp R`` (:class:`_StoredPairs`: nothing in the number of
+snapshots); after a removal the pairs are read from ``V`` (``O(m k^2)``). Either way
+they are reduced to their ``2k x 2k`` triangular factor
+(:mod:`streamsvd.dynamics.pairs`), then solved and certified in ``O(k^3)``
+(:mod:`streamsvd.dynamics.solve`). The trajectories are the
 :class:`~streamsvd.stream.lifecycle.Lifecycle`'s (the absorption indices where one
 starts, committed with every update); a removal between two snapshots breaks their pair,
 so ``remove()`` of a middle column splits a trajectory in two.
@@ -16,15 +20,24 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from streamsvd.dynamics import DMDResult, dmd_from_pairs, pair_factor, pair_positions
+from streamsvd.dynamics import (
+    DMDResult,
+    PairFactor,
+    dmd_from_pairs,
+    pair_factor,
+    pair_positions,
+)
 from streamsvd.engine.downdate import intervals_skip
 from streamsvd.errors import InputError
 
 if TYPE_CHECKING:
+    from streamsvd.engine.rows import RightFactor
     from streamsvd.stream.lifecycle import Lifecycle
     from streamsvd.stream.view import ExpansionView
 
 __all__ = ["Dynamics", "dmd"]
+
+_CHUNK = 2048  # stored rows factored at once
 
 
 class Dynamics:
@@ -40,6 +53,7 @@ class Dynamics:
 
     def __init__(self, life: Lifecycle, view: ExpansionView) -> None:
         self._life, self._view = life, view
+        self._stored: _StoredPairs | None = None
 
     @property
     def trajectory_starts(self) -> np.ndarray:
@@ -47,6 +61,26 @@ class Dynamics:
         starts = self._life.trajectory_starts
         return np.concatenate([[0], starts]).astype(np.int64) if self._life.state.m or \
             starts.size else np.zeros(0, dtype=np.int64)
+
+    def pairs(self) -> PairFactor:
+        """Return the pair factor of the snapshots in the expansion (module docstring).
+
+        Without removals, from the factor of the stored rows' pairs, kept up to date here
+        (:class:`_StoredPairs`); after a removal, from ``V`` (``O(m k^2)``).
+        """
+        life = self._life
+        rows = life.state.rows
+        assert rows is not None
+        if rows.dead.size or life.removed.size:
+            self._stored = None
+            V = self._view.right_factor()
+            first, second = pair_positions(self.absorbed_indices(), life.trajectory_starts)
+            return pair_factor(V, first, second)
+        stored = self._stored
+        if stored is None or not stored.valid(rows, life.trajectory_starts):
+            stored = self._stored = _StoredPairs(rows.rewrites)
+        stored.extend(rows, life.trajectory_starts)
+        return stored.factor(rows, life.state.settled()[2])
 
     def absorbed_indices(self) -> np.ndarray:
         """Return the absorption index of each snapshot in the expansion (row of ``V``)."""
@@ -96,18 +130,70 @@ class Dynamics:
                 "StreamCompressor keeps none (`right_vectors=False`); create it with "
                 "`dynamics=True` (or `right_vectors=True`)."
             )
-        V = self._view.right_factor()
-        first, second = pair_positions(self.absorbed_indices(), life.trajectory_starts)
+        pairs = self.pairs()
         basis = None
         if modes and life.state.rank:
             coords = life.state.settled()[0]
             basis = np.asarray(life.state.basis.lincomb(coords))
         return dmd_from_pairs(
-            pair_factor(V, first, second), rank=rank, rtol=rtol,
+            pairs, rank=rank, rtol=rtol,
             error_bound=self._view.error_bound, model_error=model_error,
             orthogonality=life.state.orthogonality(), forget=life.options.forget, dt=dt,
             basis=basis,
         )
+
+
+
+class _StoredPairs:
+    """The triangular factor of the pairs of *stored* rows ``[V0_first, V0_second]``.
+
+    ``V = V0 Vp R`` and the stored rows ``V0`` only grow between two rewrites (a rebase or
+    a replacement, :mod:`streamsvd.engine.rows`), new columns being zero in old rows. So
+    the factor of the pairs of stored rows is extended by the rows appended since the last
+    query (``O(b w^2)``), and the pair factor of ``V`` is that of ``T0 blockdiag(Vp R,
+    Vp R)`` (``O(w^2 k)``): nothing in the number of snapshots. Valid while no snapshot
+    was removed (then stored row ``i`` is snapshot ``i``).
+    """
+
+    def __init__(self, rewrites: int) -> None:
+        self.rewrites, self.done, self.width = rewrites, 0, 0
+        self.T0 = np.zeros((0, 0))
+        self.pairs = 0
+        self.starts_seen = 0
+
+    def valid(self, rows: RightFactor, starts: np.ndarray) -> bool:
+        """Whether the factor still describes the stored rows (no rewrite, no late start)."""
+        late = starts[self.starts_seen:]
+        return (rows.rewrites == self.rewrites and rows.m >= self.done
+                and not np.any(late < self.done))
+
+    def extend(self, rows: RightFactor, starts: np.ndarray) -> None:
+        """Add the pairs that end in the rows stored since the last call."""
+        V0 = rows.V0
+        m, w = V0.shape
+        if w > self.width:  # new columns: zero in the rows already factored
+            half = self.width
+            pad = np.zeros((self.T0.shape[0], w - half))
+            self.T0 = np.hstack([self.T0[:, :half], pad, self.T0[:, half:], pad])
+            self.width = w
+        ends = np.arange(max(self.done, 1), m)
+        ends = ends[~np.isin(ends, starts)]
+        for c in range(0, ends.size, _CHUNK):  # in chunks: the memory stays O(chunk w)
+            part = ends[c:c + _CHUNK]
+            new = np.hstack([V0[part - 1], V0[part]])
+            self.T0 = np.linalg.qr(np.vstack([self.T0, new]), mode="r")
+            self.pairs += int(part.size)
+        self.done, self.starts_seen = m, int(starts.size)
+
+    def factor(self, rows: RightFactor, R: np.ndarray) -> PairFactor:
+        """Return the pair factor of ``V = V0 Vp R``."""
+        F = rows.Vp @ R
+        k, w = F.shape[1], self.width
+        last = rows.V0[-1] @ F if rows.m else np.zeros(k)
+        if self.pairs == 0:
+            return PairFactor(np.zeros((0, 2 * k)), 0, last)
+        T = np.linalg.qr(np.hstack([self.T0[:, :w] @ F, self.T0[:, w:] @ F]), mode="r")
+        return PairFactor(T, self.pairs, last)
 
 
 def dmd(source: Any, *, rank: int | None = None, rtol: float | None = None,

@@ -122,3 +122,29 @@ def test_store_without_right_vectors_refuses(rng, tmp_path):
         sc.absorb(rng.standard_normal((10, 5)))
     with pytest.raises(ss.InputError, match="`right_vectors=False`"):
         ss.dmd(path)
+
+
+@pytest.mark.parametrize("options", [{}, {"forget": 0.98}, {"max_rank": 3, "oversampling": 1},
+                                     {"sweeps": None, "rule": "jacobi"}])
+def test_carried_pair_factor_equals_the_pairs_read_from_v(rng, options):
+    """Queries between updates extend the stored rows' factor: equal to reading V whole."""
+    from streamsvd.dynamics import dmd_from_pairs, pair_factor, pair_positions
+
+    sysm = normal_system(40, np.array([0.99, 0.9, 0.8]), np.array([0.3, 1.1, 2.0]), rng,
+                         real=np.array([0.5]))
+    X = sysm.trajectory(rng.standard_normal(7), 150, noise=1e-6, rng=rng)
+    sc = ss.StreamCompressor(40, dynamics=True, **options)
+    for j in range(0, 150, 10):
+        sc.absorb(X[:, j:j + 10], new_trajectory=j == 70)
+        if j == 100:  # an increment over every row: Y is written anew (a rewrite)
+            sc.add(1e-3 * rng.standard_normal((40, 1)), rng.standard_normal((sc.n_seen, 1)))
+        if j % 30 == 0 or j == 140:
+            got = sc.dmd(modes=False)
+            V = sc._view.right_factor()
+            first, second = pair_positions(np.arange(sc.n_seen), sc._life.trajectory_starts)
+            ref = dmd_from_pairs(pair_factor(V, first, second), error_bound=sc.error_bound,
+                                 orthogonality=sc.orthogonality_error(), forget=sc.forget)
+            assert got.pairs == ref.pairs
+            scale = np.max(np.abs(ref.eigenvalues))
+            assert np.max(match_eigenvalues(got.eigenvalues, ref.eigenvalues)) < 1e-9 * scale
+    assert sc._life.state.rows.rewrites > 0  # the factor was rebuilt on the way
