@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from streamsvd._util.threads import blas_threads
 from streamsvd.dynamics import (
     DMDResult,
     PairFactor,
@@ -130,19 +131,18 @@ class Dynamics:
                 "StreamCompressor keeps none (`right_vectors=False`); create it with "
                 "`dynamics=True` (or `right_vectors=True`)."
             )
-        pairs = self.pairs()
-        basis = None
-        if modes and life.state.rank:
-            coords = life.state.settled()[0]
-            basis = np.asarray(life.state.basis.lincomb(coords))
-        return dmd_from_pairs(
-            pairs, rank=rank, rtol=rtol,
-            error_bound=self._view.error_bound, model_error=model_error,
-            orthogonality=life.state.orthogonality(), forget=life.options.forget, dt=dt,
-            basis=basis,
-        )
-
-
+        with blas_threads(life.threads):  # as an update runs (default: 1 thread)
+            pairs = self.pairs()
+            basis = None
+            if modes and life.state.rank:
+                coords = life.state.settled()[0]
+                basis = np.asarray(life.state.basis.lincomb(coords))
+            return dmd_from_pairs(
+                pairs, rank=rank, rtol=rtol,
+                error_bound=self._view.error_bound, model_error=model_error,
+                orthogonality=life.state.orthogonality(), forget=life.options.forget, dt=dt,
+                basis=basis,
+            )
 
 class _StoredPairs:
     """The triangular factor of the pairs of *stored* rows ``[V0_first, V0_second]``.
@@ -181,7 +181,7 @@ class _StoredPairs:
         for c in range(0, ends.size, _CHUNK):  # in chunks: the memory stays O(chunk w)
             part = ends[c:c + _CHUNK]
             new = np.hstack([V0[part - 1], V0[part]])
-            self.T0 = np.linalg.qr(np.vstack([self.T0, new]), mode="r")
+            self.T0 = np.asarray(np.linalg.qr(np.vstack([self.T0, new]), mode="r"))
             self.pairs += int(part.size)
         self.done, self.starts_seen = m, int(starts.size)
 
@@ -192,7 +192,8 @@ class _StoredPairs:
         last = rows.V0[-1] @ F if rows.m else np.zeros(k)
         if self.pairs == 0:
             return PairFactor(np.zeros((0, 2 * k)), 0, last)
-        T = np.linalg.qr(np.hstack([self.T0[:, :w] @ F, self.T0[:, w:] @ F]), mode="r")
+        T = np.asarray(np.linalg.qr(np.hstack([self.T0[:, :w] @ F, self.T0[:, w:] @ F]),
+                                    mode="r"))
         return PairFactor(T, self.pairs, last)
 
 
