@@ -188,7 +188,8 @@ def _check_mode_options(args: Any, mode: Mode) -> None:
     for given, flag, cannot in (
         (args.window, "--window", "drop or weight the oldest snapshots"),
         (args.forget, "--forget", "drop or weight the oldest snapshots"),
-        (args.dynamics, "--dynamics", "record the snapshot pairs"),
+        (args.dynamics, "--dynamics", "record trajectories (a tree store keeps its right "
+         "vectors in order, which `streamsvd dmd STORE` reads without it)"),
     ):
         if given is not None and mode == "tree":
             raise InputError(

@@ -66,3 +66,16 @@ def test_dmd_of_a_tall_store(tmp_path, trajectory, capsys):
     lam = np.array([complex(*z) for z in out["eigenvalues"]])
     assert np.max(match_eigenvalues(lam, trajectory.eigenvalues)) < 1e-12
     assert np.load(tmp_path / "f.npz")["forecast"].shape == (40, 2)
+
+
+@pytest.mark.slow  # a tree on dask
+def test_dmd_of_a_tree_store_reads_its_right_vectors_in_order(tmp_path, trajectory, capsys):
+    store = str(tmp_path / "t.zarr")
+    assert main(["ingest", str(tmp_path / "x.npy"), store, "--scheduler", "threads",
+                 "--block", "10", "--leaf-columns", "20", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["dmd", store, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    lam = np.array([complex(*z) for z in out["eigenvalues"]])
+    assert out["pairs"] == 59 and not out["dynamics_recorded"]
+    assert np.max(match_eigenvalues(lam, trajectory.eigenvalues)) < 1e-12
