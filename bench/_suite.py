@@ -244,6 +244,28 @@ STUDIES: tuple[Study, ...] = (
               ("peak RSS MB", "peak_rss_mb", ".0f"), ("CPU s", "cpu_seconds", ".1f"),
               ("err / opt", "error_over_optimum", ".9f"), ("load", "load_before", ".1f"),
           ]),)),
+    Study("dmd-benchmark", "Streaming DMD against PyDMD and odmd", ("dmd_benchmark",),
+          shown=("dmd_benchmark.png",), files=("dmd_benchmark*",),
+          tables=(
+              table("dmd_benchmark.json", "accuracy", [
+                  ("noise", "noise", ".0e"), ("delta", "delta", ".2e"),
+                  ("stream error", "stream", ".2e"), ("stream max eta", "stream_max_eta", ".2e"),
+                  ("certified", "stream_certified"), ("PyDMD error", "pydmd", ".2e"),
+                  ("odmd POD error", "odmd_pod", ".2e"), ("odmd full error", "odmd_full", ".2e"),
+              ], "largest eigenvalue error"),
+              table("dmd_benchmark.json", "cost", [
+                  ("n", "n"), ("m", "m"),
+                  ("stream ms/snap", "stream_dynamics/cpu_per_snapshot", ".3f", 1e3),
+                  ("stream MB", "stream_dynamics/peak_mb", ".1f"),
+                  ("no dynamics ms/snap", "stream_plain/cpu_per_snapshot", ".3f", 1e3),
+                  ("dyn / plain", "dynamics_over_plain", ".2f"),
+                  ("query ms", "stream_query/cpu_per_snapshot", ".1f", 1e3),
+                  ("PyDMD ms/snap", "pydmd/cpu_per_snapshot", ".3f", 1e3),
+                  ("PyDMD MB", "pydmd/peak_mb", ".0f"),
+                  ("odmd ms/snap", "odmd_full/cpu_per_snapshot", ".3f", 1e3),
+                  ("odmd MB", "odmd_full/peak_mb", ".0f"),
+              ], "cost (CPU; peak of the memory allocated)"),
+          )),
     Study("dask", "On dask (out of core, cluster)", ("bench_dask",),
           shown=("bench_dask.png",), files=("bench_dask*",),
           tables=(table("bench_dask.json", "runs", [

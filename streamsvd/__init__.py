@@ -46,6 +46,7 @@ if TYPE_CHECKING:
         MatrixInner,
         as_inner,
     )
+    from streamsvd.dynamics import DMDResult
     from streamsvd.linalg.compress import CompressResult, SweepState, compress
     from streamsvd.linalg.expansion import Expansion
     from streamsvd.linalg.gram_schmidt import (
@@ -57,6 +58,7 @@ if TYPE_CHECKING:
     from streamsvd.storage import open_storage
     from streamsvd.store import BasisStore, open_store
     from streamsvd.stream.compressor import StreamCompressor, UpdateRecord
+    from streamsvd.stream.dynamics import dmd
 
 from streamsvd._version import __version__
 
@@ -81,6 +83,8 @@ _LAZY = {
     "pair_dynamics": "linalg.rotations",
     "rotate_pair": "linalg.rotations",
     "StreamCompressor": "stream.compressor",
+    "dmd": "stream.dynamics",
+    "DMDResult": "dynamics",
     "BasisStore": "store",
     "open_store": "store",
     "open_storage": "storage",
@@ -89,7 +93,7 @@ _LAZY = {
 
 # the layers, reachable as attributes (``streamsvd.store``) without importing them first
 _SUBPACKAGES = frozenset({
-    "algebra", "cli", "engine", "errors", "io", "linalg", "parallel", "plotting",
+    "algebra", "cli", "dynamics", "engine", "errors", "io", "linalg", "parallel", "plotting",
     "sklearn", "storage", "store", "stream", "testing",
 })
 
@@ -179,6 +183,7 @@ __all__ = [
     "BasisStore",
     "BrokenStateError",
     "CompressResult",
+    "DMDResult",
     "ConvergenceError",
     "DiagonalInner",
     "Euclidean",
@@ -206,6 +211,7 @@ __all__ = [
     "__version__",
     "as_inner",
     "compress",
+    "dmd",
     "orthonormalize",
     "open_store",
     "open_storage",

@@ -1,4 +1,4 @@
-"""Command line: ``streamsvd ingest | info | export | plot | check``.
+"""Command line: ``streamsvd ingest | info | export | plot | check | dmd``.
 
 Output. A command's result (the JSON summary of ``ingest``, the report of ``info``, the
 ``wrote ...`` line of ``export`` and ``plot``) is the only thing written to stdout;
@@ -21,7 +21,8 @@ command that needs them, so ``streamsvd --help`` answers at once.
 
 Modules. :mod:`~streamsvd.cli.parsing` (the arguments), :mod:`~streamsvd.cli.ingest`
 (``ingest``), :mod:`~streamsvd.cli.reading` (``info``, ``export``, ``plot``,
-``check``), :mod:`~streamsvd.cli.printing` (results on stdout) and
+``check``), :mod:`~streamsvd.cli.dmd` (``dmd``), :mod:`~streamsvd.cli.printing`
+(results on stdout) and
 :mod:`~streamsvd.cli.wording` (errors in the words of the command line); :func:`main`
 runs a command.
 """
@@ -35,7 +36,7 @@ import sys
 import traceback
 import warnings
 
-from streamsvd.cli import ingest, reading
+from streamsvd.cli import dmd, ingest, reading
 from streamsvd.cli.parsing import build_parser, locate
 from streamsvd.cli.types import CONVERGE
 from streamsvd.cli.wording import failed, interrupted
@@ -48,7 +49,7 @@ __all__ = ["CONVERGE", "main"]
 _BROKEN_PIPE = 141
 
 _COMMANDS = {"ingest": ingest.run, "info": reading.info, "export": reading.export,
-             "plot": reading.plot, "check": reading.check}
+             "plot": reading.plot, "check": reading.check, "dmd": dmd.run}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -194,7 +194,7 @@ def diagonal_as_weights(inner: Any) -> Any:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Return the parser of the ``streamsvd`` command and its five commands."""
+    """Return the parser of the ``streamsvd`` command and its six commands."""
     ap = _Parser(
         prog="streamsvd",
         description="Streaming low-rank bases by rotation sweeps: absorb the columns of a "
@@ -253,6 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     ing.add_argument("--forget", metavar="G", type=forget,
                      help="forgetting factor in (0, 1]: each snapshot is weighted by G to "
                      "the number absorbed after it, in memory and --tall (default: 1, none)")
+    ing.add_argument("--dynamics", action="store_true", default=None,
+                     help="record the stream for `streamsvd dmd` (keeps the right vectors, "
+                     "which hold the snapshot pairs), in memory and --tall (default: off)")
     ing.add_argument("--oversampling", metavar="P", type=nonnegative_int,
                      help="extra terms kept while streaming with --max-rank; 0 cuts to K "
                      f"at every update (default: {DEFAULT_OVERSAMPLING})")
@@ -344,6 +347,14 @@ def build_parser() -> argparse.ArgumentParser:
                  "basis store to a .npz or HDF5 file.")
     exp.add_argument("out", metavar="OUT",
                      help="output file, .npz or .h5/.hdf5 (overwritten if it exists)")
+
+    from streamsvd.cli import dmd
+
+    dmd.add_arguments(reader(
+        "dmd", help="certified DMD: eigenvalues with residual bounds, modes, forecast",
+        description="Dynamic mode decomposition of the snapshots of STORE (written by "
+        "`ingest --dynamics`, or any store with right vectors): eigenvalues, a residual "
+        "bound eta per eigenvalue (docs: theory, DMD), modes and forecasts."))
 
     check = sub.add_parser(
         "check", help="verify every checksum of a store",

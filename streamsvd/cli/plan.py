@@ -185,13 +185,17 @@ def _check_mode_options(args: Any, mode: Mode) -> None:
             "--source-changed-ok applies to --resume only (a new STORE records its SOURCE); "
             "add --resume, or drop it."
         )
-    for given, flag in ((args.window, "--window"), (args.forget, "--forget")):
+    for given, flag, cannot in (
+        (args.window, "--window", "drop or weight the oldest snapshots"),
+        (args.forget, "--forget", "drop or weight the oldest snapshots"),
+        (args.dynamics, "--dynamics", "record trajectories (a tree store keeps its right "
+         "vectors in order, which `streamsvd dmd STORE` reads without it)"),
+    ):
         if given is not None and mode == "tree":
             raise InputError(
                 f"{flag} applies to the in-memory and tall modes only; the tree mode "
-                "(--scheduler without --tall) compresses its leaves apart and cannot "
-                f"drop or weight the oldest snapshots. Drop {flag}, or drop --scheduler "
-                "(or add --tall)."
+                f"(--scheduler without --tall) compresses its leaves apart and cannot "
+                f"{cannot}. Drop {flag}, or drop --scheduler (or add --tall)."
             )
     if args.commit_every is not None and mode == "tree":
         raise InputError(
@@ -223,6 +227,8 @@ def _compressor_options(args: Any, mode: Mode, *, resume: bool, inner: Any
         options["window"] = args.window
     if args.forget is not None:
         options["forget"] = args.forget
+    if args.dynamics:
+        options["dynamics"] = True
     if mode != "tree":
         options["commit_every"] = args.commit_every or DEFAULT_COMMIT_EVERY
     return options

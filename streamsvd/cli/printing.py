@@ -58,6 +58,13 @@ def print_info(summary: dict[str, Any]) -> None:
         print(f"target error  {opts['target_error']:.3e} ({opts['error_measure']}): bound "
               f"{summary['error_in_measure']:.3e} in that measure, {met}")
     print(f"orthogonality ||U^T M U - I||_2 = {summary['orthogonality']:.2e}")
+    dyn = summary.get("dynamics") or {}
+    starts = len(dyn.get("trajectory_starts", []))
+    print("dynamics      " + (
+        f"recorded ({starts} trajector{'y' if starts == 1 else 'ies'}): `streamsvd dmd "
+        "STORE`" if dyn.get("recorded") else
+        "not recorded" + ("; `streamsvd dmd STORE` reads the right vectors"
+                          if summary["options"].get("right_vectors") else "")))
     head = ", ".join(f"{a:.4g}" for a in summary["amplitudes_head"])
     print(f"amplitudes    {head}{', ...' if summary['rank'] > 10 else ''}")
 

@@ -1,4 +1,4 @@
-"""A scikit-learn estimator over the stream: :class:`StreamingSVD`."""
+"""scikit-learn estimators over the stream: :class:`StreamingSVD`, :class:`StreamingDMD`."""
 
 from streamsvd._util.lazy import lazy_exports
 
@@ -6,6 +6,7 @@ from streamsvd._util.lazy import lazy_exports
 _EXPORTS = {
     "NotFittedError": "estimator",
     "StreamingSVD": "estimator",
+    "StreamingDMD": "dmd",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -18,8 +18,9 @@ attributes and forwards to: a :class:`~streamsvd.stream.lifecycle.Lifecycle` (th
 state, each update's run and commit, the store), an
 :class:`~streamsvd.stream.updates.Updates` (``absorb``, ``add``, ``merge``,
 ``finalize``), a :class:`~streamsvd.stream.window.Window` (``remove``, the window,
-forgetting) and an :class:`~streamsvd.stream.view.ExpansionView` (every read-only
-attribute); its options are :class:`~streamsvd.stream.options.CompressorOptions`.
+forgetting), an :class:`~streamsvd.stream.view.ExpansionView` (every read-only
+attribute) and a :class:`~streamsvd.stream.dynamics.Dynamics` (``dmd``); its options
+are :class:`~streamsvd.stream.options.CompressorOptions`.
 
 Store contents: besides the state, the first commit writes the data of the inner
 product (weights, a dense matrix or a sparse one's CSR arrays), which later commits
@@ -61,6 +62,7 @@ from streamsvd.errors import InputError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.linalg.expansion import Expansion
 from streamsvd.stream.delegation import Forward
+from streamsvd.stream.dynamics import Dynamics
 from streamsvd.stream.lifecycle import Lifecycle
 from streamsvd.stream.options import CompressorOptions, option_properties
 from streamsvd.stream.updates import Updates
@@ -164,6 +166,12 @@ class StreamCompressor:
         of ``[gamma^(m-1) a_1, ..., gamma a_(m-1), a_m]`` whatever the block sizes (the
         core, the error bound and the discarded norm are scaled by ``gamma^b`` before a
         block of ``b`` columns, weighted ``gamma^(b-1), ..., 1``, is absorbed).
+    dynamics : bool
+        Record the stream for :meth:`dmd` (dynamic mode decomposition with a residual
+        bound per eigenvalue): needs ``right_vectors=True``, from which the snapshot
+        pairs are read at query time; ``absorb(..., new_trajectory=True)`` starts a
+        trajectory. Recorded in the store (``streamsvd info``); :meth:`dmd` answers on
+        any compressor that keeps its right vectors.
     backend : Backend, optional
         Where the n-sized factor lives (:class:`~streamsvd.algebra.memory.MemoryBackend`, the
         default; :class:`~streamsvd.algebra.panels.backend.PanelBackend` keeps it in panels on disk,
@@ -242,6 +250,8 @@ class StreamCompressor:
     finalized = Forward[bool]("_view", ExpansionView)
     streaming_rank = Forward["int | None"]("_view", ExpansionView)
     stored_width = Forward[int]("_view", ExpansionView)
+    dmd = Forward[Callable[..., Any]]("_dynamics", Dynamics)
+    trajectory_starts = Forward[np.ndarray]("_dynamics", Dynamics)
 
     def _attach(self, life: Lifecycle) -> StreamCompressor:
         """Hold the parts around ``life``: the lifecycle, the window and the view."""
@@ -249,6 +259,7 @@ class StreamCompressor:
         self._window = Window(life)
         self._view = ExpansionView(life)
         self._updates = Updates(life, self._window, self._view)
+        self._dynamics = Dynamics(life, self._view)
         return self
 
     @classmethod

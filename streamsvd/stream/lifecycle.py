@@ -82,6 +82,9 @@ class Lifecycle:
         self.removed = np.zeros((0, 2), dtype=np.int64)
         self.ledger = Ledger.start(0, 0.0)
         self._pending = (self.ledger, self.removed)
+        # absorption indices at which a trajectory other than the first starts (DMD pairs
+        # never cross them: streamsvd.stream.dynamics)
+        self.trajectory_starts = np.zeros(0, dtype=np.int64)
         self.persistence: StreamStore | None = None
 
     @functools.cached_property
@@ -129,6 +132,7 @@ class Lifecycle:
     def _restore_removals(self, attrs: dict[str, Any]) -> None:
         """Read the removed indices and the ledger a store's commit recorded."""
         self.removed = np.array(attrs.get("removed", []), dtype=np.int64).reshape(-1, 2)
+        self.trajectory_starts = np.array(attrs.get("trajectory_starts", []), dtype=np.int64)
         self.ledger = (
             Ledger(np.array(attrs["ledger"], dtype=np.float64).reshape(-1, 2))
             if "ledger" in attrs else Ledger.start(self.state.m, self.state.bound.bound)
@@ -149,6 +153,7 @@ class Lifecycle:
         out.history = list(self.history)
         out.source_offset = self.source_offset
         out.removed, out.ledger = self.removed, self.ledger
+        out.trajectory_starts = self.trajectory_starts.copy()
         out._pending = (out.ledger, out.removed)
         return out
 
@@ -223,6 +228,7 @@ class Lifecycle:
             "source": None if self.source_record is None else self.source_record.to_attrs(),
             "removed": removed.tolist(), "ledger": ledger.entries.tolist(),
             "layout": LAYOUT_WITH_REMOVALS if removed.size else LAYOUT,
+            "trajectory_starts": self.trajectory_starts.tolist(),
         }
 
     def _commit(self, plan: Plan | None, source_offset: int) -> None:

@@ -34,7 +34,7 @@ STREAMING_SHARE = math.sqrt(1.0 - 0.9**2)
 # what a store written before an option existed did (see `from_stored`)
 _BEFORE_THE_OPTION = {
     "oversampling": 0, "target_error": None, "error_measure": "relative",
-    "streaming_share": 0.9,
+    "streaming_share": 0.9, "dynamics": False,
 }
 
 
@@ -61,6 +61,7 @@ class CompressorOptions:
     streaming_share: float = STREAMING_SHARE
     window: int | None = None
     forget: float = 1.0
+    dynamics: bool = False
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -116,6 +117,13 @@ class CompressorOptions:
                 f"got window={window} with right_vectors=False. Pass "
                 "`right_vectors=True`, or use `forget` (which needs none)."
             )
+        if not isinstance(v["dynamics"], bool | np.bool_):
+            raise InputError(f"`dynamics` must be True or False; got {v['dynamics']!r}.")
+        if v["dynamics"] and not v["right_vectors"]:
+            raise InputError(
+                "`dynamics=True` reads the snapshot pairs from the right vectors; got "
+                "right_vectors=False. Pass `right_vectors=True`, or drop `dynamics`."
+            )
         return cls(
             eps=eps, rtol=rtol,
             max_rank=check_positive_int(v["max_rank"], "max_rank", allow_none=True),
@@ -130,6 +138,7 @@ class CompressorOptions:
             commit_every=_commit_every(v["commit_every"]),
             target_error=target, error_measure=measure, streaming_share=share,
             window=window, forget=check_forget(v["forget"]),
+            dynamics=bool(v["dynamics"]),
         )
 
     @classmethod
@@ -196,7 +205,7 @@ def _commit_every(value: Any) -> int | str:
 
 TREE_OPTIONS = ("inner",) + tuple(
     name for name in CompressorOptions.names()
-    if name not in ("right_vectors", "commit_every", "window", "forget")
+    if name not in ("right_vectors", "commit_every", "window", "forget", "dynamics")
 )
 """Options forwarded to every compressor of :func:`streamsvd.parallel.tree_compress`."""
 

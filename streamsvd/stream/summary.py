@@ -26,6 +26,8 @@ def summary_of(sc: StreamCompressor) -> dict[str, Any]:
         "options": sc.options.as_dict(), "inner": repr(sc.inner),
         "source": None if sc.source_record is None else sc.source_record.to_attrs(),
         "amplitudes_head": sc.amplitudes[:10].tolist(),
+        "dynamics": {"recorded": sc.options.dynamics, "trajectory_starts":
+                     sc.trajectory_starts.tolist()},
     }
 
 

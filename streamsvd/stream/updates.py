@@ -12,6 +12,8 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import (
     plan_absorb,
@@ -47,7 +49,8 @@ class Updates:
     def __init__(self, life: Lifecycle, window: Window, view: ExpansionView) -> None:
         self._life, self._window, self._view = life, window, view
 
-    def absorb(self, columns: Any, *, source_offset: int | None = None) -> UpdateRecord:
+    def absorb(self, columns: Any, *, source_offset: int | None = None,
+               new_trajectory: bool = False) -> UpdateRecord:
         """Append a block of snapshots (the columns of ``columns``, ``n x b``, ``b >= 1``).
 
         With ``window``, the oldest snapshots that would fall out are removed first
@@ -65,17 +68,29 @@ class Updates:
         source_offset : int, optional
             Position in the source just after this block, recorded in the store so that
             an interrupted ingestion resumes there; default: the previous offset + ``b``.
+        new_trajectory : bool
+            The block's first column starts a new trajectory: no DMD pair joins it to the
+            snapshot before (:meth:`dmd`); default False, the block continues the last
+            trajectory.
         """
         t0 = time.perf_counter()
         life = self._life
         B = life.backend.load(columns, rows=life.n, first=life.source_offset)
         offset = life.source_offset + B.shape[1] if source_offset is None else int(source_offset)
+        first = self._window.n_absorbed
         B, state, ledger, removed = self._window.windowed(B)
-        return life.run(
-            lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
-            or plan_absorb(state, life.backend.in_memory(B), life.opts, t0=t0),
-            offset, ledger=ledger, removed=removed,
-        )
+        starts = life.trajectory_starts
+        if new_trajectory and first > 0:
+            life.trajectory_starts = np.append(starts, np.int64(first))
+        try:
+            return life.run(
+                lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
+                or plan_absorb(state, life.backend.in_memory(B), life.opts, t0=t0),
+                offset, ledger=ledger, removed=removed,
+            )
+        except BaseException:
+            life.trajectory_starts = starts
+            raise
 
     def add(self, U_k: Any, V_k: Any, *, coefficients: Any = None) -> UpdateRecord:
         """Add the low-rank increment ``U dV^T + U_k V_k^T`` to the current matrix.

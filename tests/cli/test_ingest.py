@@ -584,7 +584,7 @@ def test_help_gives_every_option_a_help_line_and_its_default(capsys):
     import argparse
 
     parser, commands = _subparsers()
-    assert set(commands) == {"ingest", "info", "export", "plot", "check"}
+    assert set(commands) == {"ingest", "info", "export", "plot", "check", "dmd"}
     for name, sub in [("streamsvd", parser), *commands.items()]:
         for action in sub._actions:
             if isinstance(action, argparse._HelpAction | argparse._VersionAction
@@ -607,7 +607,8 @@ def test_ingest_defaults_are_none_so_given_options_can_be_told_apart():
     _, commands = _subparsers()
     args = commands["ingest"].parse_args(["a.npy", "b.zarr"])
     for name in ("block", "eps", "rtol", "max_rank", "rule", "sweeps", "commit_every",
-                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset", "inner"):
+                 "scheduler", "workers", "leaf_columns", "chunk_rows", "dataset", "inner",
+                 "dynamics"):
         assert getattr(args, name) is None, name
 
 
