@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 import os
 import statistics
@@ -58,7 +57,17 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, Run, load_rbs480a, machine_info, out_dir, print_table, pyplot  # noqa: E402
+from _common import (  # noqa: E402
+    REPO_ROOT,
+    Run,
+    library_warnings_silenced,
+    load_rbs480a,
+    machine_info,
+    out_dir,
+    print_table,
+    pyplot,
+    rows_of_revision,
+)
 from hapod_benchmark import DEFAULT_CACHE, _projection_error2, generate  # noqa: E402
 
 TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
@@ -321,11 +330,8 @@ def ingest_rows(path: str, repeat: int) -> list[dict[str, Any]]:
 # ------------------------------------------------------------------------ driver
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Every case of ``args``, with the library's warnings silenced only while it runs."""
-    logging.disable(logging.WARNING)
-    try:
+    with library_warnings_silenced():
         return _measure(args)
-    finally:
-        logging.disable(logging.NOTSET)
 
 
 def _measure(args: argparse.Namespace) -> dict[str, Any]:
@@ -346,21 +352,10 @@ def _measure(args: argparse.Namespace) -> dict[str, Any]:
 
 def _against(rev: str, args: argparse.Namespace) -> dict[str, Any]:
     """The rows of revision ``rev``, measured in a child process over a git worktree."""
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
-                        str(tree), rev], check=True)
-        try:
-            out = Path(tmp) / "rows.json"
-            env = dict(os.environ, PYTHONPATH=str(tree))
-            cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
-            subprocess.run([sys.executable, __file__, "--rows-only", str(out), "--cases",
-                            cases, "--cache", args.cache, "--repeat", str(args.repeat)]
-                           + (["--quick"] if args.quick else []), check=True, env=env)
-            return dict(json.loads(out.read_text()))
-        finally:
-            subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
-                            str(tree)], check=True)
+    cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
+    return dict(rows_of_revision(rev, __file__, [
+        "--cases", cases, "--cache", args.cache, "--repeat", str(args.repeat),
+        *(["--quick"] if args.quick else [])]))
 
 
 def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
