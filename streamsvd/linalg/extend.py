@@ -210,7 +210,7 @@ def extend_basis(
     w = basis.width
     q = w if G is None else G.shape[1]
     Y, MY = basis.workspace(b)
-    exps = scale_into(X, Y)[0]
+    exps, zero = scale_into(X, Y)
     C = np.zeros((q, b))
     passes = 0
     if w:
@@ -310,12 +310,20 @@ def extend_basis(
             gram_new = np.eye(r)
         cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
         passes += 1 if w and r else 0
+    rejected_map = np.vstack(maps) if maps else np.zeros((0, b))
+    if zero.any():
+        # a zero column carries nothing: its scale 2^0 says nothing of the rounding the
+        # mixing of the other (scaled) columns left in its coordinates, which would come
+        # back at the size of 1 (Rz, W, and the maps are exact zeros there in exact
+        # arithmetic, and the column is represented exactly by zeros)
+        R_new[:, zero] = 0.0
+        rejected_map[:, zero] = 0.0
     return BasisExtension(
         coeffs=np.ldexp(C, exps[np.newaxis, :]),
         R_new=np.ldexp(R_new, exps[np.newaxis, :]),
         accepted=accepted,
         rejected_gram=scipy.linalg.block_diag(*grams) if grams else np.zeros((0, 0)),
-        rejected_map=np.vstack(maps) if maps else np.zeros((0, b)),
+        rejected_map=rejected_map,
         exponents=exps,
         block_norm=scaled_norm(nu, exps),
         cross_gram=cross,

@@ -122,3 +122,25 @@ def test_a_stream_at_a_tight_target_holds_its_bound_on_the_exact_path(monkeypatc
         assert err <= sc.error_bound * (1 + 1e-9) + 10 * n * EPS * np.linalg.norm(A)
     sc.finalize()
     assert sc.error_in_measure <= 1e-6
+
+
+@pytest.mark.parametrize("scale", [0, -50, -100, -200])
+@pytest.mark.parametrize("euclidean", [True, False])
+def test_a_zero_column_is_represented_by_zeros_at_every_scale(scale, euclidean):
+    # a zero column's scale (2^0) says nothing of the rounding the other, scaled,
+    # columns leave in its coordinates: it must come back as exact zeros, not as
+    # rounding at the size of 1 (an absolute error of 1e-16 beside data of 1e-30)
+    n = 300
+    X = np.ldexp(_collinear(n, b=16) + 1e-3 * np.random.default_rng(2).standard_normal((n, 16)),
+                 scale)
+    X[:, 5] = 0.0
+    ip = as_inner(None if euclidean else _mass(n), n)
+    basis = MemoryBasis(n, ip, capacity=32)
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n))
+    assert not ext.accepted[5]
+    assert np.all(ext.R_new[:, 5] == 0.0) and np.all(ext.rejected_map[:, 5] == 0.0)
+    Q = basis.workspace(16)[0][:, :ext.rank]
+    res = X - Q @ ext.R_new
+    norm = np.sqrt(np.sum(X * ip.apply(X)))
+    true = np.sqrt(max(float(np.sum(res * ip.apply(res))), 0.0))
+    assert true <= ext.rejected_norm() * (1 + 1e-6) + 10 * n * EPS * norm
