@@ -1,0 +1,106 @@
+"""The zarr v3 store of an object-store prefix: fsspec (s3fs) or obstore.
+
+An :class:`~streamsvd.storage.objects.ObjectStorage` reads and writes its small objects
+(pointers, leases, listings, conditional ``PUT`` requests) through s3fs; the zarr arrays under
+it (a store's generation packs, a tall compressor's panels, a zarr source) go through the
+zarr store this module returns, chosen by the storage option :data:`OPTION`:
+
+* ``"fsspec"`` (the default): :class:`zarr.storage.FsspecStore` over s3fs, with
+  botocore's retries;
+* ``"obstore"``: :class:`zarr.storage.ObjectStore` over :class:`obstore.store.S3Store`
+  (Rust's ``object_store``), for ``s3://`` only, with its retries (5xx answers, dropped
+  connections, timeouts: :data:`~streamsvd.storage.objects.RETRIES` attempts, backing off
+  from :data:`~streamsvd.storage.objects.BACKOFF` seconds). Its credentials come from
+  ``storage_options`` (``key``, ``secret``, ``token``; ``endpoint_url``,
+  ``client_kwargs.region_name``) or from the ``AWS_*`` variables of the process; AWS
+  profiles (``profile``, ``AWS_PROFILE``) are not read by it.
+
+Which is faster, measured side by side on moto: ``bench/studies/object-store-benchmark.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from datetime import timedelta
+from typing import Any
+
+from streamsvd.errors import InputError, OptionalDependencyError
+
+__all__ = ["CHOICES", "DEFAULT", "OPTION", "fsspec_options", "zarr_store_of"]
+
+OPTION = "zarr_store"
+"""The storage option that chooses the zarr store of an object-store prefix."""
+CHOICES = ("fsspec", "obstore")
+DEFAULT = "fsspec"
+"""The zarr store when :data:`OPTION` is not given."""
+
+
+def choice_of(options: Mapping[str, Any], argument: str) -> str:
+    """Return the zarr store that ``options`` choose (checked)."""
+    chosen = options.get(OPTION, DEFAULT)
+    if chosen not in CHOICES:
+        raise InputError(
+            f"`storage_options['{OPTION}']` must be one of {', '.join(map(repr, CHOICES))}; "
+            f"got {chosen!r} (for `{argument}`)."
+        )
+    return str(chosen)
+
+
+def fsspec_options(options: Mapping[str, Any]) -> dict[str, Any]:
+    """Return ``options`` without streamsvd's own (what the fsspec file system takes)."""
+    return {k: v for k, v in options.items() if k != OPTION}
+
+
+def zarr_store_of(url: str, options: Mapping[str, Any], *, read_only: bool,
+                  argument: str) -> Any:
+    """Return the zarr store of the prefix ``url`` that ``options`` choose."""
+    if choice_of(options, argument) == "fsspec":
+        from zarr.storage import FsspecStore
+
+        return FsspecStore.from_url(url, storage_options=fsspec_options(options),
+                                    read_only=read_only)
+    return _obstore(url, options, read_only=read_only, argument=argument)
+
+
+def _obstore(url: str, options: Mapping[str, Any], *, read_only: bool, argument: str
+             ) -> Any:
+    """Return a :class:`zarr.storage.ObjectStore` over an ``S3Store`` of the prefix."""
+    from streamsvd.storage.objects import BACKOFF, RETRIES
+
+    scheme, _, rest = url.partition("://")
+    if scheme.lower() not in ("s3", "s3a"):
+        raise InputError(
+            f"`storage_options['{OPTION}']='obstore'` is for s3:// URLs; got `{argument}` "
+            f"{url}. Drop the option for other URLs."
+        )
+    try:
+        from obstore.store import S3Store
+        from zarr.storage import ObjectStore
+    except ImportError as exc:
+        raise OptionalDependencyError(
+            f"`storage_options['{OPTION}']='obstore'` needs obstore ({exc}). Install the "
+            "object-store extra: pip install 'streamsvd[s3]'."
+        ) from None
+    bucket, _, prefix = rest.partition("/")
+    client_kwargs = options.get("client_kwargs") or {}
+    endpoint = options.get("endpoint_url") or client_kwargs.get("endpoint_url")
+    config: dict[str, Any] = {}
+    for ours, theirs in (("key", "access_key_id"), ("secret", "secret_access_key"),
+                         ("token", "session_token")):
+        if options.get(ours):
+            config[theirs] = options[ours]
+    if endpoint:
+        config["endpoint"] = endpoint
+    if client_kwargs.get("region_name"):
+        config["region"] = client_kwargs["region_name"]
+    import os
+
+    endpoint = endpoint or os.environ.get("AWS_ENDPOINT_URL")
+    store = S3Store(
+        bucket, prefix=prefix or None, config=config,  # type: ignore[arg-type]
+        client_options={"allow_http": bool(endpoint and endpoint.startswith("http://"))},
+        retry_config={"max_retries": RETRIES - 1, "backoff": {
+            "init_backoff": timedelta(seconds=BACKOFF), "max_backoff": timedelta(seconds=10),
+            "base": 2.0}},
+    )
+    return ObjectStore(store, read_only=read_only)
