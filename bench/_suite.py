@@ -153,6 +153,10 @@ STUDIES: tuple[Study, ...] = (
               ("commit ms (median)", "commit_seconds/median", ".1f", 1e3),
               ("commit ms (max)", "commit_seconds/max", ".1f", 1e3),
               ("reopen ms", "reopen_seconds", ".1f", 1e3), ("read ms", "read_seconds", ".1f", 1e3),
+              ("source read s", "source_read/wall", ".2f"),
+              ("source read CPU s", "source_read/cpu", ".2f"),
+              ("tall stream s", "tall_stream/wall", ".2f"),
+              ("tall stream CPU s", "tall_stream/cpu", ".2f"),
           ]),)),
     Study("fault-campaign", "Fault campaign", ("fault_campaign",), files=("fault_campaign*",),
           tables=(table("fault_campaign.json", "counts", [

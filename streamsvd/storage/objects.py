@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import Any, TypeVar, cast
 
 from streamsvd.errors import InputError, OptionalDependencyError, StoreError
-from streamsvd.storage.zarr_stores import choice_of, fsspec_options, zarr_store_of
+from streamsvd.storage.zarr_stores import OPTION, choice_of, fsspec_options, zarr_store_of
 
 __all__ = ["SECRET_OPTIONS", "ObjectStorage", "remote_errors", "transient", "without_secrets"]
 
@@ -157,7 +157,8 @@ class ObjectStorage:
             self.storage_options["config_kwargs"] = config
         self.argument = argument
         self.named = f"`{argument}` {self.url}"
-        choice_of(self.storage_options, argument)
+        self.storage_options[OPTION] = choice_of(self.url, self.storage_options,
+                                                   argument)
         try:
             fs, path = fsspec.url_to_fs(self.url, **fsspec_options(self.storage_options))
         except ImportError as exc:

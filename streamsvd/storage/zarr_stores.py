@@ -5,7 +5,8 @@ An :class:`~streamsvd.storage.objects.ObjectStorage` reads and writes its small 
 it (a store's generation packs, a tall compressor's panels, a zarr source) go through the
 zarr store this module returns, chosen by the storage option :data:`OPTION`:
 
-* ``"fsspec"`` (the default): :class:`zarr.storage.FsspecStore` over s3fs, with
+* ``"fsspec"`` (the default, unless the variable :data:`ENVIRONMENT` of the process that
+  opens the storage names another): :class:`zarr.storage.FsspecStore` over s3fs, with
   botocore's retries;
 * ``"obstore"``: :class:`zarr.storage.ObjectStore` over :class:`obstore.store.S3Store`
   (Rust's ``object_store``), for ``s3://`` only, with its retries (5xx answers, dropped
@@ -20,28 +21,41 @@ Which is faster, measured side by side on moto: ``bench/studies/object-store-ben
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from datetime import timedelta
 from typing import Any
 
 from streamsvd.errors import InputError, OptionalDependencyError
 
-__all__ = ["CHOICES", "DEFAULT", "OPTION", "fsspec_options", "zarr_store_of"]
+__all__ = ["CHOICES", "DEFAULT", "ENVIRONMENT", "OPTION", "choice_of", "fsspec_options",
+           "zarr_store_of"]
 
 OPTION = "zarr_store"
 """The storage option that chooses the zarr store of an object-store prefix."""
 CHOICES = ("fsspec", "obstore")
 DEFAULT = "fsspec"
-"""The zarr store when :data:`OPTION` is not given."""
+"""The zarr store when neither :data:`OPTION` nor :data:`ENVIRONMENT` is given."""
+ENVIRONMENT = "STREAMSVD_ZARR_STORE"
+"""The environment variable that sets the default of :data:`OPTION` in a process."""
 
 
-def choice_of(options: Mapping[str, Any], argument: str) -> str:
-    """Return the zarr store that ``options`` choose (checked)."""
-    chosen = options.get(OPTION, DEFAULT)
+def choice_of(url: str, options: Mapping[str, Any], argument: str) -> str:
+    """Return the zarr store that ``options`` choose, else the process's default (checked).
+
+    The default is fsspec for a URL other than ``s3://``. The storage that asks records
+    the answer in its options, so that the workers it is sent to use the same one.
+    """
+    chosen = options.get(OPTION)
+    named = f"`storage_options['{OPTION}']`"
+    if chosen is None:
+        if not url.lower().startswith(("s3://", "s3a://")):
+            return "fsspec"
+        chosen, named = os.environ.get(ENVIRONMENT) or DEFAULT, f"the variable {ENVIRONMENT}"
     if chosen not in CHOICES:
         raise InputError(
-            f"`storage_options['{OPTION}']` must be one of {', '.join(map(repr, CHOICES))}; "
-            f"got {chosen!r} (for `{argument}`)."
+            f"{named} must be one of {', '.join(map(repr, CHOICES))}; got {chosen!r} (for "
+            f"`{argument}`)."
         )
     return str(chosen)
 
@@ -54,7 +68,7 @@ def fsspec_options(options: Mapping[str, Any]) -> dict[str, Any]:
 def zarr_store_of(url: str, options: Mapping[str, Any], *, read_only: bool,
                   argument: str) -> Any:
     """Return the zarr store of the prefix ``url`` that ``options`` choose."""
-    if choice_of(options, argument) == "fsspec":
+    if choice_of(url, options, argument) == "fsspec":
         from zarr.storage import FsspecStore
 
         return FsspecStore.from_url(url, storage_options=fsspec_options(options),
@@ -93,8 +107,6 @@ def _obstore(url: str, options: Mapping[str, Any], *, read_only: bool, argument:
         config["endpoint"] = endpoint
     if client_kwargs.get("region_name"):
         config["region"] = client_kwargs["region_name"]
-    import os
-
     endpoint = endpoint or os.environ.get("AWS_ENDPOINT_URL")
     store = S3Store(
         bucket, prefix=prefix or None, config=config,  # type: ignore[arg-type]

@@ -1,0 +1,34 @@
+"""The zarr store of an object-store prefix: chosen by a storage option, checked."""
+
+import pickle
+
+import pytest
+
+from streamsvd.errors import InputError
+from streamsvd.storage.zarr_stores import OPTION, fsspec_options, zarr_store_of
+
+
+def test_the_option_is_checked_and_never_reaches_fsspec():
+    with pytest.raises(InputError, match=r"storage_options\['zarr_store'\].*'s3fs'"):
+        zarr_store_of("s3://b/p", {OPTION: "s3fs"}, read_only=True, argument="store")
+    with pytest.raises(InputError, match="s3:// URLs.*`source` gs://b/p"):
+        zarr_store_of("gs://b/p", {OPTION: "obstore"}, read_only=True, argument="source")
+    assert fsspec_options({OPTION: "obstore", "anon": True}) == {"anon": True}
+
+
+def test_an_obstore_storage_pickles_its_choice_and_no_secret():
+    pytest.importorskip("s3fs")
+    pytest.importorskip("obstore")
+    from zarr.storage import ObjectStore
+
+    from streamsvd.storage import open_storage
+
+    storage = open_storage("s3://bucket/basis.zarr", storage_options={
+        OPTION: "obstore", "key": "K-ID", "secret": "S-SECRET",
+        "endpoint_url": "http://127.0.0.1:9"})
+    assert isinstance(storage.zarr_store(read_only=True), ObjectStore)
+    data = pickle.dumps(storage)
+    assert b"S-SECRET" not in data and b"K-ID" not in data
+    back = pickle.loads(data)
+    assert back.storage_options[OPTION] == "obstore"
+    assert isinstance(back.zarr_store(read_only=True), ObjectStore)
