@@ -32,3 +32,22 @@ def test_an_obstore_storage_pickles_its_choice_and_no_secret():
     back = pickle.loads(data)
     assert back.storage_options[OPTION] == "obstore"
     assert isinstance(back.zarr_store(read_only=True), ObjectStore)
+
+
+def test_obstore_finds_credentials_as_s3fs_does(tmp_path, monkeypatch):
+    pytest.importorskip("botocore")
+    from streamsvd.storage.zarr_stores import BotocoreCredentials
+
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN",
+                 "AWS_PROFILE"):
+        monkeypatch.delenv(name, raising=False)
+    (tmp_path / "credentials").write_text(
+        "[default]\naws_access_key_id = D-ID\naws_secret_access_key = D-S\n"
+        "[other]\naws_access_key_id = O-ID\naws_secret_access_key = O-S\n")
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "credentials"))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "config"))
+    assert BotocoreCredentials(None)()["access_key_id"] == "D-ID"
+    assert BotocoreCredentials("other")()["secret_access_key"] == "O-S"
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "E-ID")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "E-S")
+    assert BotocoreCredentials(None)()["access_key_id"] == "E-ID"  # the environment first
