@@ -85,27 +85,30 @@ def _tall_leaf(spec: SourceSpec, start: int, stop: int, block: int, chunk_rows: 
                prefetch=False, preload_sweeps=False)
     logger.info("tall leaf %d:%d: rank %d (bound %.3e)", start, stop, tc.rank,
                 tc.error_bound)
-    return tc if checkpoints is None else _committed(tc, checkpoints, name)
+    return tc if checkpoints is None else _committed(tc, checkpoints, name, place)
 
 
 def _tall_merge(left: StreamCompressor, right: StreamCompressor,
                 blas: int | dict[str, int], checkpoints: Checkpoints | None = None,
-                name: str = "") -> StreamCompressor:
+                name: str = "", place: Any = None) -> StreamCompressor:
     """Append ``right``'s columns to ``left`` (on a worker); ``left`` is the result.
 
     With ``checkpoints`` the merge is committed there as ``name``, handed on as it is
-    loaded back, and both operands' panels are removed.
+    loaded back into ``place``, and both operands' work panels are removed once it is
+    committed.
     """
     with threadpool_limits(limits=blas_here(blas), user_api="blas"):
         left.merge(right, spend_target=False)
     if checkpoints is None:
         return left
+    out = _committed(left, checkpoints, name, place)
     _discard(right)
-    return _committed(left, checkpoints, name)
+    return out
 
 
-def _committed(sc: StreamCompressor, checkpoints: Checkpoints, name: str) -> StreamCompressor:
-    """Commit node ``name``, remove its work panels and return it loaded back.
+def _committed(sc: StreamCompressor, checkpoints: Checkpoints, name: str, place: Any
+               ) -> StreamCompressor:
+    """Commit node ``name``, remove its work panels and return it loaded into ``place``.
 
     The node handed on is the committed one read back (its panels copied into one), both
     in a run that computed it and in one that resumes from it: the two runs then compute
@@ -113,7 +116,8 @@ def _committed(sc: StreamCompressor, checkpoints: Checkpoints, name: str) -> Str
     """
     checkpoints.save(name, sc)
     rows = cast(int, sc.chunk_rows)
-    return _load(checkpoints, name, _discard(sc), rows)
+    _discard(sc)
+    return _load(checkpoints, name, place, rows)
 
 
 def _load(checkpoints: Checkpoints, name: str, place: Any, chunk_rows: int
@@ -237,7 +241,7 @@ def tall_tree_compress(
 
     def merge(left: Any, right: Any, name: str, key: str, root: bool) -> Any:
         return dask.delayed(_tall_merge, pure=False)(left, right, blas, saved, name,
-                                                      dask_key_name=key)
+                                                      place(name), dask_key_name=key)
 
     def load(name: str, key: str) -> Any:
         return dask.delayed(_load, pure=False)(saved, name, place(name), chunk_rows,
