@@ -158,6 +158,15 @@ STUDIES: tuple[Study, ...] = (
               ("tall stream s", "tall_stream/wall", ".2f"),
               ("tall stream CPU s", "tall_stream/cpu", ".2f"),
           ]),)),
+    Study("tall-tree-checkpoints", "Tall-tree checkpoints",
+          ("tall_tree_checkpoints_benchmark",),
+          shown=("tall_tree_checkpoints_benchmark.png",),
+          files=("tall_tree_checkpoints_benchmark*",),
+          tables=(table("tall_tree_checkpoints_benchmark.json", "results", [
+              ("contender", "contender"), ("n", "n"), ("m", "m"),
+              ("wall s (median)", "wall_seconds", ".2f"),
+              ("CPU s (median)", "cpu_seconds", ".2f"), ("repeats", "repeats"),
+          ]),)),
     Study("fault-campaign", "Fault campaign", ("fault_campaign",), files=("fault_campaign*",),
           tables=(table("fault_campaign.json", "counts", [
               ("kind", "kind"), ("where", "where"), ("scenarios", "count"),

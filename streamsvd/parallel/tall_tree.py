@@ -23,7 +23,8 @@ Checkpoints written with other arguments (source, ``block``, ``leaf_columns``,
 ``chunk_rows``, options) are refused with an error naming them. They are removed once
 the root is committed to ``store`` (or handed back without one). What they add: each
 node's panels are written twice more (a local copy, the checkpoint) and read back once
-(``O(n p)`` per node against the ``O(n c (p + block))`` of a leaf; not timed yet).
+(``O(n p)`` per node against the ``O(n c (p + block))`` of a leaf): 14% more CPU time
+at ``n = 50000``, four leaves of 100 columns (``bench/studies/tall-tree-checkpoints.md``).
 
 What it does not do (yet): resuming (appending to) an existing store.
 """
