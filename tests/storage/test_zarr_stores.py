@@ -51,3 +51,15 @@ def test_obstore_finds_credentials_as_s3fs_does(tmp_path, monkeypatch):
     monkeypatch.setenv("AWS_ACCESS_KEY_ID", "E-ID")
     monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "E-S")
     assert BotocoreCredentials(None)()["access_key_id"] == "E-ID"  # the environment first
+
+
+def test_the_environment_sets_the_default_for_s3_only(monkeypatch):
+    from streamsvd.storage.zarr_stores import ENVIRONMENT, choice_of
+
+    monkeypatch.setenv(ENVIRONMENT, "obstore")
+    assert choice_of("s3://b/p", {}, "store") == "obstore"
+    assert choice_of("memory://p", {}, "store") == "fsspec"
+    assert choice_of("s3://b/p", {OPTION: "fsspec"}, "store") == "fsspec"  # the option wins
+    monkeypatch.setenv(ENVIRONMENT, "rust")
+    with pytest.raises(InputError, match="the variable STREAMSVD_ZARR_STORE"):
+        choice_of("s3://b/p", {}, "store")
