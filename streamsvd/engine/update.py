@@ -236,13 +236,20 @@ def _plan(
     being the stored rows no longer live.
     """
     keep_rows = state.rows is not None
+    p, r = state.rank, ext.rank
+    # the extended basis [Q, Q_new] blockdiag(coords, I_r) L^(-T): L = I, or, when the new
+    # directions lie along the basis (one projection, extend_basis), its measured Gram's
+    # factor, so that the core K L is truncated in orthonormal coordinates
+    Lt_inv = None
+    if ext.skewed:
+        L, Lt_inv = _skew_factor(state, ext)
+        K = K @ L
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
         before=Before(prior, d_rej, overlapping), on_sweep=on_sweep,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
-    p, r = state.rank, ext.rank
     w = state.basis.width
     T = step.T
     p_new = T.shape[1]
@@ -259,6 +266,8 @@ def _plan(
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )
+    if Lt_inv is not None:
+        T = Lt_inv @ T
     coords = np.vstack([state.coords @ T[:p], T[p:]])
     if compact:
         H = state.basis.compact_planned(coords, r)
@@ -362,6 +371,18 @@ def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     H[w:, :w] = ext.cross_gram.T
     H[w:, w:] = ext.gram_new
     return H
+
+
+def _skew_factor(state: State, ext: BasisExtension) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(L, L^(-T))``, ``L L^T`` the Gram of ``[U, Q_new]`` (``U = Q coords``), measured."""
+    p = state.rank
+    H = _extended_gram(state, ext)
+    E = np.zeros((H.shape[0], p + ext.rank))
+    E[:state.basis.width, :p] = state.coords
+    E[state.basis.width:, p:] = np.eye(ext.rank)
+    G = E.T @ H @ E
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    return L, np.asarray(scipy.linalg.solve_triangular(L, np.eye(p + ext.rank), lower=True).T)
 
 
 def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
