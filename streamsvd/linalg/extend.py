@@ -229,10 +229,17 @@ def extend_basis(
         basis.subtract(Y, G, C)
         passes += 2
     Z = Y
-    cross0 = basis.project(Z, None) if w else np.zeros((0, b))
-    passes += 1 if w else 0
     MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
+    # what the projection left along the basis and the residual's Gram, in one product
+    # where the basis offers it
+    joint = getattr(basis, "residual_products", None)
+    both = joint(b) if w and joint is not None else None
+    if both is None:
+        cross0 = basis.project(Z, None) if w else np.zeros((0, b))
+        S = gram(Z, inner, MZ)
+    else:
+        cross0, S = both
+    passes += 1 if w else 0
     split = None
     skewed = False
     if w:
