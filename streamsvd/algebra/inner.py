@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from streamsvd._util.validation import as_float_array, check_finite
-from streamsvd.algebra.spd import check_sparse_definite, check_symmetric
+from streamsvd.algebra.spd import EXACT_MAX_N, check_sparse_definite, check_symmetric
 from streamsvd.errors import InnerProductMismatchError, InputError, ShapeMismatchError
 
 __all__ = [
@@ -168,8 +168,8 @@ class MatrixInner:
             raise ShapeMismatchError(f"`M` must be square; got shape {mat.shape}.")
         digest = (_digest(b"sparse", mat.indptr.astype(np.int64), mat.indices.astype(np.int64),
                           mat.data) if sp.issparse(mat) else None)
-        # a sparse matrix checked before (the same entries, by their digest) is not
-        # factorised again: a compressor made per trajectory or per target reuses it
+        # a sparse matrix proven definite before (the same entries, by their digest) is
+        # not factorised again: a compressor made per trajectory or per target reuses it
         checked = digest is not None and digest in _CHECKED
         if not checked:
             check_symmetric(mat)
@@ -199,7 +199,8 @@ class MatrixInner:
                 check_sparse_definite(mat, diag)
             assert digest is not None
             self.fingerprint = digest
-            _remember(digest)
+            if mat.shape[0] <= EXACT_MAX_N:  # proven definite (above: estimated, logged)
+                _remember(digest)
         self.matrix = mat
         self.n = mat.shape[0]
         self._weights = diag.reshape(-1, 1) if diagonal else None
