@@ -40,13 +40,8 @@ from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before, core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
-from streamsvd.engine.state import (
-    Plan,
-    State,
-    StepOptions,
-    Writes,
-    gram_orthogonality,
-)
+from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
+from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import BasisExtension, extend_basis
 
 __all__ = [
@@ -237,12 +232,9 @@ def _plan(
     """
     keep_rows = state.rows is not None
     p, r = state.rank, ext.rank
-    # the extended basis [Q, Q_new] blockdiag(coords, I_r) L^(-T): L = I, or, when the new
-    # directions lie along the basis (one projection, extend_basis), its measured Gram's
-    # factor, so that the core K L is truncated in orthonormal coordinates
-    Lt_inv = None
-    if ext.skewed:
-        L, Lt_inv = _skew_factor(state, ext)
+    Lt_inv = None  # the new basis [Q coords, Q_new] L^(-T) (skew_factor)
+    if ext.skewed and state.gram is not None:  # new directions along the basis: K L cut
+        L, Lt_inv = skew_factor(state.coords, state.gram, ext.cross_gram, ext.gram_new)
         K = K @ L
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
@@ -266,8 +258,7 @@ def _plan(
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )
-    if Lt_inv is not None:
-        T = Lt_inv @ T
+    T = T if Lt_inv is None else Lt_inv @ T
     coords = np.vstack([state.coords @ T[:p], T[p:]])
     if compact:
         H = state.basis.compact_planned(coords, r)
@@ -371,18 +362,6 @@ def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     H[w:, :w] = ext.cross_gram.T
     H[w:, w:] = ext.gram_new
     return H
-
-
-def _skew_factor(state: State, ext: BasisExtension) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(L, L^(-T))``, ``L L^T`` the Gram of ``[U, Q_new]`` (``U = Q coords``), measured."""
-    p = state.rank
-    H = _extended_gram(state, ext)
-    E = np.zeros((H.shape[0], p + ext.rank))
-    E[:state.basis.width, :p] = state.coords
-    E[state.basis.width:, p:] = np.eye(ext.rank)
-    G = E.T @ H @ E
-    L = np.linalg.cholesky(0.5 * (G + G.T))
-    return L, np.asarray(scipy.linalg.solve_triangular(L, np.eye(p + ext.rank), lower=True).T)
 
 
 def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:

@@ -330,3 +330,33 @@ def set_aside(
     k = b - t
     G_t = np.diag(lam[k:]) + (float(allow[t - 1]) / t) * np.eye(t)
     return W[:, :k], lam[:k], W[:, k:], G_t
+
+
+def kept_clean(along: np.ndarray, Wk: np.ndarray, lam_k: np.ndarray, limit: float) -> bool:
+    """Whether the kept directions ``Z W_k`` lie along the basis by at most ``limit``.
+
+    ``along`` (``q x b``) is what the residual ``Z`` kept along the basis, measured; a
+    kept direction ``Z w_i`` has the norm ``sqrt(lam_i)`` and keeps ``along w_i``. The
+    directions set aside (:func:`set_aside`) are discarded whole, so only the kept ones
+    decide a second projection (:func:`streamsvd.linalg.extend.extend_basis`).
+    """
+    if lam_k.size == 0:
+        return True
+    if lam_k[-1] <= 0.0:
+        return False
+    A = along @ Wk
+    return bool(np.all(np.sqrt(np.einsum("ij,ij->j", A, A)) <= limit * np.sqrt(lam_k)))
+
+
+def skew_factor(coords: np.ndarray, gram: np.ndarray, cross: np.ndarray,
+                gram_new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(L, L^(-T))``, ``L L^T`` the Gram of ``[Q coords, Q_new]``, measured.
+
+    ``gram`` is ``Q^T M Q``, ``cross`` ``(M Q)^T Q_new`` and ``gram_new`` ``Q_new^T M Q_new``:
+    ``[Q coords, Q_new] L^(-T)`` is orthonormal, and a core ``K`` on ``[Q coords, Q_new]``
+    is ``K L`` on it.
+    """
+    top = coords.T @ cross
+    G = np.block([[coords.T @ gram @ coords, top], [top.T, gram_new]])
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    return L, blas.dtrsm(1.0, L, np.eye(L.shape[0]), lower=1).T

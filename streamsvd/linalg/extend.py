@@ -28,6 +28,7 @@ from streamsvd.linalg.blocks import (
     cholesky_qr_in_place,
     column_rule,
     complement,
+    kept_clean,
     orthonormalize_in_rounds,
     place_directions,
     right_solve,
@@ -88,10 +89,9 @@ class BasisExtension:
         Products of an ``n``-sized block with the stored basis (projections and
         subtractions): what an update costs.
     skewed : bool
-        Whether the new directions lie along the basis by more than ``_LOSS_MAX``
-        (at most ``_KEPT_LOSS_MAX``): the residual was projected once, its weakest
-        directions set aside; ``cross_gram`` measures how much, and the caller makes
-        the extended basis orthonormal before it truncates.
+        Whether the residual was projected once, its new directions along the basis by
+        at most ``_KEPT_LOSS_MAX`` (measured in ``cross_gram``): the caller truncates in
+        the coordinates of the extended basis made orthonormal.
     """
 
     coeffs: np.ndarray
@@ -171,7 +171,16 @@ def extend_basis(
        enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
        is returned in ``cross_gram``, the new block of the basis Gram, where the compressor's
        orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.engine.update`) accounts
-       for it.
+       for it. With an ``aside`` budget and ``basis_gram`` the second pass is not made
+       either when the directions kept after setting the weakest aside (step 2) lie along
+       the basis by at most ``_KEPT_LOSS_MAX`` of their norm (nearly collinear time steps:
+       the block is mostly along the basis, its residual small): the directions set aside
+       leave their part along the basis to the coefficients, the kept ones keep theirs,
+       measured in ``cross_gram`` (``skewed``), and the caller truncates in the
+       coordinates of the extended basis made orthonormal
+       (:func:`~streamsvd.linalg.blocks.skew_factor`). The residual's part along the
+       basis and its Gram are one product where the basis offers it
+       (:meth:`~streamsvd.algebra.memory.MemoryBasis.residual_products`).
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
        in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to
@@ -250,9 +259,9 @@ def extend_basis(
         loss = np.sqrt(np.einsum("ij,ij->j", along, along))
         norms = np.sqrt(np.maximum(np.diag(S), 0.0))
         reproject = bool(np.any(loss > _LOSS_MAX * norms))
-        if reproject and b and (aside[0] > 0 or aside[1] > 0):
+        if reproject and b and (aside[0] > 0 or aside[1] > 0) and basis_gram is not None:
             split = _split(S, _norms(C, S), exps, aside, n)
-            reproject = split is None or not _clean(along, split)
+            reproject = split is None or not kept_clean(along, split[0], split[1], _KEPT_LOSS_MAX)
             if reproject:
                 split = None
             else:
@@ -373,23 +382,6 @@ def extend_basis(
 def _norms(C: np.ndarray, S: np.ndarray) -> np.ndarray:
     """Return the columns' ``M``-norms: their part along the basis and the residual's."""
     return np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
-
-
-def _clean(along: np.ndarray, split: tuple[np.ndarray, ...]) -> bool:
-    """Whether the kept directions ``Z W_k`` lie along the basis by at most ``_KEPT_LOSS_MAX``.
-
-    ``along`` (``q x b``) is what the residual ``Z`` kept along the basis, measured;
-    a kept direction ``Z w_i`` has the norm ``sqrt(lam_i)`` and keeps ``along w_i``.
-    The directions set aside are discarded whole (their part along the basis with
-    them, counted in their energy), so only the kept ones decide a second projection.
-    """
-    Wk, lam_k = split[0], split[1]
-    if lam_k.size == 0:
-        return True
-    if lam_k[-1] <= 0.0:
-        return False
-    lost = np.sqrt(np.einsum("ij,ij->j", along @ Wk, along @ Wk))
-    return bool(np.all(lost <= _KEPT_LOSS_MAX * np.sqrt(lam_k)))
 
 
 def _split(S: np.ndarray, nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float],
