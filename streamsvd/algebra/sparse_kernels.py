@@ -4,7 +4,7 @@ scipy's sparse product takes its dense operand row-major: a column-major block (
 layout of every basis and workspace here) is copied to row-major, the product is
 allocated row-major and copied back, which on a mass matrix of about seven entries per
 row costs three to four times the product itself (5101 x 91 block, pyMOR's heat
-example: about 5 ms against 1.9 ms here, ``bench/studies/tight-targets.md``). This
+example: 4.8 to 5.7 ms against 1.5 to 1.9 ms here, ``bench/studies/tight-targets.md``). This
 kernel reads the columns where they are and writes into the caller's buffer. It sums
 each row's entries in the stored order, as scipy does, so the digits are the same.
 
