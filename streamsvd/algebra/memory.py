@@ -137,23 +137,6 @@ class MemoryBasis(BasisBuffer):
         C = self.MQ.T @ X
         return C if G is None else G.T @ C
 
-    def residual_products(self, b: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Return ``MQ^T Z`` and ``Z^T M Z`` of the workspace's first ``b`` columns ``Z``.
-
-        ``M Z`` must be in the workspace's image. One product ``Z^T [MQ, MZ]`` (the
-        workspace follows the stored columns): at ``n = 5101``, 30 stored columns and a
-        block of 91 it took 2.35 ms where the two products apart took 2.8 (one thread,
-        ``bench/studies/tight-targets.md``). None for the Euclidean product, whose Gram
-        is a rank-k update of its own.
-        """
-        if self.inner.is_euclidean:
-            return None
-        w = self._w
-        Q, MQ = self._bufs
-        K = Q[:, w:w + b].T @ MQ[:, :w + b]
-        S = K[:, w:]
-        return np.ascontiguousarray(K[:, :w].T), 0.5 * (S + S.T)
-
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
         """``X -= Q (G C)`` in place (``G = None``: the identity), one gemm when possible."""
         K = C if G is None else G @ C

@@ -178,9 +178,7 @@ def extend_basis(
        leave their part along the basis to the coefficients, the kept ones keep theirs,
        measured in ``cross_gram`` (``skewed``), and the caller truncates in the
        coordinates of the extended basis made orthonormal
-       (:func:`~streamsvd.linalg.blocks.skew_factor`). The residual's part along the
-       basis and its Gram are one product where the basis offers it
-       (:meth:`~streamsvd.algebra.memory.MemoryBasis.residual_products`).
+       (:func:`~streamsvd.linalg.blocks.skew_factor`).
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
        in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to
@@ -238,17 +236,10 @@ def extend_basis(
         basis.subtract(Y, G, C)
         passes += 2
     Z = Y
-    MZ = apply_into(Z, MY, inner)
-    # what the projection left along the basis and the residual's Gram, in one product
-    # where the basis offers it
-    joint = getattr(basis, "residual_products", None)
-    both = joint(b) if w and joint is not None else None
-    if both is None:
-        cross0 = basis.project(Z, None) if w else np.zeros((0, b))
-        S = gram(Z, inner, MZ)
-    else:
-        cross0, S = both
+    cross0 = basis.project(Z, None) if w else np.zeros((0, b))
     passes += 1 if w else 0
+    MZ = apply_into(Z, MY, inner)
+    S = gram(Z, inner, MZ)
     split = None
     skewed = False
     if w:
