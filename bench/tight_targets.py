@@ -428,6 +428,8 @@ def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> 
         ax.set_yscale("log")
         ax.set_ylabel("CPU time (s)")
         ax.set_title("rbs480a: full SVD")
+    else:
+        ax.set_visible(False)  # the targets alone (--cases heat,burgers)
     loads = [r["load"] for key in ("targets", "cap", "rbs480a") for r in data[key]]
     if loads:
         fig.suptitle(f"1 BLAS thread, CPU time; load {min(loads):.1f}-{max(loads):.1f}",
