@@ -361,6 +361,7 @@ def extend_basis(
         # mixing of the other (scaled) columns left in its coordinates, which would come
         # back at the size of 1 (Rz, W, and the maps are exact zeros there in exact
         # arithmetic, and the column is represented exactly by zeros)
+        C[:, zero] = 0.0
         R_new[:, zero] = 0.0
         rejected_map[:, zero] = 0.0
     return BasisExtension(

@@ -146,6 +146,19 @@ def test_a_zero_column_is_represented_by_zeros_at_every_scale(scale, euclidean):
     assert true <= ext.rejected_norm() * (1 + 1e-6) + 10 * n * EPS * norm
 
 
+def test_a_zero_column_beside_a_basis_has_zero_coefficients():
+    # the directions set aside hand their part along the basis to the coefficients,
+    # through the residual's eigenvectors, whose rows of a zero column hold rounding
+    X, basis, ip, H = _on_a_basis()
+    X = np.ldexp(X, -100)
+    X[:, 3] = 0.0
+    energy = float(np.sum(X * ip.apply(X)))
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(X.shape[0]),
+                       basis_gram=H, aside=(1e-12 * energy, 0.0))
+    assert np.all(ext.coeffs[:, 3] == 0.0) and np.all(ext.R_new[:, 3] == 0.0)
+    assert np.all(ext.rejected_map[:, 3] == 0.0)
+
+
 def _on_a_basis(n=400, b=30):
     """A basis of the first block of a drifting pulse, and the next block."""
     x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
