@@ -5,18 +5,23 @@ An :class:`~streamsvd.storage.objects.ObjectStorage` reads and writes its small 
 it (a store's generation packs, a tall compressor's panels, a zarr source) go through the
 zarr store this module returns, chosen by the storage option :data:`OPTION`:
 
-* ``"fsspec"`` (the default, unless the variable :data:`ENVIRONMENT` of the process that
-  opens the storage names another): :class:`zarr.storage.FsspecStore` over s3fs, with
-  botocore's retries;
-* ``"obstore"``: :class:`zarr.storage.ObjectStore` over :class:`obstore.store.S3Store`
-  (Rust's ``object_store``), for ``s3://`` only, with its retries (5xx answers, dropped
+* ``"obstore"`` (the default for ``s3://`` when obstore is installed and every option
+  given is one it honours, :data:`OBSTORE_OPTIONS`; the faster, measured side by side):
+  :class:`zarr.storage.ObjectStore` over :class:`obstore.store.S3Store`
+  (Rust's ``object_store``), with its retries (5xx answers, dropped
   connections, timeouts: :data:`~streamsvd.storage.objects.RETRIES` attempts, backing off
   from :data:`~streamsvd.storage.objects.BACKOFF` seconds). Its credentials are the
   ``key``, ``secret`` and ``token`` of ``storage_options``, or else those botocore finds
   as for s3fs (:class:`BotocoreCredentials`: the ``AWS_*`` variables, the ``profile``
   option or ``AWS_PROFILE``, the ``~/.aws`` files, an instance role); its endpoint
   ``endpoint_url`` (or ``AWS_ENDPOINT_URL``), its region ``client_kwargs.region_name``
-  or botocore's. Other s3fs options (``config_kwargs``, ``anon``, ...) do not apply.
+  or botocore's;
+* ``"fsspec"`` (the default for other URLs, without obstore, or with s3fs options obstore
+  does not take, such as ``config_kwargs`` or ``anon``): :class:`zarr.storage.FsspecStore`
+  over s3fs, with botocore's retries.
+
+The variable :data:`ENVIRONMENT` of the process that opens the storage replaces the
+default for ``s3://``; the option replaces both.
 
 Which is faster, measured side by side on moto: ``bench/studies/object-store-benchmark.md``.
 """
@@ -30,14 +35,17 @@ from typing import Any
 
 from streamsvd.errors import InputError, OptionalDependencyError, StoreError
 
-__all__ = ["CHOICES", "DEFAULT", "ENVIRONMENT", "OPTION", "choice_of", "fsspec_options",
-           "zarr_store_of"]
+__all__ = ["CHOICES", "ENVIRONMENT", "OBSTORE_OPTIONS", "OPTION", "choice_of", "default_of",
+           "fsspec_options", "zarr_store_of"]
 
 OPTION = "zarr_store"
 """The storage option that chooses the zarr store of an object-store prefix."""
 CHOICES = ("fsspec", "obstore")
-DEFAULT = "fsspec"
-"""The zarr store when neither :data:`OPTION` nor :data:`ENVIRONMENT` is given."""
+OBSTORE_OPTIONS = frozenset({"key", "secret", "token", "endpoint_url", "profile",
+                             "client_kwargs", OPTION})
+"""The storage options obstore honours (of ``client_kwargs``: ``endpoint_url``,
+``region_name``); any other sends the default to fsspec, which takes them."""
+_OBSTORE_CLIENT_KWARGS = frozenset({"endpoint_url", "region_name"})
 ENVIRONMENT = "STREAMSVD_ZARR_STORE"
 """The environment variable that sets the default of :data:`OPTION` in a process."""
 
@@ -45,21 +53,42 @@ ENVIRONMENT = "STREAMSVD_ZARR_STORE"
 def choice_of(url: str, options: Mapping[str, Any], argument: str) -> str:
     """Return the zarr store that ``options`` choose, else the process's default (checked).
 
-    The default is fsspec for a URL other than ``s3://``. The storage that asks records
-    the answer in its options, so that the workers it is sent to use the same one.
+    The storage that asks records the answer in its options, so that the workers it is
+    sent to use the same one.
     """
     chosen = options.get(OPTION)
     named = f"`storage_options['{OPTION}']`"
     if chosen is None:
-        if not url.lower().startswith(("s3://", "s3a://")):
+        if not _is_s3(url):
             return "fsspec"
-        chosen, named = os.environ.get(ENVIRONMENT) or DEFAULT, f"the variable {ENVIRONMENT}"
+        chosen, named = os.environ.get(ENVIRONMENT), f"the variable {ENVIRONMENT}"
+        if not chosen:
+            return default_of(url, options)
     if chosen not in CHOICES:
         raise InputError(
             f"{named} must be one of {', '.join(map(repr, CHOICES))}; got {chosen!r} (for "
             f"`{argument}`)."
         )
     return str(chosen)
+
+
+def default_of(url: str, options: Mapping[str, Any]) -> str:
+    """Return the zarr store used when neither :data:`OPTION` nor :data:`ENVIRONMENT` is given.
+
+    obstore for ``s3://`` when it is installed and ``options`` hold only what it honours
+    (:data:`OBSTORE_OPTIONS`), else fsspec.
+    """
+    if not _is_s3(url) or not set(options) <= OBSTORE_OPTIONS:
+        return "fsspec"
+    if not set(options.get("client_kwargs") or {}) <= _OBSTORE_CLIENT_KWARGS:
+        return "fsspec"
+    import importlib.util
+
+    return "obstore" if importlib.util.find_spec("obstore") is not None else "fsspec"
+
+
+def _is_s3(url: str) -> bool:
+    return url.lower().startswith(("s3://", "s3a://"))
 
 
 def fsspec_options(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -83,8 +112,8 @@ def _obstore(url: str, options: Mapping[str, Any], *, read_only: bool, argument:
     """Return a :class:`zarr.storage.ObjectStore` over an ``S3Store`` of the prefix."""
     from streamsvd.storage.objects import BACKOFF, RETRIES
 
-    scheme, _, rest = url.partition("://")
-    if scheme.lower() not in ("s3", "s3a"):
+    rest = url.partition("://")[2]
+    if not _is_s3(url):
         raise InputError(
             f"`storage_options['{OPTION}']='obstore'` is for s3:// URLs; got `{argument}` "
             f"{url}. Drop the option for other URLs."

@@ -1,5 +1,6 @@
 """The zarr store of an object-store prefix: chosen by a storage option, checked."""
 
+import importlib.util
 import pickle
 
 import pytest
@@ -63,3 +64,19 @@ def test_the_environment_sets_the_default_for_s3_only(monkeypatch):
     monkeypatch.setenv(ENVIRONMENT, "rust")
     with pytest.raises(InputError, match="the variable STREAMSVD_ZARR_STORE"):
         choice_of("s3://b/p", {}, "store")
+
+
+def test_the_default_is_obstore_for_s3_with_options_it_honours(monkeypatch):
+    from streamsvd.storage.zarr_stores import ENVIRONMENT, choice_of
+
+    monkeypatch.delenv(ENVIRONMENT, raising=False)
+    installed = importlib.util.find_spec("obstore") is not None
+    assert choice_of("s3://b/p", {"endpoint_url": "http://h", "profile": "p",
+                                  "client_kwargs": {"region_name": "r"}}, "store") == (
+        "obstore" if installed else "fsspec")
+    # s3fs options obstore does not take keep fsspec, which takes them
+    assert choice_of("s3://b/p", {"anon": True}, "store") == "fsspec"
+    assert choice_of("s3://b/p", {"client_kwargs": {"verify": False}}, "store") == "fsspec"
+    assert choice_of("gs://b/p", {}, "store") == "fsspec"
+    monkeypatch.setenv(ENVIRONMENT, "fsspec")  # the environment replaces the default
+    assert choice_of("s3://b/p", {}, "store") == "fsspec"
