@@ -51,6 +51,7 @@ import numpy as np
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.panels.lazy import LazyBlock
 from streamsvd.errors import InputError, ShapeMismatchError
+from streamsvd.io.chunks import ChunkFiles
 from streamsvd.io.readahead import (
     _check_finite,
     _checked_chunk,
@@ -118,6 +119,8 @@ class Source:
         self.dtype = dtype
         self.block_dtype = np.dtype(np.float32 if dtype == np.float32 else np.float64)
         self.description = description
+        # a local zarr array of the blocks' dtype is decoded chunk by chunk (io/chunks.py)
+        self._files = None if compute or dtype != self.block_dtype else ChunkFiles.of(data)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -170,10 +173,15 @@ class Source:
             )
         return self._read_checked(start, stop)
 
-    def _read_checked(self, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
-        """Read columns ``start:stop`` (into ``out`` when it fits) and check them."""
+    def _read_checked(self, start: int, stop: int, out: np.ndarray | None = None, *,
+                      threads: int = 1) -> np.ndarray:
+        """Read columns ``start:stop`` (into ``out`` when it fits) and check them.
+
+        ``threads``: the threads that decode a local zarr array's chunks (this one among
+        them); other data are read by this thread.
+        """
         try:
-            out, finite = self._read_slabs(start, stop, out)
+            out, finite = self._read_slabs(start, stop, out, threads=threads)
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, start, stop, self.description) from exc
         if not finite:
@@ -181,7 +189,7 @@ class Source:
         return out
 
     def _read_slabs(
-        self, start: int, stop: int, out: np.ndarray | None = None
+        self, start: int, stop: int, out: np.ndarray | None = None, *, threads: int = 1
     ) -> tuple[np.ndarray, bool]:
         """Read columns ``start:stop`` into a column-major array, by slabs of rows.
 
@@ -191,12 +199,16 @@ class Source:
         the data's row chunks, about 8 MiB, so that a read never holds the block twice in the data's
         layout (a dask array, or data one chunk tall, is read whole). Each slab is checked
         for NaN and infinite entries while it is in the cache; returns the block and
-        whether every slab was finite.
+        whether every slab was finite. A local zarr array of the block's dtype is decoded
+        chunk by chunk straight into the block instead (:class:`~streamsvd.io.chunks.ChunkFiles`,
+        on ``threads`` threads), each chunk checked as it is copied.
         """
         cols = stop - start
         if (out is None or out.shape != (self.n, cols) or out.dtype != self.block_dtype
                 or not out.flags.f_contiguous or not out.flags.writeable):
             out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
+        if self._files is not None and cols:
+            return out, self._files.fill(out, 0, start, threads=threads)
         rows = self.n
         if not self._compute:
             # whole row chunks (all rows when the data is one chunk tall: never recompute
@@ -307,7 +319,14 @@ class Source:
             return ((a, self.lazy(a, b, rows=rows)) for a, b in ranges)
         if not prefetch:
             return ((a, self._read_checked(a, b)) for a, b in ranges)
-        return read_ahead(self._read_checked, ranges, depth)
+        first = ranges[0][0] if ranges else 0
+
+        def read(a: int, b: int, spare: np.ndarray | None) -> np.ndarray:
+            # the caller waits for the first block with nothing to overlap: two cores
+            # decode it; later blocks are decoded by the reader alone, beside the update
+            return self._read_checked(a, b, spare, threads=_FIRST_THREADS if a == first else 1)
+
+        return read_ahead(read, ranges, depth)
 
     def close(self) -> None:
         """Release what the source opened (an HDF5 file, for instance); idempotent."""
@@ -355,15 +374,24 @@ class _ChunkReader:
         r0, r1, _ = rows.indices(self.shape[0])
         c0, c1, _ = cols.indices(self.shape[1])
         out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype, order="C")
+        finite = False
         try:
-            _fill(out, self.data, r0, self.offset + c0, self.offset + c1)
+            # a local zarr array is decoded chunk by chunk (looked up here, in the task:
+            # the reader is shipped to a cluster's workers without it)
+            files = None if isinstance(self.data, np.ndarray) else ChunkFiles.of(self.data)
+            if files is not None and files.dtype == self.dtype and out.size:
+                finite = files.fill(out, r0, self.offset + c0)
+            else:
+                _fill(out, self.data, r0, self.offset + c0, self.offset + c1)
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, self.start, self.stop, self.description) from exc
-        _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
+        if not finite:
+            _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
         return out
 
 
 _READ_BYTES = 1 << 23  # rows read at a time from the data (8 MiB)
+_FIRST_THREADS = 2  # threads that decode the first block of a prefetching read
 
 
 def _check_matrix(shape: tuple[int, ...], dtype: np.dtype, description: str) -> None:
