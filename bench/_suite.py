@@ -191,7 +191,7 @@ STUDIES: tuple[Study, ...] = (
               ("method", "method"), ("CPU s", "cpu", ".3f"), ("x gesdd", "over_gesdd", ".2f"),
               ("sweeps", "sweeps"), ("residual", "residual", ".2f"),
               ("orth. V", "orthogonality_v", ".2f"), ("sv", "singular_values", ".2f"),
-          ], "rbs480a"), table("tight_targets.json", "ingest", [
+          ], "rbs480a"), table("tight_targets_ingest.json", "ingest", [
               ("store", "store"), ("contender", "contender"), ("wall s", "wall", ".2f"),
               ("CPU s", "cpu", ".2f"),
               ("wall / memory", "wall_over_memory", ".2f"),

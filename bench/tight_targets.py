@@ -438,11 +438,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     name = "tight_targets" + ("_quick" if args.quick else "")
     payload = {"machine": machine_info(), "load": os.getloadavg(), "against": args.against,
                **data, "before": before}
-    record.write(out / f"{name}.json", payload)
-    _figure(data, before, out / f"{name}.png")
-    if data["ingest"]:
+    if data["targets"] or data["cap"] or data["rbs480a"]:
+        record.write(out / f"{name}.json", payload)
+        _figure(data, before, out / f"{name}.png")
+        print(f"wrote {out / name}.json and .png")
+    if data["ingest"]:  # a file of its own: `--cases ingest` alone keeps the others
+        record.write(out / f"{name}_ingest.json", {"machine": machine_info(),
+                                                   "ingest": data["ingest"]})
         _ingest.figure(data["ingest"], out / f"{name}_ingest.png")
-    print(f"wrote {out / name}.json and .png")
+        print(f"wrote {out / name}_ingest.json and .png")
     return payload
 
 
