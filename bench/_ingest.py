@@ -40,15 +40,19 @@ CONTENDERS = ("read", "read-src", "memory", "driver", "driver-serial", "cli", "t
 RANK, BLOCK = 60, 100
 
 
-def arrays(data: Path) -> dict[str, Path]:
-    """The zstd array (written by ``outofcore_benchmark.py``'s code) and its uncompressed copy."""
+def arrays(data: Path, quick: bool = False) -> dict[str, Path]:
+    """The zstd array (written by ``outofcore_benchmark.py``'s code) and its uncompressed copy.
+
+    ``quick``: 3000 x 250 instead of 200000 x 500 (a smoke test).
+    """
     import zarr
     from outofcore_benchmark import write_data
 
+    n, m = (3000, 250) if quick else (200000, 500)
     data.mkdir(parents=True, exist_ok=True)
-    zstd, raw = data / "A200000x500.zarr", data / "A200000x500-raw.zarr"
+    zstd, raw = data / f"A{n}x{m}.zarr", data / f"A{n}x{m}-raw.zarr"
     if not zstd.exists():
-        write_data(zstd, 200000, 500, "float64")
+        write_data(zstd, n, m, "float64")
     if not raw.exists():
         src = zarr.open_array(str(zstd), mode="r")
         dst = zarr.create_array(str(raw) + ".tmp", shape=src.shape, chunks=src.chunks,

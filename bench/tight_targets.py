@@ -1,8 +1,8 @@
 """Tight targets, a rank cap and a full SVD: streamsvd against pyMOR's HAPOD and LAPACK.
 
 ```
-python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a] [--repeat 3]
-       [--ingest ZARR] [--against REV] [--out DIR] [--quick]
+python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a,ingest] [--repeat 3]
+       [--ingest ZARR] [--ingest-data DIR] [--against REV] [--out DIR] [--quick]
 ```
 
 One process, one BLAS thread, CPU time (``time.process_time``: the machine is shared),
@@ -291,7 +291,7 @@ def _measure(args: argparse.Namespace) -> dict[str, Any]:
             data["rbs480a"] = rbs480a_rows(args.repeat, args.quick)
     if args.ingest or "ingest" in cases:
         paths = ({"given": Path(args.ingest)} if args.ingest
-                 else _ingest.arrays(Path(args.ingest_data)))
+                 else _ingest.arrays(Path(args.ingest_data), args.quick))
         against = None
         if args.against:
             against = (args.against, _worktree(args.against, Path(args.ingest_data)))
