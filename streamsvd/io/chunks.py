@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from streamsvd.errors import SourceError
+
 __all__ = ["ChunkFiles"]
 
 logger = logging.getLogger(__name__)
@@ -166,14 +168,22 @@ class ChunkFiles:
             while got < length:
                 n = f.readinto(view[got:])
                 if not n:
-                    raise OSError(f"{path}: {length - got} bytes short")
+                    raise SourceError(f"chunk file {path}: {length - got} bytes short.")
                 got += n
         if self.decode is None:
             if length != size:
-                raise ValueError(f"{path}: {length} bytes, expected {size}")
+                raise SourceError(f"chunk file {path}: {length} bytes, expected {size}.")
             return np.frombuffer(raw, dtype=self.dtype, count=R * C).reshape(R, C)
         chunk = _buffer("chunk", size)
-        self.decode(view, out=memoryview(chunk)[:size])
+        try:
+            self.decode(view, out=memoryview(chunk)[:size])
+        except (RuntimeError, ValueError):  # a frame that does not state its size
+            decoded = memoryview(self.decode(bytes(view))).cast("B")
+            if decoded.nbytes != size:
+                raise SourceError(
+                    f"chunk file {path}: {decoded.nbytes} bytes decoded, expected {size}."
+                ) from None
+            chunk[:size] = decoded
         return np.frombuffer(chunk, dtype=self.dtype, count=R * C).reshape(R, C)
 
 
