@@ -164,3 +164,21 @@ def test_a_frame_decoded_without_a_target_buffer_gives_the_same_block(rng, tmp_p
     out = np.empty((40, 12), order="F")
     assert files.fill(out, 0, 0)
     assert np.array_equal(out, A)
+
+
+def test_an_early_read_is_the_first_block_and_keeps_its_error_for_it(rng, tmp_path):
+    A = rng.standard_normal((40, 12))
+    _array(tmp_path, A)
+    with open_source(tmp_path / "zstd.zarr") as src:
+        src.read_early(0, 5)
+        got = [(o, X.copy()) for o, X in src.blocks(5)]
+        assert [o for o, _ in got] == [0, 5, 10]
+        assert all(np.array_equal(X, A[:, o:o + 5]) for o, X in got)
+        src.read_early(0, 4)  # not the first block of the next read: dropped
+        assert [o for o, _ in src.blocks(5, start=5)] == [5, 10]
+    A[7, 2] = np.nan
+    _array(tmp_path, A)
+    with open_source(tmp_path / "zstd.zarr") as src:
+        src.read_early(0, 5)
+        with pytest.raises(NonFiniteError, match="column 2, row 7"):
+            next(src.blocks(5))
