@@ -21,14 +21,19 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
-import scipy.sparse as sp
 
+from streamsvd._util.lazy import lazy_module
 from streamsvd._util.validation import as_float_array, check_finite
 from streamsvd.algebra.spd import EXACT_MAX_N, check_sparse_definite, check_symmetric
 from streamsvd.errors import InnerProductMismatchError, InputError, ShapeMismatchError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+else:  # imported by the first sparse inner product (0.1 s that `streamsvd info` need not pay)
+    sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
 
 __all__ = [
     "DiagonalInner",

@@ -11,15 +11,21 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from streamsvd._util.lazy import lazy_module
 from streamsvd._util.threads import blas_threads
 from streamsvd.errors import InputError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+else:  # imported by the first sparse matrix checked
+    sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
+    spla = lazy_module("scipy.sparse.linalg")
 
 __all__ = ["EXACT_MAX_N", "check_sparse_definite", "check_symmetric"]
 
