@@ -23,18 +23,19 @@ largest. The creation of the store, the reopening for writing (taking the lease)
 read of the current generation are timed once per run.
 
 The S3 runs are made twice, with the zarr arrays written and read through s3fs
-(``FsspecStore``, the default) and through obstore (``storage_options={"zarr_store":
-"obstore"}``, zarr's ``ObjectStore``; :mod:`streamsvd.storage.zarr_stores`); the small
-objects (pointer, lease, listings) go through s3fs in both. Two heavier workloads are
-timed too, wall and CPU time of this process (moto's is not counted): a source read (a
-``--source-rows x --source-cols`` zarr array on S3, chunked ``16384 x 20``, read block
-by block of 20 columns through :func:`streamsvd.io.open_source`) and a tall stream (a
+(``FsspecStore``, ``storage_options={"zarr_store": "fsspec"}``) and through obstore
+(``"obstore"``, zarr's ``ObjectStore``, the default;
+:mod:`streamsvd.storage.zarr_stores`); the small objects (pointer, lease, listings) go
+through s3fs in both. Two heavier workloads are timed too, wall and CPU time of this
+process (moto's is not counted): a source read (a ``--source-rows x --source-cols`` zarr
+array on S3, chunked ``16384 x 20``, read block by block of 20 columns through
+:func:`streamsvd.io.open_source`) and a tall stream (a
 :class:`~streamsvd.parallel.TallCompressor` of ``--source-rows`` rows with its store on
-S3, absorbing the array's first 100 columns in 5 updates: its panels are written and
-read through the zarr store). The contenders run interleaved, ``--repeats`` times
-(3); the table gives medians over the repeats. Against moto on the same machine a
-request costs what moto's Python HTTP server takes to answer (about a millisecond), not
-a network round trip to a cloud region: the S3 figures count requests more than bytes.
+S3, absorbing the array's first 100 columns in 5 updates: its panels are written and read
+through the zarr store). The contenders run interleaved, ``--repeats`` times (3); the
+table gives medians over the repeats. Against moto on the same machine a request costs
+what moto's Python HTTP server takes to answer (about a millisecond), not a network round
+trip to a cloud region: the S3 figures count requests more than bytes.
 
 Writes ``object_store_benchmark.json`` and ``object_store_benchmark.png`` to ``--out``.
 """
@@ -83,7 +84,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-CONTENDERS = {"fsspec": {}, "obstore": {"zarr_store": "obstore"}}
+CONTENDERS = {"fsspec": {"zarr_store": "fsspec"}, "obstore": {"zarr_store": "obstore"}}
 """The S3 contenders: their ``storage_options``."""
 
 
