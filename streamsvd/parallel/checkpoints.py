@@ -21,8 +21,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from streamsvd.algebra.interface import Backend
 from streamsvd.algebra.memory import MemoryBackend
@@ -30,6 +33,9 @@ from streamsvd.errors import StoreError
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.store import POINTER_NAME
 from streamsvd.stream.compressor import StreamCompressor
+
+if TYPE_CHECKING:
+    from streamsvd.parallel.spec import SourceSpec
 
 __all__ = ["Checkpoints", "checkpoints_beside", "child_storage"]
 
@@ -159,3 +165,41 @@ class Checkpoints:
     def remove(self) -> None:
         """Remove every checkpoint (the root is committed to the store)."""
         self.root.delete("")
+
+
+def open_checkpoints(root: LocalStorage | ObjectStorage, spec: SourceSpec, client: Any, *,
+                     tree: str, where: str) -> Checkpoints | None:
+    """Return the checkpoints of a tree over ``spec`` under ``root``, or None.
+
+    None (with a warning: the ``tree`` then runs without checkpoints) when ``root``
+    cannot be prepared or the workers of ``client`` cannot reach it (``where`` names it
+    in the message). A plan records the source's shape, description and identity
+    (:func:`source_identity`), so that checkpoints of other data are refused.
+    """
+    from streamsvd.parallel.workers import check_workers_see
+
+    try:
+        root.prepare()
+        check_workers_see(client, storages=[(where, root)])
+    except StoreError as exc:
+        logger.warning("the %s runs without checkpoints: %s", tree, exc)
+        return None
+    return Checkpoints(root, {"n": spec.n, "m": spec.m, "source": spec.description,
+                              "identity": source_identity(spec)})
+
+
+def source_identity(spec: SourceSpec) -> str:
+    """Return what tells the data of a source apart beyond its description.
+
+    The bytes' digest of an in-memory array, a dask array's name (a digest of its graph),
+    a local file's size and modification time; for a URL, nothing (its description).
+    """
+    if spec.kind == "array":
+        return hashlib.sha256(np.ascontiguousarray(spec.obj).data).hexdigest()
+    if spec.kind == "dask":
+        return str(spec.obj.name)
+    path = spec.local_path()
+    if path is not None:
+        stat = os.stat(path)
+        return f"{stat.st_size}-{stat.st_mtime_ns}"
+    return ""

@@ -42,7 +42,12 @@ from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.panels.backend import PanelBackend
 from streamsvd.errors import InputError, StoreError
 from streamsvd.io.provenance import SourceRecord
-from streamsvd.parallel.checkpoints import Checkpoints, checkpoints_beside, child_storage
+from streamsvd.parallel.checkpoints import (
+    Checkpoints,
+    checkpoints_beside,
+    child_storage,
+    open_checkpoints,
+)
 from streamsvd.parallel.spec import (
     SourceSpec,
     _node_options,
@@ -51,7 +56,6 @@ from streamsvd.parallel.spec import (
     leaf_ranges,
 )
 from streamsvd.parallel.tall import TallCompressor
-from streamsvd.parallel.tree import _identity
 from streamsvd.parallel.tree_graph import begin, node_graph
 from streamsvd.parallel.workers import (
     blas_here,
@@ -272,11 +276,4 @@ def _checkpoints(where: Any, in_workdir: bool, spec: SourceSpec, client: Any
     Beside ``store`` (``<store>.tree``), or in ``<workdir>/checkpoints`` without one.
     """
     root = child_storage(where, CHECKPOINTS) if in_workdir else checkpoints_beside(where)
-    try:
-        root.prepare()
-        check_workers_see(client, storages=[("the checkpoints", root)])
-    except StoreError as exc:
-        logger.warning("the tall tree runs without checkpoints: %s", exc)
-        return None
-    return Checkpoints(root, {"n": spec.n, "m": spec.m, "source": spec.description,
-                              "identity": _identity(spec)})
+    return open_checkpoints(root, spec, client, tree="tall tree", where="the checkpoints")

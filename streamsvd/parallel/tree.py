@@ -32,23 +32,19 @@ guaranteed bound on ``||A - U V^T||_F`` over every column compressed.
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import os
 from typing import Any, cast
-
-import numpy as np
 
 from streamsvd._util.malloc import keep_freed_memory
 from streamsvd._util.scheduling import check_client
 from streamsvd._util.validation import check_positive_int
 from streamsvd.errors import InputError, ShapeMismatchError, StoreError
 from streamsvd.io.provenance import SourceRecord
-from streamsvd.parallel.checkpoints import Checkpoints, checkpoints_beside
+from streamsvd.parallel.checkpoints import checkpoints_beside, open_checkpoints
 from streamsvd.parallel.spec import SourceSpec, check_options, options_of
 from streamsvd.parallel.tree_graph import run_tree
 from streamsvd.parallel.workers import check_workers_see, source_places
-from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
+from streamsvd.storage import open_storage
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.stream.options import TREE_OPTIONS as COMPRESSOR_OPTIONS
 
@@ -211,7 +207,8 @@ def tree_compress(
     try:
         check_workers_see(client, **source_places(spec))
         saved = (None if path is None or not checkpoints else
-                 _checkpoints(path, spec, client))
+                 open_checkpoints(checkpoints_beside(path), spec, client, tree="tree",
+                                  where="the checkpoints of `store`"))
         root = run_tree(spec, start, block, leaf_columns, opts, client, progress, saved)
         if target is None and path is None:
             out = root if root is not None else StreamCompressor(spec.n, **opts)
@@ -235,34 +232,3 @@ def tree_compress(
             target.close(finalize=False)
         raise
     return target
-
-
-def _checkpoints(path: LocalStorage | ObjectStorage, spec: SourceSpec, client: Any
-                 ) -> Checkpoints | None:
-    """Return where the tree commits its nodes, or None if the workers cannot reach it."""
-    root = checkpoints_beside(path)
-    try:
-        root.prepare()
-        check_workers_see(client, storages=[("the checkpoints of `store`", root)])
-    except StoreError as exc:
-        logger.warning("the tree runs without checkpoints: %s", exc)
-        return None
-    return Checkpoints(root, {"n": spec.n, "m": spec.m, "source": spec.description,
-                              "identity": _identity(spec)})
-
-
-def _identity(spec: SourceSpec) -> str:
-    """Return what tells the data of a source apart beyond its description.
-
-    The bytes' digest of an in-memory array, a dask array's name (a digest of its graph),
-    a local file's size and modification time; for a URL, nothing (its description).
-    """
-    if spec.kind == "array":
-        return hashlib.sha256(np.ascontiguousarray(spec.obj).data).hexdigest()
-    if spec.kind == "dask":
-        return str(spec.obj.name)
-    path = spec.local_path()
-    if path is not None:
-        stat = os.stat(path)
-        return f"{stat.st_size}-{stat.st_mtime_ns}"
-    return ""
