@@ -6,18 +6,15 @@ the uninterrupted result bit for bit (a node is handed on as it is loaded back, 
 runs).
 """
 
-import os
-import signal
-import subprocess
-import sys
 import textwrap
-import time
 
 import numpy as np
 
 from streamsvd.parallel.tall import TallCompressor
 from streamsvd.store import POINTER_NAME
 from streamsvd.testing import with_spectrum
+
+from ._kills import kill_after_a_committed_node
 
 SCRIPT = textwrap.dedent("""
     import sys
@@ -41,18 +38,9 @@ def _run(npy, workdir, store):
 def test_killed_tall_tree_resumes_from_its_committed_nodes(tmp_path):
     A = with_spectrum(np.logspace(0, -9, 30), 3000, 400, np.random.default_rng(4))
     np.save(tmp_path / "a.npy", A)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     store, parts = tmp_path / "killed.zarr", tmp_path / "killed.zarr.tree"
-    proc = subprocess.Popen([sys.executable, "-c", SCRIPT, str(tmp_path / "a.npy"),
-                             str(tmp_path / "wk"), str(store)], env=env)
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline:
-        if parts.is_dir() and any((p / POINTER_NAME).exists() for p in parts.iterdir()):
-            break
-        time.sleep(0.05)
-    if proc.poll() is None:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    kill_after_a_committed_node([SCRIPT, str(tmp_path / "a.npy"),
+                                 str(tmp_path / "wk"), str(store)], parts)
     # the same call again: resumes from what was committed (or finds the store done; a
     # kill within the store's creation leaves leftovers, which the creation replaces)
     if not (store / POINTER_NAME).exists():

@@ -6,19 +6,16 @@ the uninterrupted result bit for bit (a loaded node is the computed one, the cod
 the same).
 """
 
-import os
 import shutil
-import signal
-import subprocess
-import sys
 import textwrap
-import time
 
 import numpy as np
 
 from streamsvd.store import POINTER_NAME
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.testing import with_spectrum
+
+from ._kills import kill_after_a_committed_node
 
 SCRIPT = textwrap.dedent("""
     import sys
@@ -36,18 +33,9 @@ def test_killed_tree_resumes_from_its_committed_nodes(tmp_path):
     rng = np.random.default_rng(3)
     A = with_spectrum(np.logspace(0, -9, 30), 3000, 600, rng)
     np.save(tmp_path / "a.npy", A)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     store, parts = tmp_path / "killed.zarr", tmp_path / "killed.zarr.tree"
-    proc = subprocess.Popen([sys.executable, "-c", SCRIPT, str(tmp_path / "a.npy"),
-                             str(store)], env=env)
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline:
-        if parts.is_dir() and any((p / POINTER_NAME).exists() for p in parts.iterdir()):
-            break
-        time.sleep(0.05)
-    if proc.poll() is None:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    kill_after_a_committed_node([SCRIPT, str(tmp_path / "a.npy"),
+                                 str(store)], parts)
     from streamsvd.parallel import tree_compress
 
     # the same call again: resumes from what was committed (or finds the store done); a
