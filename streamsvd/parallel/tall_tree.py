@@ -146,6 +146,8 @@ def tall_tree_compress(
         nodes = merged + nodes[len(merged) * 2:]
     (root,) = execute(nodes, client=client)
     root = cast(StreamCompressor, root)  # with the nodes' options (see the notes)
+    if client is not None:  # its copy into `store` and its finalisation run on the workers
+        root._life.backend.use_client(root._life.state.basis, client)  # type: ignore[attr-defined]
     root.source_record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
                                          description=spec.description)
     if store is not None:
