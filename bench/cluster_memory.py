@@ -379,7 +379,8 @@ def plot(path: Path, summary: list[dict[str, Any]], cfg: dict[str, Any]) -> None
         axes[0].plot(n, [r["client_peak_mb"] for r in rs], "s--", color=color,
                      label=f"{name}: client")
         axes[1].plot(n, [r["seconds"] for r in rs], "o-", color=color, label=name)
-    axes[0].set_ylabel("peak resident memory (MB)")
+    axes[0].set_yscale("log")
+    axes[0].set_ylabel("peak resident memory (MB, log scale)")
     axes[1].set_ylabel("wall time (s)")
     for ax in axes:
         ax.set_xscale("log")

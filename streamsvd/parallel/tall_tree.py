@@ -7,8 +7,11 @@ task: its basis lives in row panels under ``workdir`` (a prefix every worker rea
 own worker (the threaded scheduler there), so a worker holds a few row chunks, the
 small matrices and one block's row chunk at a time, independent of ``n``. The leaves run
 in parallel; the merges (:meth:`~streamsvd.StreamCompressor.merge`, pairwise, left then
-right) read both operands' panels from ``workdir`` and write the merged basis there. The
-root's panels are copied into ``store`` (one commit) or left in ``workdir``.
+right) read both operands' panels from ``workdir`` (the right operand's left vectors by
+row chunks, in the merge's pass: no ``n``-sized array on the merging worker) and write
+the merged basis there. The root comes back to the client as its small matrices and the
+names of its panels; its panels are copied into ``store`` (one commit) or left in
+``workdir``, and that copy and ``finalize`` run on the cluster, not in the client.
 
 What it does not do (yet): checkpoints (a killed run starts again), resuming a store.
 """
