@@ -8,16 +8,19 @@ describes and reads.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import importlib.metadata
 import json
+import logging
 import math
 import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -249,3 +252,39 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], *, title:
         print(title)
     print(format_table(headers, rows))
     sys.stdout.flush()
+
+
+@contextlib.contextmanager
+def library_warnings_silenced() -> Iterator[None]:
+    """Silence the library's warnings (a benchmark counts missed targets instead) in the block.
+
+    Logging is restored on exit, so a benchmark run inside a test session leaves the
+    tests after it their warnings.
+    """
+    logging.disable(logging.WARNING)
+    try:
+        yield
+    finally:
+        logging.disable(logging.NOTSET)
+
+
+def rows_of_revision(rev: str, script: str | os.PathLike[str], args: Sequence[str]) -> Any:
+    """Return what ``script --rows-only OUT *args`` writes to ``OUT`` on revision ``rev``.
+
+    The revision is checked out in a temporary git worktree and the script runs in a
+    child process with that worktree first on ``PYTHONPATH``, so ``import streamsvd``
+    there is the older code while the benchmark itself is this revision's.
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
+                        str(tree), rev], check=True)
+        try:
+            out = Path(tmp) / "rows.json"
+            env = dict(os.environ, PYTHONPATH=str(tree))
+            subprocess.run([sys.executable, str(script), "--rows-only", str(out), *args],
+                           check=True, env=env)
+            return json.loads(out.read_text())
+        finally:
+            subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
+                            str(tree)], check=True)

@@ -153,6 +153,19 @@ STUDIES: tuple[Study, ...] = (
               ("commit ms (median)", "commit_seconds/median", ".1f", 1e3),
               ("commit ms (max)", "commit_seconds/max", ".1f", 1e3),
               ("reopen ms", "reopen_seconds", ".1f", 1e3), ("read ms", "read_seconds", ".1f", 1e3),
+              ("source read s", "source_read/wall", ".2f"),
+              ("source read CPU s", "source_read/cpu", ".2f"),
+              ("tall stream s", "tall_stream/wall", ".2f"),
+              ("tall stream CPU s", "tall_stream/cpu", ".2f"),
+          ]),)),
+    Study("tall-tree-checkpoints", "Tall-tree checkpoints",
+          ("tall_tree_checkpoints_benchmark",),
+          shown=("tall_tree_checkpoints_benchmark.png",),
+          files=("tall_tree_checkpoints_benchmark*",),
+          tables=(table("tall_tree_checkpoints_benchmark.json", "results", [
+              ("contender", "contender"), ("n", "n"), ("m", "m"),
+              ("wall s (median)", "wall_seconds", ".2f"),
+              ("CPU s (median)", "cpu_seconds", ".2f"), ("repeats", "repeats"),
           ]),)),
     Study("fault-campaign", "Fault campaign", ("fault_campaign",), files=("fault_campaign*",),
           tables=(table("fault_campaign.json", "counts", [
@@ -177,7 +190,7 @@ STUDIES: tuple[Study, ...] = (
               ("true / target", "true_over_target", ".3f"), ("CPU s", "seconds", ".2f"),
           ]),)),
     Study("tight-targets", "Tight targets, a rank cap and a full SVD", ("tight_targets",),
-          shown=("tight_targets.png",), files=("tight_targets*",),
+          shown=("tight_targets.png", "tight_targets_ingest.png"), files=("tight_targets*",),
           tables=(table("tight_targets.json", "targets", [
               ("case", "case"), ("measure", "measure"), ("target", "target", "g"),
               ("streamsvd CPU s", "streamsvd_cpu", ".3f"), ("HAPOD CPU s", "hapod_cpu", ".3f"),
@@ -191,8 +204,9 @@ STUDIES: tuple[Study, ...] = (
               ("method", "method"), ("CPU s", "cpu", ".3f"), ("x gesdd", "over_gesdd", ".2f"),
               ("sweeps", "sweeps"), ("residual", "residual", ".2f"),
               ("orth. V", "orthogonality_v", ".2f"), ("sv", "singular_values", ".2f"),
-          ], "rbs480a"), table("tight_targets.json", "ingest", [
-              ("contender", "contender"), ("wall s", "wall", ".2f"), ("CPU s", "cpu", ".2f"),
+          ], "rbs480a"), table("tight_targets_ingest.json", "ingest", [
+              ("store", "store"), ("contender", "contender"), ("wall s", "wall", ".2f"),
+              ("CPU s", "cpu", ".2f"),
               ("wall / memory", "wall_over_memory", ".2f"),
               ("CPU / memory", "cpu_over_memory", ".2f"), ("load", "load", ".1f"),
           ], "ingest 200000 x 500"))),

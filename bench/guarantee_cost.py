@@ -24,12 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 import os
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -38,7 +35,15 @@ import numpy as np
 import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
+from _common import (  # noqa: E402
+    Run,
+    library_warnings_silenced,
+    machine_info,
+    out_dir,
+    print_table,
+    pyplot,
+    rows_of_revision,
+)
 from hapod_benchmark import DEFAULT_CACHE, _projection_error2, generate  # noqa: E402
 
 TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
@@ -100,11 +105,8 @@ def run_one(X: np.ndarray, M: Any, lengths: np.ndarray, kind: str, measure: str,
 
 def measure_all(cases: list[str], cache: Path, quick: bool) -> list[dict[str, Any]]:
     """Every case, kind, measure and target on the code importable as ``streamsvd``."""
-    logging.disable(logging.WARNING)  # the warnings of missed targets, counted instead
-    try:
+    with library_warnings_silenced():  # the warnings of missed targets, counted instead
         return _measure_all(cases, cache, quick)
-    finally:
-        logging.disable(logging.NOTSET)
 
 
 def _measure_all(cases: list[str], cache: Path, quick: bool) -> list[dict[str, Any]]:
@@ -128,20 +130,8 @@ def _measure_all(cases: list[str], cache: Path, quick: bool) -> list[dict[str, A
 
 def _against(rev: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     """Run :func:`measure_all` on revision ``rev`` in a child process (a git worktree)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
-                        str(tree), rev], check=True)
-        try:
-            out = Path(tmp) / "rows.json"
-            env = dict(os.environ, PYTHONPATH=str(tree))
-            subprocess.run([sys.executable, __file__, "--rows-only", str(out), "--cases",
-                            args.cases, "--cache", args.cache]
-                           + (["--quick"] if args.quick else []), check=True, env=env)
-            return list(json.loads(out.read_text()))
-        finally:
-            subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
-                            str(tree)], check=True)
+    return list(rows_of_revision(rev, __file__, [
+        "--cases", args.cases, "--cache", args.cache, *(["--quick"] if args.quick else [])]))
 
 
 def _figure(rows: list[dict[str, Any]], before: list[dict[str, Any]] | None, path: Path,

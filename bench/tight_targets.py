@@ -1,8 +1,8 @@
 """Tight targets, a rank cap and a full SVD: streamsvd against pyMOR's HAPOD and LAPACK.
 
 ```
-python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a] [--repeat 3]
-       [--ingest ZARR] [--against REV] [--out DIR] [--quick]
+python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a,ingest] [--repeat 3]
+       [--ingest ZARR] [--ingest-data DIR] [--against REV] [--out DIR] [--quick]
 ```
 
 One process, one BLAS thread, CPU time (``time.process_time``: the machine is shared),
@@ -26,20 +26,22 @@ of ``--repeat``; ``os.getloadavg()`` recorded with every row.
 * ``rbs480a``: ``compress(Expansion.canonical(A), rule="jacobi")`` with and without
   ``precondition=True`` against ``scipy.linalg.svd(A, lapack_driver="gesdd")``, and the
   LAPACK test ratios of the result.
-* ``--ingest ZARR``: ``streamsvd ingest ZARR S --max-rank 60 --block 100`` (a process,
-  wall and CPU time with start-up) against the in-memory API on the array already loaded
-  (``StreamCompressor`` over blocks of 100, finalised) and the raw read (the array read
-  by blocks of 100 columns and summed), each in its own process.
+* ``ingest`` (or ``--ingest ZARR`` for one given array): out of core against the same
+  computation in memory, on a 200000 x 500 float64 zarr array (zstd, and the same
+  uncompressed), written once into ``--ingest-data``; the contenders are
+  ``_ingest.py``'s (the raw read, the read as ``ingest`` does it, the in-memory API, the
+  ingest driver with and without read-ahead, ``streamsvd ingest`` as a process, the tall
+  mode), each in its own process, wall and CPU time.
 
 ``--against REV`` runs the same rows on revision ``REV`` (a git worktree, a child
-process, after this version's rows) and prints its ratios beside these.
+process, after this version's rows) and prints its ratios beside these; for ``ingest``
+it adds ``cli@REV``, the command of revision ``REV``, interleaved with the others.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 import os
 import statistics
@@ -58,7 +60,18 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, Run, load_rbs480a, machine_info, out_dir, print_table, pyplot  # noqa: E402
+import _ingest  # noqa: E402
+from _common import (  # noqa: E402
+    REPO_ROOT,
+    Run,
+    library_warnings_silenced,
+    load_rbs480a,
+    machine_info,
+    out_dir,
+    print_table,
+    pyplot,
+    rows_of_revision,
+)
 from hapod_benchmark import DEFAULT_CACHE, _projection_error2, generate  # noqa: E402
 
 TARGETS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
@@ -264,68 +277,11 @@ def rbs480a_rows(repeat: int, quick: bool) -> list[dict[str, Any]]:
     return rows
 
 
-# ------------------------------------------------------------------------ ingest
-def _child(what: str, path: str) -> None:
-    """``--child read|memory PATH``: one out-of-core contender, its times as JSON."""
-    import zarr
-
-    z = zarr.open_array(path, mode="r")
-    if what == "read":
-        t0, c0 = time.perf_counter(), time.process_time()
-        total = 0.0
-        for j in range(0, z.shape[1], 100):
-            total += float(z[:, j : j + 100].sum())
-    else:
-        import streamsvd as ss
-
-        A = np.asfortranarray(z[:])
-        t0, c0 = time.perf_counter(), time.process_time()
-        sc = ss.StreamCompressor(A.shape[0], max_rank=60)
-        for j in range(0, A.shape[1], 100):
-            sc.absorb(A[:, j : j + 100])
-        sc.finalize()
-    print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0}))
-
-
-def ingest_rows(path: str, repeat: int) -> list[dict[str, Any]]:
-    """The command line's ingest against the in-memory API and the raw read."""
-    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
-    times: dict[str, list[dict[str, float]]] = {"read": [], "memory": [], "cli": []}
-    for _ in range(repeat):
-        for what in ("read", "memory"):
-            out = subprocess.run([sys.executable, __file__, "--child", what, path],
-                                 check=True, capture_output=True, text=True, env=env)
-            times[what].append(json.loads(out.stdout.strip().splitlines()[-1]))
-        with tempfile.TemporaryDirectory() as tmp:
-            t0 = time.perf_counter()
-            r0 = os.times()
-            subprocess.run([sys.executable, "-m", "streamsvd.cli", "ingest", path,
-                            str(Path(tmp) / "S.svd"), "--max-rank", "60", "--block", "100",
-                            "--quiet"], check=True, env=env)
-            r1 = os.times()
-            times["cli"].append({"wall": time.perf_counter() - t0,
-                                 "cpu": (r1.children_user - r0.children_user)
-                                 + (r1.children_system - r0.children_system)})
-    rows = []
-    for what, runs in times.items():
-        rows.append({"contender": what, "wall": statistics.median(r["wall"] for r in runs),
-                     "cpu": statistics.median(r["cpu"] for r in runs), "runs": runs,
-                     "load": os.getloadavg()[0]})
-    mem = rows[1]
-    for row in rows:
-        row["wall_over_memory"] = row["wall"] / mem["wall"]
-        row["cpu_over_memory"] = row["cpu"] / mem["cpu"]
-    return rows
-
-
 # ------------------------------------------------------------------------ driver
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Every case of ``args``, with the library's warnings silenced only while it runs."""
-    logging.disable(logging.WARNING)
-    try:
+    with library_warnings_silenced():
         return _measure(args)
-    finally:
-        logging.disable(logging.NOTSET)
 
 
 def _measure(args: argparse.Namespace) -> dict[str, Any]:
@@ -339,28 +295,32 @@ def _measure(args: argparse.Namespace) -> dict[str, Any]:
             data["cap"] = cap_rows(cache, args.repeat, args.quick)
         elif case == "rbs480a":
             data["rbs480a"] = rbs480a_rows(args.repeat, args.quick)
-    if args.ingest:
-        data["ingest"] = ingest_rows(args.ingest, args.repeat)
+    if args.ingest or "ingest" in cases:
+        paths = ({"given": Path(args.ingest)} if args.ingest
+                 else _ingest.arrays(Path(args.ingest_data), args.quick))
+        against = None
+        if args.against:
+            against = (args.against, _worktree(args.against, Path(args.ingest_data)))
+        data["ingest"] = _ingest.rows(paths, args.repeat, REPO_ROOT, Path(__file__),
+                                      against=against)
     return data
+
+
+def _worktree(rev: str, where: Path) -> Path:
+    """A git worktree of ``rev`` under ``where`` (made once, kept for the next run)."""
+    tree = where / f"tree-{rev}"
+    if not tree.exists():
+        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
+                        str(tree), rev], check=True)
+    return tree
 
 
 def _against(rev: str, args: argparse.Namespace) -> dict[str, Any]:
     """The rows of revision ``rev``, measured in a child process over a git worktree."""
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", "-q",
-                        str(tree), rev], check=True)
-        try:
-            out = Path(tmp) / "rows.json"
-            env = dict(os.environ, PYTHONPATH=str(tree))
-            cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
-            subprocess.run([sys.executable, __file__, "--rows-only", str(out), "--cases",
-                            cases, "--cache", args.cache, "--repeat", str(args.repeat)]
-                           + (["--quick"] if args.quick else []), check=True, env=env)
-            return dict(json.loads(out.read_text()))
-        finally:
-            subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
-                            str(tree)], check=True)
+    cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
+    return dict(rows_of_revision(rev, __file__, [
+        "--cases", cases, "--cache", args.cache, "--repeat", str(args.repeat),
+        *(["--quick"] if args.quick else [])]))
 
 
 def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
@@ -393,10 +353,12 @@ def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
                       f"{r['load']:.1f}"] for r in data["rbs480a"]],
                     title="\nrbs480a: the full SVD")
     if data["ingest"]:
-        print_table(["contender", "wall s", "CPU s", "wall / memory", "CPU / memory", "load"],
-                    [[r["contender"], f"{r['wall']:.2f}", f"{r['cpu']:.2f}",
+        print_table(["store", "contender", "wall s", "CPU s", "wall / memory", "CPU / memory",
+                     "load (min-max)"],
+                    [[r.get("store", ""), r["contender"], f"{r['wall']:.2f}", f"{r['cpu']:.2f}",
                       f"{r['wall_over_memory']:.2f}", f"{r['cpu_over_memory']:.2f}",
-                      f"{r['load']:.1f}"] for r in data["ingest"]],
+                      f"{r['load']:.1f} ({r.get('load_min', r['load']):.1f}-"
+                      f"{r.get('load_max', r['load']):.1f})"] for r in data["ingest"]],
                     title="\ningest 200000 x 500 (--max-rank 60 --block 100)")
 
 
@@ -433,6 +395,8 @@ def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> 
         ax.set_yscale("log")
         ax.set_ylabel("CPU time (s)")
         ax.set_title("rbs480a: full SVD")
+    else:
+        ax.set_visible(False)  # the targets alone (--cases heat,burgers)
     loads = [r["load"] for key in ("targets", "cap", "rbs480a") for r in data[key]]
     if loads:
         fig.suptitle(f"1 BLAS thread, CPU time; load {min(loads):.1f}-{max(loads):.1f}",
@@ -449,6 +413,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--cache", default=str(DEFAULT_CACHE), help="snapshot cache directory")
     ap.add_argument("--ingest", default=None, help="a 200000 x 500 zarr array")
+    ap.add_argument("--ingest-data", default=str(Path(tempfile.gettempdir()) / "streamsvd-ooc"),
+                    help="where --cases ingest writes its arrays (kept)")
     ap.add_argument("--against", default=None, help="git revision to compare with")
     ap.add_argument("--out", default=None, help="directory for the PNG and JSON")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
@@ -456,21 +422,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        _child(*args.child)
+        _ingest.child(*args.child)
         return {}
     data = measure(args)
     if args.rows_only:
         Path(args.rows_only).write_text(json.dumps(data))
         return data
-    before = _against(args.against, args) if args.against else None
+    targets = any(c in ("heat", "burgers") for c in args.cases.split(","))
+    before = _against(args.against, args) if args.against and targets else None
     _print(data, before)
     out = out_dir(args.out)
     name = "tight_targets" + ("_quick" if args.quick else "")
     payload = {"machine": machine_info(), "load": os.getloadavg(), "against": args.against,
                **data, "before": before}
-    record.write(out / f"{name}.json", payload)
-    _figure(data, before, out / f"{name}.png")
-    print(f"wrote {out / name}.json and .png")
+    if data["targets"] or data["cap"] or data["rbs480a"]:
+        record.write(out / f"{name}.json", payload)
+        _figure(data, before, out / f"{name}.png")
+        print(f"wrote {out / name}.json and .png")
+    if data["ingest"]:  # a file of its own: `--cases ingest` alone keeps the others
+        record.write(out / f"{name}_ingest.json", {"machine": machine_info(),
+                                                   "ingest": data["ingest"]})
+        _ingest.figure(data["ingest"], out / f"{name}_ingest.png")
+        print(f"wrote {out / name}_ingest.json and .png")
     return payload
 
 

@@ -8,9 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from streamsvd.algebra.inner import InnerProduct
+from streamsvd.algebra.inner import InnerProduct, MatrixInner
 
-__all__ = ["gram", "m_norms"]
+__all__ = ["apply_into", "gram", "m_norms"]
+
+
+def apply_into(inner: InnerProduct, X: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Write ``M X`` into ``out`` and return it (a sparse ``M`` without a temporary block)."""
+    if isinstance(inner, MatrixInner):
+        return inner.apply(X, out=out)
+    out[...] = inner.apply(X)
+    return out
 
 
 def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:

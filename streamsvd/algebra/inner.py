@@ -21,14 +21,19 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
-import scipy.sparse as sp
 
+from streamsvd._util.lazy import lazy_module
 from streamsvd._util.validation import as_float_array, check_finite
-from streamsvd.algebra.spd import check_sparse_definite, check_symmetric
+from streamsvd.algebra.spd import EXACT_MAX_N, check_sparse_definite, check_symmetric
 from streamsvd.errors import InnerProductMismatchError, InputError, ShapeMismatchError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+else:  # imported by the first sparse inner product (0.1 s that `streamsvd info` need not pay)
+    sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
 
 __all__ = [
     "DiagonalInner",
@@ -166,7 +171,13 @@ class MatrixInner:
             mat = as_float_array(M, "M", ndim=2, allow_empty=False, copy=True)
         if mat.shape[0] != mat.shape[1]:
             raise ShapeMismatchError(f"`M` must be square; got shape {mat.shape}.")
-        check_symmetric(mat)
+        digest = (_digest(b"sparse", mat.indptr.astype(np.int64), mat.indices.astype(np.int64),
+                          mat.data) if sp.issparse(mat) else None)
+        # a sparse matrix proven definite before (the same entries, by their digest) is
+        # not factorised again: a compressor made per trajectory or per target reuses it
+        checked = digest is not None and digest in _CHECKED
+        if not checked:
+            check_symmetric(mat)
         diag = mat.diagonal()
         if np.any(diag <= 0):
             k = int(np.argmin(diag))
@@ -189,20 +200,47 @@ class MatrixInner:
             mat.setflags(write=False)
             self.fingerprint = _digest(b"dense", mat)
         else:
-            if not diagonal:
+            if not diagonal and not checked:
                 check_sparse_definite(mat, diag)
-            self.fingerprint = _digest(
-                b"sparse", mat.indptr.astype(np.int64), mat.indices.astype(np.int64), mat.data
-            )
+            assert digest is not None
+            self.fingerprint = digest
+            if mat.shape[0] <= EXACT_MAX_N:  # proven definite (above: estimated, logged)
+                _remember(digest)
         self.matrix = mat
         self.n = mat.shape[0]
         self._weights = diag.reshape(-1, 1) if diagonal else None
+        # the CSR arrays of a sparse M, for the compiled product with a column-major block
+        self._csr = ((mat.indptr.astype(np.int64), mat.indices.astype(np.int64), mat.data)
+                     if sp.issparse(mat) and not diagonal else None)
 
-    def apply(self, X: np.ndarray) -> np.ndarray:
-        """Return ``M @ X``."""
+    def apply(self, X: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Return ``M @ X`` (written into ``out``, of the shape of ``X``, when given).
+
+        A sparse ``M`` times a column-major block of float64 goes through
+        :func:`~streamsvd.algebra.sparse_kernels.csr_times_columns`, which reads the
+        columns where they are (scipy's product copies the block to row-major and back),
+        with the same digits.
+        """
         if self._weights is not None:
-            return X * (self._weights if X.ndim == 2 else self._weights[:, 0])
-        return np.asarray(self.matrix @ X)
+            MX = X * (self._weights if X.ndim == 2 else self._weights[:, 0])
+        elif (self._csr is not None and X.ndim == 2 and X.shape[1] >= 4
+              and X.dtype == np.float64 and X.flags.f_contiguous):
+            from streamsvd.algebra.sparse_kernels import csr_times_columns
+
+            if out is None or not out.flags.f_contiguous or np.shares_memory(out, X):
+                target = np.empty(X.shape, order="F")
+            else:
+                target = out
+            csr_times_columns(*self._csr, X, target)
+            if target is out:
+                return out
+            MX = target
+        else:
+            MX = np.asarray(self.matrix @ X)
+        if out is None:
+            return MX
+        out[...] = MX
+        return out
 
     def gram(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         """Return ``X^T M Y``."""
@@ -217,6 +255,19 @@ class MatrixInner:
 
     def __hash__(self) -> int:
         return hash(self.fingerprint)
+
+
+# the digests of the last sparse matrices found symmetric positive definite
+_CHECKED: dict[str, None] = {}
+_CHECKED_MAX = 8
+
+
+def _remember(digest: str) -> None:
+    """Record a sparse matrix found symmetric positive definite (the last few are kept)."""
+    _CHECKED.pop(digest, None)
+    _CHECKED[digest] = None
+    while len(_CHECKED) > _CHECKED_MAX:
+        del _CHECKED[next(iter(_CHECKED))]
 
 
 def _digest(kind: bytes, *arrays: np.ndarray) -> str:

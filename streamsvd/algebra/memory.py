@@ -30,6 +30,7 @@ import scipy.linalg.blas as blas
 
 from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
+from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.buffer import BasisBuffer
 from streamsvd.algebra.inner import InnerProduct
@@ -201,7 +202,7 @@ class MemoryBasis(BasisBuffer):
         Y, MY = self.workspace(b)
         Y[...] = X
         if not self.inner.is_euclidean:
-            MY[...] = self.inner.apply(X)
+            m_apply_into(self.inner, X, MY)
         self._block, self._beside = (Y, MY), True
         return b
 

@@ -11,23 +11,29 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from streamsvd._util.lazy import lazy_module
 from streamsvd._util.threads import blas_threads
 from streamsvd.errors import InputError
 
-__all__ = ["check_sparse_definite", "check_symmetric"]
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+else:  # imported by the first sparse matrix checked
+    sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
+    spla = lazy_module("scipy.sparse.linalg")
+
+__all__ = ["EXACT_MAX_N", "check_sparse_definite", "check_symmetric"]
 
 logger = logging.getLogger(__name__)
 
 # definiteness of a sparse M (on D^-1/2 M D^-1/2): an exact LDL^T up to this size (its
 # fill, in 3-D, costs about a second there), a Lanczos estimate above
-_EXACT_MAX_N = 10_000
+EXACT_MAX_N = 10_000
 # the Lanczos estimate: its smallest Ritz value is looked at every _LANCZOS_EVERY steps
 # (a divisor of _LANCZOS_MAX_STEPS); it is taken after _LANCZOS_MIN_STEPS (by then an
 # eigenvalue apart from the rest has shown) once it moves by at most _LANCZOS_RTOL of
@@ -74,7 +80,7 @@ def check_sparse_definite(mat: sp.csr_array, diag: np.ndarray) -> None:
     -----
     The test is on ``S = D^-1/2 M D^-1/2`` (unit diagonal, ``||S||_2 <= ||S||_inf``). An
     eigenvalue at most ``tol = n * eps * ||S||_inf`` counts as zero. Up to
-    ``_EXACT_MAX_N``, SuperLU factors ``P S P^T = L U`` with the diagonal as pivots (a
+    ``EXACT_MAX_N``, SuperLU factors ``P S P^T = L U`` with the diagonal as pivots (a
     symmetric ordering and a zero pivot threshold): then ``U = D L^T``, and by Sylvester's
     law of inertia ``S`` has as many negative eigenvalues as ``D`` negative entries; each
     pivot is at least the smallest eigenvalue, so a pivot within ``tol`` of zero makes
@@ -86,7 +92,7 @@ def check_sparse_definite(mat: sp.csr_array, diag: np.ndarray) -> None:
     norm = float(np.max(s * (abs(mat) @ s)))
     tol = n * np.finfo(float).eps * norm
     scaled = "D^-1/2 M D^-1/2 (D its diagonal)"
-    if n <= _EXACT_MAX_N:
+    if n <= EXACT_MAX_N:
         how = f"the LDL^T factorisation of {scaled}"
         pivots = _ldlt_pivots(sp.diags_array(s) @ mat @ sp.diags_array(s))
         negative = 0 if pivots is None else int(np.count_nonzero(pivots < -tol))

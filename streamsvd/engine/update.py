@@ -40,13 +40,8 @@ from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before, core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
-from streamsvd.engine.state import (
-    Plan,
-    State,
-    StepOptions,
-    Writes,
-    gram_orthogonality,
-)
+from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
+from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import BasisExtension, extend_basis
 
 __all__ = [
@@ -236,13 +231,17 @@ def _plan(
     being the stored rows no longer live.
     """
     keep_rows = state.rows is not None
+    p, r = state.rank, ext.rank
+    Lt_inv = None  # the new basis [Q coords, Q_new] L^(-T) (skew_factor)
+    if ext.skewed and state.gram is not None:  # new directions along the basis: K L cut
+        L, Lt_inv = skew_factor(state.coords, state.gram, ext.cross_gram, ext.gram_new)
+        K = K @ L
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
         before=Before(prior, d_rej, overlapping), on_sweep=on_sweep,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
-    p, r = state.rank, ext.rank
     w = state.basis.width
     T = step.T
     p_new = T.shape[1]
@@ -259,6 +258,7 @@ def _plan(
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
     )
+    T = T if Lt_inv is None else Lt_inv @ T
     coords = np.vstack([state.coords @ T[:p], T[p:]])
     if compact:
         H = state.basis.compact_planned(coords, r)

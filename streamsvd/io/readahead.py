@@ -12,15 +12,22 @@ import queue
 import sys
 import threading
 from collections.abc import Callable, Generator
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from streamsvd._util.slabs import copy_by_row_slabs
 from streamsvd._util.validation import first_non_finite
 from streamsvd.errors import NonFiniteError, SourceError
+from streamsvd.io.chunks import ChunkFiles
 
-__all__ = ["read_ahead"]
+if TYPE_CHECKING:
+    from streamsvd.io.sources import Source
+
+__all__ = ["FIRST_THREADS", "EarlyRead", "read_ahead"]
+
+#: Threads that decode a block the caller waits for with nothing to overlap (the first)
+FIRST_THREADS = 2
 
 # sys.getrefcount of a block that only the generator's own name refers to (the count
 # includes the call's argument)
@@ -141,3 +148,77 @@ def _fill(out: np.ndarray, data: Any, r0: int, start: int, stop: int, *,
         return
     part = data[rows, start:stop]
     copy_by_row_slabs(out, part.compute() if compute else part)
+
+
+class EarlyRead:
+    """Columns ``start:stop`` of a source, read by a daemon thread from now on.
+
+    ``streamsvd ingest`` reads its first block while it imports the update step and
+    creates its store: those run the interpreter, decoding does not need it, so the two
+    share the cores. The block is checked as any other, and its error is raised by
+    :meth:`result`, where the block is asked for.
+    """
+
+    def __init__(self, source: Source, start: int, stop: int) -> None:
+        self.range = (start, stop)
+        self._block: np.ndarray | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(source,),
+                                        name="streamsvd-early-read", daemon=True)
+        self._thread.start()
+
+    def _run(self, source: Source) -> None:
+        try:
+            self._block = source._read_checked(*self.range, threads=FIRST_THREADS)
+        except BaseException as exc:  # raised where the block is asked for
+            self._error = exc
+
+    def join(self) -> None:
+        """Wait for the read to end."""
+        self._thread.join()
+
+    def result(self) -> np.ndarray:
+        """Return the block (waiting for it), or raise the read's error."""
+        self._thread.join()
+        block, self._block = self._block, None
+        if self._error is not None:
+            raise self._error
+        return cast(np.ndarray, block)
+
+
+class _ChunkReader:
+    """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked.
+
+    It holds what a task needs and nothing more (it is shipped to the workers of a
+    cluster): the data, or for an in-memory array only the view of its columns. A row
+    slice is read row-major, as the tall mode's scratch copy stores it (no copy before
+    the write: 5% of ``tall_compress`` on 200000 x 1000, ``bench/README.md``).
+    """
+
+    def __init__(self, source: Source, start: int, stop: int) -> None:
+        data = source._data
+        self.offset = 0 if isinstance(data, np.ndarray) else start
+        self.data = data[:, start:stop] if isinstance(data, np.ndarray) else data
+        self.start, self.stop, self.description = start, stop, source.description
+        self.shape = (source.n, stop - start)
+        self.dtype, self.ndim = source.block_dtype, 2
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype, order="C")
+        finite = False
+        try:
+            # a local zarr array is decoded chunk by chunk (looked up here, in the task:
+            # the reader is shipped to a cluster's workers without it)
+            files = None if isinstance(self.data, np.ndarray) else ChunkFiles.of(self.data)
+            if files is not None and files.dtype == self.dtype and out.size:
+                finite = files.fill(out, r0, self.offset + c0)
+            else:
+                _fill(out, self.data, r0, self.offset + c0, self.offset + c1)
+        except Exception as exc:  # any reader failure is reported with its offset
+            raise _read_failed(exc, self.start, self.stop, self.description) from exc
+        if not finite:
+            _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
+        return out

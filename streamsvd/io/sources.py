@@ -51,9 +51,13 @@ import numpy as np
 from streamsvd._util.validation import check_positive_int
 from streamsvd.algebra.panels.lazy import LazyBlock
 from streamsvd.errors import InputError, ShapeMismatchError
+from streamsvd.io.chunks import ChunkFiles
 from streamsvd.io.readahead import (
+    FIRST_THREADS,
+    EarlyRead,
     _check_finite,
     _checked_chunk,
+    _ChunkReader,
     _fill,
     _read_failed,
     read_ahead,
@@ -118,6 +122,9 @@ class Source:
         self.dtype = dtype
         self.block_dtype = np.dtype(np.float32 if dtype == np.float32 else np.float64)
         self.description = description
+        # a local zarr array of the blocks' dtype is decoded chunk by chunk (io/chunks.py)
+        self._files = None if compute or dtype != self.block_dtype else ChunkFiles.of(data)
+        self._early: EarlyRead | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -170,10 +177,11 @@ class Source:
             )
         return self._read_checked(start, stop)
 
-    def _read_checked(self, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
-        """Read columns ``start:stop`` (into ``out`` when it fits) and check them."""
+    def _read_checked(self, start: int, stop: int, out: np.ndarray | None = None, *,
+                      threads: int = 1) -> np.ndarray:
+        """Read columns ``start:stop`` (into ``out`` if it fits, on ``threads``) and check them."""
         try:
-            out, finite = self._read_slabs(start, stop, out)
+            out, finite = self._read_slabs(start, stop, out, threads=threads)
         except Exception as exc:  # any reader failure is reported with its offset
             raise _read_failed(exc, start, stop, self.description) from exc
         if not finite:
@@ -181,7 +189,7 @@ class Source:
         return out
 
     def _read_slabs(
-        self, start: int, stop: int, out: np.ndarray | None = None
+        self, start: int, stop: int, out: np.ndarray | None = None, *, threads: int = 1
     ) -> tuple[np.ndarray, bool]:
         """Read columns ``start:stop`` into a column-major array, by slabs of rows.
 
@@ -191,12 +199,15 @@ class Source:
         the data's row chunks, about 8 MiB, so that a read never holds the block twice in the data's
         layout (a dask array, or data one chunk tall, is read whole). Each slab is checked
         for NaN and infinite entries while it is in the cache; returns the block and
-        whether every slab was finite.
+        whether every slab was finite. A local zarr array is decoded by
+        :class:`~streamsvd.io.chunks.ChunkFiles` instead, on ``threads`` threads.
         """
         cols = stop - start
         if (out is None or out.shape != (self.n, cols) or out.dtype != self.block_dtype
                 or not out.flags.f_contiguous or not out.flags.writeable):
             out = np.empty((self.n, cols), dtype=self.block_dtype, order="F")
+        if self._files is not None and cols:
+            return out, self._files.fill(out, 0, start, threads=threads)
         rows = self.n
         if not self._compute:
             # whole row chunks (all rows when the data is one chunk tall: never recompute
@@ -210,6 +221,16 @@ class Source:
             _fill(slab, self._data, r0, start, stop, compute=self._compute)
             finite = finite and bool(np.isfinite(slab).all())
         return out, finite
+
+    def read_early(self, start: int, stop: int) -> None:
+        """Start reading columns ``start:stop`` now, in a background thread (:class:`EarlyRead`).
+
+        The next :meth:`blocks` (read ahead) takes its first block from it when it is this
+        range, with its errors; otherwise the read is dropped.
+        """
+        start = _check_index(start, "start", self.m)
+        stop = _check_index(stop, "stop", self.m)
+        self._early = EarlyRead(self, start, stop) if stop > start else None
 
     def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
         """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
@@ -307,11 +328,25 @@ class Source:
             return ((a, self.lazy(a, b, rows=rows)) for a, b in ranges)
         if not prefetch:
             return ((a, self._read_checked(a, b)) for a, b in ranges)
-        return read_ahead(self._read_checked, ranges, depth)
+        first = ranges[0] if ranges else (0, 0)
+        early, self._early = self._early, None
+
+        def read(a: int, b: int, spare: np.ndarray | None) -> np.ndarray:
+            if early is not None and (a, b) == first:
+                return early.result()
+            # the caller waits for the first block with nothing to overlap: two cores
+            # decode it; later blocks are decoded by the reader alone, beside the update
+            threads = FIRST_THREADS if (a, b) == first else 1
+            return self._read_checked(a, b, spare, threads=threads)
+
+        return read_ahead(read, ranges, depth)
 
     def close(self) -> None:
         """Release what the source opened (an HDF5 file, for instance); idempotent."""
         on_close, self._on_close = self._on_close, None
+        early, self._early = self._early, None
+        if early is not None:
+            early.join()  # the file it reads stays open until it is done
         if on_close is not None:
             on_close()
 
@@ -331,36 +366,6 @@ class Source:
 
     def __repr__(self) -> str:
         return f"Source({self.description}, n={self.n}, m={self.m}, dtype={self.dtype})"
-
-
-class _ChunkReader:
-    """Columns ``start:stop`` of a source seen by dask: each row slice is read and checked.
-
-    It holds what a task needs and nothing more (it is shipped to the workers of a
-    cluster): the data, or for an in-memory array only the view of its columns. A row
-    slice is read row-major, as the tall mode's scratch copy stores it (no copy before
-    the write: 5% of ``tall_compress`` on 200000 x 1000, ``bench/README.md``).
-    """
-
-    def __init__(self, source: Source, start: int, stop: int) -> None:
-        data = source._data
-        self.offset = 0 if isinstance(data, np.ndarray) else start
-        self.data = data[:, start:stop] if isinstance(data, np.ndarray) else data
-        self.start, self.stop, self.description = start, stop, source.description
-        self.shape = (source.n, stop - start)
-        self.dtype, self.ndim = source.block_dtype, 2
-
-    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
-        rows, cols = key
-        r0, r1, _ = rows.indices(self.shape[0])
-        c0, c1, _ = cols.indices(self.shape[1])
-        out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype, order="C")
-        try:
-            _fill(out, self.data, r0, self.offset + c0, self.offset + c1)
-        except Exception as exc:  # any reader failure is reported with its offset
-            raise _read_failed(exc, self.start, self.stop, self.description) from exc
-        _check_finite(out, self.start + c0, r0, self.shape[0], self.description)
-        return out
 
 
 _READ_BYTES = 1 << 23  # rows read at a time from the data (8 MiB)

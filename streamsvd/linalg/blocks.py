@@ -18,6 +18,7 @@ import scipy.linalg.blas as blas
 
 from streamsvd._util.scaling import column_exponents
 from streamsvd._util.slabs import copy_by_row_slabs
+from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
 
@@ -43,11 +44,18 @@ def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns the exponents (0 for a zero column) and the mask of the zero columns. The
     copy is made first and the peaks
     are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
-    the scaling is exact, subnormal peaks included.
+    a column-major ``X`` is measured where it is and scaled into ``Y`` in one pass.
+    The scaling is exact, subnormal peaks included.
     """
-    copy_by_row_slabs(Y, X)
     if Y.shape[0] == 0:
         return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
+    if isinstance(X, np.ndarray) and X.dtype == np.float64 and X.flags.f_contiguous:
+        # already column-major: the peaks taken on X, the scaled copy written in one pass
+        exps, peak = column_exponents(X)
+        if np.all(np.abs(exps) < 1000):
+            np.multiply(X, np.ldexp(1.0, -exps), out=Y)
+            return exps, peak == 0
+    copy_by_row_slabs(Y, X)
     exps, peak = column_exponents(Y)
     if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
         Y *= np.ldexp(1.0, -exps)
@@ -60,8 +68,7 @@ def apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray
     """``M Z`` written into ``MY`` (``Z`` itself for the Euclidean product)."""
     if inner.is_euclidean:
         return Z
-    MY[...] = inner.apply(Z)
-    return MY
+    return m_apply_into(inner, Z, MY)
 
 
 def place_directions(
@@ -71,7 +78,10 @@ def place_directions(
     r = Qn.shape[1]
     Y[:, :r] = Qn
     if not inner.is_euclidean:
-        MY[:, :r] = inner.apply(Qn) if MQn is None else MQn
+        if MQn is None:
+            m_apply_into(inner, Qn, MY[:, :r])
+        else:
+            MY[:, :r] = MQn
 
 
 def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
@@ -150,11 +160,13 @@ def orthonormalize_in_rounds(
     reject_tol: float,
     ref: np.ndarray,
     F0: np.ndarray | None = None,
-) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int,
+           list[np.ndarray]]:
     """Orthonormalise an ill-conditioned residual round by round (see :func:`extend_basis`).
 
     Returns the orthonormal parts, the coefficients ``Rz`` of the residual on them, the
-    directions set aside below the floor ``(T, M T, F)`` and the passes made. ``C`` (the
+    directions set aside below the floor ``(T, M T, F)``, the passes made and the parts'
+    ``M`` images. ``C`` (the
     coefficients on the basis) receives what the re-projections of later rounds find.
     ``F0`` (``s x b``), when given, says that ``Z`` holds ``s`` combinations of the ``b``
     columns (``Z = Z_columns F0^T``, the directions :func:`set_aside` kept).
@@ -228,7 +240,7 @@ def orthonormalize_in_rounds(
             break
         Zc, Fc = np.asfortranarray(Tt[:, ~low]), Ft[~low]
     Rz = np.vstack(rows) if rows else np.zeros((0, b))
-    return parts, Rz, floor, passes
+    return parts, Rz, floor, passes, mparts
 
 
 def column_rule(
@@ -318,3 +330,33 @@ def set_aside(
     k = b - t
     G_t = np.diag(lam[k:]) + (float(allow[t - 1]) / t) * np.eye(t)
     return W[:, :k], lam[:k], W[:, k:], G_t
+
+
+def kept_clean(along: np.ndarray, Wk: np.ndarray, lam_k: np.ndarray, limit: float) -> bool:
+    """Whether the kept directions ``Z W_k`` lie along the basis by at most ``limit``.
+
+    ``along`` (``q x b``) is what the residual ``Z`` kept along the basis, measured; a
+    kept direction ``Z w_i`` has the norm ``sqrt(lam_i)`` and keeps ``along w_i``. The
+    directions set aside (:func:`set_aside`) are discarded whole, so only the kept ones
+    decide a second projection (:func:`streamsvd.linalg.extend.extend_basis`).
+    """
+    if lam_k.size == 0:
+        return True
+    if lam_k[-1] <= 0.0:
+        return False
+    A = along @ Wk
+    return bool(np.all(np.sqrt(np.einsum("ij,ij->j", A, A)) <= limit * np.sqrt(lam_k)))
+
+
+def skew_factor(coords: np.ndarray, gram: np.ndarray, cross: np.ndarray,
+                gram_new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(L, L^(-T))``, ``L L^T`` the Gram of ``[Q coords, Q_new]``, measured.
+
+    ``gram`` is ``Q^T M Q``, ``cross`` ``(M Q)^T Q_new`` and ``gram_new`` ``Q_new^T M Q_new``:
+    ``[Q coords, Q_new] L^(-T)`` is orthonormal, and a core ``K`` on ``[Q coords, Q_new]``
+    is ``K L`` on it.
+    """
+    top = coords.T @ cross
+    G = np.block([[coords.T @ gram @ coords, top], [top.T, gram_new]])
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    return L, blas.dtrsm(1.0, L, np.eye(L.shape[0]), lower=1).T

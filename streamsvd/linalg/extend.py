@@ -17,6 +17,7 @@ import scipy.linalg
 import scipy.linalg.lapack
 
 from streamsvd._util.scaling import pow2_exponent
+from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisBackend
@@ -27,6 +28,7 @@ from streamsvd.linalg.blocks import (
     cholesky_qr_in_place,
     column_rule,
     complement,
+    kept_clean,
     orthonormalize_in_rounds,
     place_directions,
     right_solve,
@@ -42,6 +44,10 @@ _EPS = np.finfo(np.float64).eps
 # own norm) is projected a second time; a smaller one is measured and kept in the basis
 # Gram, where the compressor's orthogonality check accounts for it
 _LOSS_MAX = 2.0**-26
+# after a single projection, the directions a block keeps (its weakest set aside) may lie
+# along the basis by this much (relative to their norm): measured in the basis Gram and
+# removed in the small factors before the truncation (streamsvd.engine.update)
+_KEPT_LOSS_MAX = 2.0**-10
 # Higham and Mary's constant of the probabilistic rounding model (as the Gram path's)
 _ROUNDING_LAMBDA = 4.0
 
@@ -82,6 +88,10 @@ class BasisExtension:
     passes : int
         Products of an ``n``-sized block with the stored basis (projections and
         subtractions): what an update costs.
+    skewed : bool
+        Whether the residual was projected once, its new directions along the basis by
+        at most ``_KEPT_LOSS_MAX`` (measured in ``cross_gram``): the caller truncates in
+        the coordinates of the extended basis made orthonormal.
     """
 
     coeffs: np.ndarray
@@ -94,6 +104,7 @@ class BasisExtension:
     cross_gram: np.ndarray
     gram_new: np.ndarray
     passes: int = 0
+    skewed: bool = False
 
     @classmethod
     def empty(cls, q: int, w: int) -> BasisExtension:
@@ -160,7 +171,14 @@ def extend_basis(
        enough) only where it exceeds ``_LOSS_MAX`` of a column's residual; otherwise it
        is returned in ``cross_gram``, the new block of the basis Gram, where the compressor's
        orthogonality check (``coords^T gram coords = I``, :mod:`streamsvd.engine.update`) accounts
-       for it.
+       for it. With an ``aside`` budget and ``basis_gram`` the second pass is not made
+       either when the directions kept after setting the weakest aside (step 2) lie along
+       the basis by at most ``_KEPT_LOSS_MAX`` of their norm (nearly collinear time steps:
+       the block is mostly along the basis, its residual small): the directions set aside
+       leave their part along the basis to the coefficients, the kept ones keep theirs,
+       measured in ``cross_gram`` (``skewed``), and the caller truncates in the
+       coordinates of the extended basis made orthonormal
+       (:func:`~streamsvd.linalg.blocks.skew_factor`).
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
        in place, twice when ``cond(S) > ONE_PASS_COND`` (CholeskyQR2: orthonormal to
@@ -210,7 +228,7 @@ def extend_basis(
     w = basis.width
     q = w if G is None else G.shape[1]
     Y, MY = basis.workspace(b)
-    exps = scale_into(X, Y)[0]
+    exps, zero = scale_into(X, Y)
     C = np.zeros((q, b))
     passes = 0
     if w:
@@ -221,12 +239,32 @@ def extend_basis(
     cross0 = basis.project(Z, None) if w else np.zeros((0, b))
     passes += 1 if w else 0
     MZ = apply_into(Z, MY, inner)
+    S = gram(Z, inner, MZ)
+    split = None
+    skewed = False
     if w:
-        # the residual's norms decide a second projection; its Gram is measured after
+        # what the projection left along the basis decides a second projection: not
+        # made when it is below _LOSS_MAX of every column's residual, nor when the
+        # directions kept after setting the weakest aside (below) are that clean
         along = cross0 if G is None else G.T @ cross0
         loss = np.sqrt(np.einsum("ij,ij->j", along, along))
-        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Z, MZ), 0.0))
-        if np.any(loss > _LOSS_MAX * norms):
+        norms = np.sqrt(np.maximum(np.diag(S), 0.0))
+        reproject = bool(np.any(loss > _LOSS_MAX * norms))
+        if reproject and b and (aside[0] > 0 or aside[1] > 0) and basis_gram is not None:
+            split = _split(S, _norms(C, S), exps, aside, n)
+            reproject = split is None or not kept_clean(along, split[0], split[1], _KEPT_LOSS_MAX)
+            if reproject:
+                split = None
+            else:
+                # the directions set aside leave their part along the basis to it (so
+                # what is rejected is M-orthogonal to the basis, of at most the energy
+                # counted); the kept ones keep theirs, measured in cross_gram
+                assert split is not None
+                nu = _norms(C, S)
+                Wt = split[2]
+                C += (along @ Wt) @ Wt.T
+                skewed = True
+        if reproject:
             basis.subtract(Z, G, along)
             C += along
             passes += 1
@@ -236,11 +274,13 @@ def extend_basis(
             else:
                 cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
             MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
+            S = gram(Z, inner, MZ)
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
-    nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
+    if not skewed:
+        nu = _norms(C, S)
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
-    split = _split(S, nu, exps, aside, n) if b and (aside[0] > 0 or aside[1] > 0) else None
+    if split is None and b and (aside[0] > 0 or aside[1] > 0):
+        split = _split(S, nu, exps, aside, n)
     lam = np.linalg.eigvalsh(S)[::-1] if b and split is None else np.zeros(0)
     well = split is None and b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -250,16 +290,17 @@ def extend_basis(
         Wk, lam_k, Wt, Gt = split
         pre.append((Wt.T, Gt))
         Zk = np.asfortranarray(Z @ Wk)
-        parts, Rz, floor, more = orthonormalize_in_rounds(
+        parts, Rz, floor, more, mparts = orthonormalize_in_rounds(
             basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T)
         passes += more
     elif well:
         # the common case: Z = Q_z L^T in place, Rz = L^T triangular
         Rz, cross_z, more = cholesky_qr_in_place(basis, Z, MZ, S, lam, cross0, inner)
         passes += more
-        parts = [Z]
+        parts, mparts = [Z], []
     else:
-        parts, Rz, floor, more = orthonormalize_in_rounds(basis, G, Z, S, C, inner, reject_tol, ref)
+        parts, Rz, floor, more, mparts = orthonormalize_in_rounds(
+            basis, G, Z, S, C, inner, reject_tol, ref)
         passes += more
     accepted, Wacc = column_rule(Rz, ref, reject_tol)
     s, r = Rz.shape[0], Wacc.shape[1]
@@ -296,8 +337,12 @@ def extend_basis(
             else:
                 Qn += part @ keep[start : start + width]
             start += width
-        if not inner.is_euclidean:
-            MY[:, :r] = inner.apply(Qn)
+        if inner.is_euclidean:
+            pass
+        elif keep is None and len(parts) == 1:
+            MY[:, :r] = mparts[0]  # the part's image, measured by the rounds
+        else:
+            m_apply_into(inner, Qn, MY[:, :r])
         gram_new = gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
         if r and np.max(np.abs(gram_new - np.eye(r))) > ONE_PASS_COND * r * _EPS:
             # the rounds' directions are orthonormal to a few eps each; one CholeskyQR
@@ -306,22 +351,37 @@ def extend_basis(
             right_solve(Qn, L)
             R_new = L.T @ R_new
             if not inner.is_euclidean:
-                MY[:, :r] = inner.apply(Qn)
+                m_apply_into(inner, Qn, MY[:, :r])
             gram_new = np.eye(r)
         cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
         passes += 1 if w and r else 0
+    rejected_map = np.vstack(maps) if maps else np.zeros((0, b))
+    if zero.any():
+        # a zero column carries nothing: its scale 2^0 says nothing of the rounding the
+        # mixing of the other (scaled) columns left in its coordinates, which would come
+        # back at the size of 1 (Rz, W, and the maps are exact zeros there in exact
+        # arithmetic, and the column is represented exactly by zeros)
+        C[:, zero] = 0.0
+        R_new[:, zero] = 0.0
+        rejected_map[:, zero] = 0.0
     return BasisExtension(
         coeffs=np.ldexp(C, exps[np.newaxis, :]),
         R_new=np.ldexp(R_new, exps[np.newaxis, :]),
         accepted=accepted,
         rejected_gram=scipy.linalg.block_diag(*grams) if grams else np.zeros((0, 0)),
-        rejected_map=np.vstack(maps) if maps else np.zeros((0, b)),
+        rejected_map=rejected_map,
         exponents=exps,
         block_norm=scaled_norm(nu, exps),
         cross_gram=cross,
         gram_new=gram_new,
         passes=passes,
+        skewed=skewed,
     )
+
+
+def _norms(C: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Return the columns' ``M``-norms: their part along the basis and the residual's."""
+    return np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
 
 
 def _split(S: np.ndarray, nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float],

@@ -21,9 +21,12 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections.abc import Callable
 from typing import Any
 
+from streamsvd.algebra.interface import Backend
 from streamsvd.algebra.memory import MemoryBackend
+from streamsvd.errors import StoreError
 from streamsvd.storage import LocalStorage, ObjectStorage, open_storage
 from streamsvd.store import POINTER_NAME
 from streamsvd.stream.compressor import StreamCompressor
@@ -34,6 +37,12 @@ logger = logging.getLogger(__name__)
 
 PLAN = "plan.json"
 SUFFIX = ".tree"
+
+ARGUMENTS = {"n": "`source`", "m": "`source`", "source": "`source`",
+             "identity": "`source`", "start": "`source`", "stop": "`source`",
+             "block": "`block`", "width": "`leaf_columns`", "chunk_rows": "`chunk_rows`",
+             "options": "options (`eps`, `max_rank`, `inner`, ...)"}
+"""The argument of the call that each entry of a plan comes from (named when refused)."""
 
 
 def checkpoints_beside(store: LocalStorage | ObjectStorage) -> LocalStorage | ObjectStorage:
@@ -77,14 +86,20 @@ class Checkpoints:
                      for k, v in sorted(options.items())}
         return hashlib.sha256(repr(described).encode()).hexdigest()[:16]
 
-    def start(self) -> frozenset[str]:
-        """Keep the nodes of this plan (removing another plan's); return the committed ones."""
+    def start(self, *, refuse: bool = False) -> frozenset[str]:
+        """Keep the nodes of this plan; return the committed ones.
+
+        Another plan's checkpoints are removed, or with ``refuse`` a
+        :class:`~streamsvd.errors.StoreError` names the arguments that differ.
+        """
         wanted = json.dumps(self.plan, sort_keys=True).encode()
         try:
             found = self.root.get(PLAN)
         except (FileNotFoundError, OSError):
             found = None
         if found is not None and found != wanted:
+            if refuse:
+                raise StoreError(self._mismatch(found))
             logger.warning("checkpoints at %s belong to another tree: removed", self.root.url)
             self.root.delete("")
             found = None
@@ -101,6 +116,23 @@ class Checkpoints:
                         len(self.done), self.root.url)
         return self.done
 
+    def _mismatch(self, found: bytes) -> str:
+        """Return the message refusing checkpoints of the plan ``found`` (JSON)."""
+        try:
+            theirs = json.loads(found)
+        except ValueError:
+            theirs = {}
+        keys = sorted(k for k in {*self.plan, *theirs} if self.plan.get(k) != theirs.get(k))
+        names = sorted({ARGUMENTS.get(k, f"`{k}`") for k in keys}) or ["the plan"]
+        detail = "; ".join(f"{k}: checkpoints {theirs.get(k)!r}, this call {self.plan.get(k)!r}"
+                           for k in keys)
+        return (
+            f"the checkpoints at {self.root.url} were written by a call with other "
+            f"{', '.join(names)} ({detail}), so they cannot be resumed. Run the call with "
+            f"the arguments that wrote them to resume, or remove {self.root.url} (or pass "
+            "checkpoints=False) to start again."
+        )
+
     def save(self, name: str, sc: StreamCompressor) -> None:
         """Commit node ``name`` (on the worker that computed it); ``sc`` is unchanged."""
         place = child_storage(self.root, name)
@@ -111,10 +143,18 @@ class Checkpoints:
         finally:
             copy.close(finalize=False)
 
-    def load(self, name: str) -> StreamCompressor:
-        """Return the committed node ``name``, in memory, as it was computed."""
-        with StreamCompressor.open(child_storage(self.root, name), mode="r") as stored:
-            return stored._copy_with(backend=MemoryBackend(compact_in_place=True))
+    def load(self, name: str, *, reader: Callable[..., StreamCompressor] | None = None,
+             backend: Backend | None = None) -> StreamCompressor:
+        """Return the committed node ``name`` as it was computed, without a store.
+
+        ``reader(storage, mode="r")`` opens it (:meth:`StreamCompressor.open` by default,
+        a tall node's ``TallCompressor.open``); the copy's basis is kept by ``backend``
+        (in memory, compacting in place, by default).
+        """
+        read = StreamCompressor.open if reader is None else reader
+        with read(child_storage(self.root, name), mode="r") as stored:
+            return stored._copy_with(
+                backend=MemoryBackend(compact_in_place=True) if backend is None else backend)
 
     def remove(self) -> None:
         """Remove every checkpoint (the root is committed to the store)."""

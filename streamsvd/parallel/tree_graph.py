@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Callable
 from typing import Any, Optional, cast
 
 from threadpoolctl import threadpool_limits
@@ -30,7 +31,7 @@ from streamsvd.parallel.workers import blas_here, blas_plan, worker_threads
 from streamsvd.stream.compressor import StreamCompressor
 from streamsvd.stream.ingest import ingest
 
-__all__ = ["run_tree"]
+__all__ = ["begin", "node_graph", "run_tree"]
 
 logger = logging.getLogger(__name__)
 
@@ -124,6 +125,60 @@ def _load_node(checkpoints: Checkpoints, name: str) -> StreamCompressor:
 # ----------------------------------------------------------------------------- graph
 
 
+def begin(checkpoints: Checkpoints | None, *, start: int, stop: int, block: int,
+          width: int, options: dict[str, Any], refuse: bool = False, **plan: Any
+          ) -> frozenset[str]:
+    """Record a tree's plan in ``checkpoints``; return the nodes committed (none without).
+
+    The plan is what the tree's nodes depend on: its columns, ``block``, the leaves'
+    width, the nodes' options (by :meth:`Checkpoints.fingerprint`) and ``plan``'s other
+    entries. Checkpoints of another plan are replaced, or with ``refuse`` refused
+    (:meth:`Checkpoints.start`).
+    """
+    if checkpoints is None:
+        return frozenset()
+    checkpoints.plan.update(start=start, stop=stop, block=block, width=width,
+                            options=Checkpoints.fingerprint(options), **plan)
+    return checkpoints.start(refuse=refuse)
+
+
+def node_graph(
+    ranges: list[tuple[int, int]],
+    done: frozenset[str],
+    key: str,
+    *,
+    leaf: Callable[[int, int, str, str], Any],
+    merge: Callable[[Any, Any, str, str, bool], Any],
+    load: Callable[[str, str], Any],
+) -> tuple[Any, int]:
+    """Return a tree's graph over the leaves ``ranges`` (its root task) and its levels.
+
+    The shape, bottom up: the leaves, then pairs left to right (an odd one moves up).
+    The graph is built top down: a node in ``done`` (committed) is ``load(name, key)``
+    and nothing below it is in the graph; else ``leaf(a, b, name, key)`` or
+    ``merge(left, right, name, key, is_root)``. ``name`` is ``leaf-a-b`` or
+    ``merge-a-b`` (the node's checkpoint), ``key`` is ``key`` formatted with it.
+    """
+    nodes: list[_Node] = [("leaf", a, b, None, None) for a, b in ranges]
+    level = 0
+    while len(nodes) > 1:
+        level += 1
+        merged: list[_Node] = [("merge", nodes[i][1], nodes[i + 1][2], nodes[i], nodes[i + 1])
+                               for i in range(0, len(nodes) - 1, 2)]
+        nodes = merged + nodes[len(merged) * 2:]
+
+    def task(node: _Node, root: bool) -> Any:
+        kind, a, b, left, right = node
+        name = f"{kind}-{a}-{b}"
+        if name in done:
+            return load(name, key.format(name))
+        if left is None or right is None:
+            return leaf(a, b, name, key.format(name))
+        return merge(task(left, False), task(right, False), name, key.format(name), root)
+
+    return task(nodes[0], True), level
+
+
 def run_tree(
     spec: SourceSpec,
     start: int,
@@ -152,34 +207,23 @@ def run_tree(
     tag = uuid.uuid4().hex[:12]
     blas = blas_plan(client)
     node_opts = opts if len(ranges) == 1 else _node_options(opts, columns=stop)
-    done: frozenset[str] = frozenset()
-    if checkpoints is not None:
-        checkpoints.plan.update(start=start, stop=stop, block=block, width=width,
-                                options=Checkpoints.fingerprint(node_opts))
-        done = checkpoints.start()
-    # the tree's shape, bottom up: leaves, then pairs left to right (an odd one moves up)
-    nodes: list[_Node] = [("leaf", a, b, None, None) for a, b in ranges]
-    level = 0
-    while len(nodes) > 1:
-        level += 1
-        merged: list[_Node] = [("merge", nodes[i][1], nodes[i + 1][2], nodes[i], nodes[i + 1])
-                               for i in range(0, len(nodes) - 1, 2)]
-        nodes = merged + nodes[len(merged) * 2:]
+    done = begin(checkpoints, start=start, stop=stop, block=block, width=width,
+                 options=node_opts)
 
-    def task(node: _Node, root: bool) -> Any:  # its graph, top down: committed nodes load
-        kind, a, b, left, right = node
-        name, key = f"{kind}-{a}-{b}", f"streamsvd-{kind}-{a}-{b}-{tag}"
-        if name in done:
-            return dask.delayed(_load_node, pure=False)(checkpoints, name, dask_key_name=key)
-        if left is None or right is None:
-            return dask.delayed(_compress_leaf, pure=False)(
-                spec.window(a, b), a, b, block, node_opts, blas, checkpoints,
-                dask_key_name=key)
+    def leaf(a: int, b: int, name: str, key: str) -> Any:
+        return dask.delayed(_compress_leaf, pure=False)(
+            spec.window(a, b), a, b, block, node_opts, blas, checkpoints, dask_key_name=key)
+
+    def merge(left: Any, right: Any, name: str, key: str, root: bool) -> Any:
         return dask.delayed(_merge_pair, pure=False)(
-            task(left, False), task(right, False), blas, root and client is None,
-            checkpoints, name, dask_key_name=key)
+            left, right, blas, root and client is None, checkpoints, name,
+            dask_key_name=key)
 
-    graph = task(nodes[0], True)
+    def load(name: str, key: str) -> Any:
+        return dask.delayed(_load_node, pure=False)(checkpoints, name, dask_key_name=key)
+
+    graph, level = node_graph(ranges, done, f"streamsvd-{{}}-{tag}", leaf=leaf, merge=merge,
+                              load=load)
     logger.info(
         "tree of %d leaves of %d columns (%d levels) over columns %d:%d of %s on %s",
         len(ranges), width, level, start, stop, spec.description,

@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import Any, TypeVar, cast
 
 from streamsvd.errors import InputError, OptionalDependencyError, StoreError
+from streamsvd.storage.zarr_stores import OPTION, choice_of, fsspec_options, zarr_store_of
 
 __all__ = ["SECRET_OPTIONS", "ObjectStorage", "remote_errors", "transient", "without_secrets"]
 
@@ -29,12 +30,21 @@ _EXTRA_HINT = "Install the object-store extra: pip install 'streamsvd[s3]'."
 
 
 def remote_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions an object-store client raises besides :class:`OSError` (botocore's)."""
+    """Exceptions an object-store client raises besides :class:`OSError` (botocore's, obstore's)."""
+    found: list[type[BaseException]] = []
     try:
         from botocore.exceptions import BotoCoreError
     except ImportError:
-        return ()
-    return (BotoCoreError,)
+        pass
+    else:
+        found.append(BotoCoreError)
+    try:  # the zarr store over obstore (:mod:`streamsvd.storage.zarr_stores`)
+        from obstore.exceptions import BaseError
+    except ImportError:
+        pass
+    else:
+        found.append(BaseError)
+    return tuple(found)
 
 
 @contextlib.contextmanager
@@ -147,8 +157,10 @@ class ObjectStorage:
             self.storage_options["config_kwargs"] = config
         self.argument = argument
         self.named = f"`{argument}` {self.url}"
+        self.storage_options[OPTION] = choice_of(self.url, self.storage_options,
+                                                   argument)
         try:
-            fs, path = fsspec.url_to_fs(self.url, **self.storage_options)
+            fs, path = fsspec.url_to_fs(self.url, **fsspec_options(self.storage_options))
         except ImportError as exc:
             raise OptionalDependencyError(
                 f"`{argument}` {url} needs a package that is not installed ({exc}). {_EXTRA_HINT}"
@@ -301,12 +313,9 @@ class ObjectStorage:
         """Nothing to do: prefixes need not be created."""
 
     def zarr_store(self, *, read_only: bool) -> Any:
-        """Return a :class:`zarr.storage.FsspecStore` on the prefix."""
-        from zarr.storage import FsspecStore
-
-        return FsspecStore.from_url(
-            self.url, storage_options=dict(self.storage_options), read_only=read_only
-        )
+        """Return the zarr store of the prefix (:mod:`streamsvd.storage.zarr_stores`)."""
+        return zarr_store_of(self.url, self.storage_options, read_only=read_only,
+                             argument=self.argument)
 
     def lock(self, key: str) -> Any:
         """Return the :class:`~streamsvd.storage.lease.Lease` of the object ``key``."""

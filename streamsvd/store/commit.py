@@ -58,7 +58,13 @@ PACK_COMPRESSORS: tuple[Any, ...] = ()
 
 
 def encode_pack(data: np.ndarray, doc: dict[str, Any], chunk_bytes: int) -> dict[str, bytes]:
-    """Encode the pack ``data`` (a flat array with attributes ``doc``) as zarr objects."""
+    """Encode the pack ``data`` (a flat array with attributes ``doc``) as zarr objects.
+
+    Without compressors a chunk is the little-endian bytes of its elements (the last one
+    padded with the fill value 0 to a whole chunk), taken from ``data`` directly: zarr
+    would copy each chunk twice on the way (into its buffers, then into bytes), 0.2 s
+    of a 100 MB commit. The objects are the same bytes as zarr writes (tested).
+    """
     # equal chunks of at most chunk_bytes: the last one is not padded by a chunk's worth
     most = max(1, chunk_bytes // data.dtype.itemsize)
     chunk = max(1, -(-data.size // -(-data.size // most))) if data.size else 1
@@ -75,11 +81,30 @@ def encode_pack(data: np.ndarray, doc: dict[str, Any], chunk_bytes: int) -> dict
         chunk_key_encoding={"name": "default", "separator": "."},
         config={"write_empty_chunks": True},
     )
-    if data.size:
-        arr[...] = data
-    objects = {k[len("pack/"):]: v.to_bytes() for k, v in memory.items() if k.startswith("pack/")}
+    if data.size and _raw_chunks(arr, data):
+        flat = data.astype(data.dtype.newbyteorder("<"), copy=False).reshape(-1)
+        for i, a in enumerate(range(0, data.size, chunk)):
+            part = flat[a : a + chunk]
+            if part.size < chunk:  # zarr pads the last chunk of the grid
+                part = np.concatenate([part, np.zeros(chunk - part.size, part.dtype)])
+            memory[f"pack/c.{i}"] = part.tobytes()
+        objects = {k[len("pack/"):]: v if isinstance(v, bytes) else v.to_bytes()
+                   for k, v in memory.items() if k.startswith("pack/")}
+    else:
+        if data.size:
+            arr[...] = data
+        objects = {k[len("pack/"):]: v.to_bytes() for k, v in memory.items()
+                   if k.startswith("pack/")}
     # the metadata first: it claims the generation; then the chunks in order
     return {"zarr.json": objects.pop("zarr.json"), **dict(sorted(objects.items()))}
+
+
+def _raw_chunks(arr: Any, data: np.ndarray) -> bool:
+    """Whether ``arr``'s chunks are the raw little-endian bytes of ``data`` (no codec but bytes)."""
+    codecs = arr.metadata.codecs
+    return (data.ndim == 1 and data.dtype.kind == "f" and len(codecs) == 1
+            and isinstance(codecs[0], zarr.codecs.BytesCodec)
+            and str(getattr(codecs[0].endian, "value", codecs[0].endian)) in ("little", "None"))
 
 
 def _write_pack(

@@ -164,3 +164,41 @@ def test_cli_refuses_the_matrix_in_one_line_and_leaves_no_store(tmp_path, capsys
     assert err.startswith("streamsvd: error: --inner (its matrix) must be symmetric positive "
                           f"definite to define an inner product; it is {kind}"), err
     assert not store.exists()
+
+
+@pytest.mark.parametrize("b", [1, 3, 4, 7, 9])
+def test_a_sparse_product_with_a_column_major_block_has_scipys_digits(b):
+    rng = np.random.default_rng(b)
+    n = 200
+    A = sp.random(n, n, density=0.03, random_state=rng, format="csr")
+    M = (A @ A.T + sp.identity(n)).tocsr()
+    ip = ss.MatrixInner(M)
+    X = np.asfortranarray(rng.standard_normal((n, b)))
+    expected = np.asarray(ip.matrix @ np.ascontiguousarray(X))
+    np.testing.assert_array_equal(ip.apply(X), expected)
+    out = np.empty((n, b), order="F")
+    assert ip.apply(X, out=out) is out
+    np.testing.assert_array_equal(out, expected)
+    # a row-major block and a vector go through scipy
+    np.testing.assert_array_equal(ip.apply(np.ascontiguousarray(X)), expected)
+    np.testing.assert_array_equal(ip.apply(X[:, 0]), expected[:, 0])
+
+
+def test_a_sparse_matrix_is_factorised_once_per_process(monkeypatch):
+    import streamsvd.algebra.inner as inner_module
+
+    calls = []
+    original = inner_module.check_sparse_definite
+    monkeypatch.setattr(inner_module, "check_sparse_definite",
+                        lambda *a: calls.append(1) or original(*a))
+    n = 50
+    M = sp.diags([np.full(n - 1, -0.25), np.full(n, 1.0), np.full(n - 1, -0.25)],
+                 [-1, 0, 1], format="csr")
+    ss.MatrixInner(M)
+    ss.MatrixInner(M.copy())
+    assert len(calls) <= 1
+    # other entries are checked again, and an indefinite matrix still refused
+    bad = M.copy()
+    bad.setdiag(np.full(n, 0.1))
+    with pytest.raises(ss.InputError):
+        ss.MatrixInner(bad)

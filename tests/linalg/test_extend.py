@@ -122,3 +122,118 @@ def test_a_stream_at_a_tight_target_holds_its_bound_on_the_exact_path(monkeypatc
         assert err <= sc.error_bound * (1 + 1e-9) + 10 * n * EPS * np.linalg.norm(A)
     sc.finalize()
     assert sc.error_in_measure <= 1e-6
+
+
+@pytest.mark.parametrize("scale", [0, -50, -100, -200])
+@pytest.mark.parametrize("euclidean", [True, False])
+def test_a_zero_column_is_represented_by_zeros_at_every_scale(scale, euclidean):
+    # a zero column's scale (2^0) says nothing of the rounding the other, scaled,
+    # columns leave in its coordinates: it must come back as exact zeros, not as
+    # rounding at the size of 1 (an absolute error of 1e-16 beside data of 1e-30)
+    n = 300
+    X = np.ldexp(_collinear(n, b=16) + 1e-3 * np.random.default_rng(2).standard_normal((n, 16)),
+                 scale)
+    X[:, 5] = 0.0
+    ip = as_inner(None if euclidean else _mass(n), n)
+    basis = MemoryBasis(n, ip, capacity=32)
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n))
+    assert not ext.accepted[5]
+    assert np.all(ext.R_new[:, 5] == 0.0) and np.all(ext.rejected_map[:, 5] == 0.0)
+    Q = basis.workspace(16)[0][:, :ext.rank]
+    res = X - Q @ ext.R_new
+    norm = np.sqrt(np.sum(X * ip.apply(X)))
+    true = np.sqrt(max(float(np.sum(res * ip.apply(res))), 0.0))
+    assert true <= ext.rejected_norm() * (1 + 1e-6) + 10 * n * EPS * norm
+
+
+def test_a_zero_column_beside_a_basis_has_zero_coefficients():
+    # the directions set aside hand their part along the basis to the coefficients,
+    # through the residual's eigenvectors, whose rows of a zero column hold rounding
+    X, basis, ip, H = _on_a_basis()
+    X = np.ldexp(X, -100)
+    X[:, 3] = 0.0
+    energy = float(np.sum(X * ip.apply(X)))
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(X.shape[0]),
+                       basis_gram=H, aside=(1e-12 * energy, 0.0))
+    assert np.all(ext.coeffs[:, 3] == 0.0) and np.all(ext.R_new[:, 3] == 0.0)
+    assert np.all(ext.rejected_map[:, 3] == 0.0)
+
+
+def _on_a_basis(n=400, b=30):
+    """A basis of the first block of a drifting pulse, and the next block."""
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 0.6, 2 * b)[np.newaxis, :]
+    A = np.exp(-((x - 0.2 - t) / 0.1) ** 2)
+    ip = as_inner(_mass(n), n)
+    basis = MemoryBasis(n, ip, capacity=4 * b)
+    first = extend_basis(basis, None, A[:, :b], inner=ip, reject_tol=default_reject_tol(n))
+    basis.accept(first.rank)
+    H = basis.measure_gram()
+    return A[:, b:], basis, ip, H
+
+
+def test_a_block_projected_once_keeps_its_decomposition_and_measures_its_skew(monkeypatch):
+    import streamsvd.linalg.extend as extend_module
+
+    n = 400
+    X, basis, ip, H = _on_a_basis(n)
+    energy = float(np.sum(X * ip.apply(X)))
+    # the loss of every column is above the per-column threshold: without the budget
+    # the residual is projected twice; with it, once (its kept directions are clean)
+    monkeypatch.setattr(extend_module, "_LOSS_MAX", 0.0)
+    w = basis.width
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                       basis_gram=H, aside=(1e-14 * energy, 0.0))
+    assert ext.skewed
+    r = ext.rank
+    Q = basis.Q[:, :w].copy()
+    Qn = basis.workspace(X.shape[1])[0][:, :r].copy()
+    MQn = ip.apply(Qn)
+    # the cross block of the basis Gram is measured, and within the kept loss
+    np.testing.assert_allclose(ext.cross_gram, Q.T @ MQn, rtol=0, atol=100 * n * EPS)
+    assert np.max(np.abs(ext.cross_gram)) <= extend_module._KEPT_LOSS_MAX
+    # X = Q coeffs + Q_new R_new + Res, ||Res|| within the rejected norm, Res M-orthogonal
+    # to the basis up to rounding (the directions set aside left their part to coeffs)
+    res = X - Q @ ext.coeffs - Qn @ ext.R_new
+    true = float(np.sqrt(max(np.sum(res * ip.apply(res)), 0.0)))
+    assert true <= ext.rejected_norm() * (1 + 1e-6) + 10 * n * EPS * np.sqrt(energy)
+    along = Q.T @ ip.apply(res)
+    assert np.linalg.norm(along) <= 100 * n * EPS * np.sqrt(energy)
+
+
+@pytest.mark.parametrize("measure", ["mean_l2", "relative"])
+def test_a_stream_projected_once_stays_orthonormal_and_holds_its_bound(monkeypatch, measure):
+    import streamsvd as ss
+    import streamsvd.engine.update as update_module
+    import streamsvd.linalg.extend as extend_module
+    import streamsvd.stream.updates as stream_module
+
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    monkeypatch.setattr(extend_module, "_LOSS_MAX", 0.0)  # every block takes the new branch
+    skewed = []
+    original = update_module.extend_basis
+
+    def spy(*args, **kwargs):
+        ext = original(*args, **kwargs)
+        skewed.append(ext.skewed)
+        return ext
+
+    monkeypatch.setattr(update_module, "extend_basis", spy)
+    n, m, b = 300, 150, 30
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 1.0, m)[np.newaxis, :]
+    A = np.exp(-((x - 0.2 - 0.6 * t) / (0.05 + 0.05 * t)) ** 2)
+    M = _mass(n)
+    sc = ss.StreamCompressor(n, inner=M, target_error=1e-6, error_measure=measure,
+                             rule="jacobi", sweeps=None)
+    for j in range(0, m, b):
+        sc.absorb(A[:, j : j + b])
+        E = sc.expansion
+        R = A[:, : j + b] - E.U @ E.V.T
+        err = float(np.sqrt(max(np.sum(R * (M @ R)), 0.0)))
+        assert err <= sc.error_bound * (1 + 1e-9) + 10 * n * EPS * np.linalg.norm(A)
+        U = E.U
+        assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 50 * n * EPS
+    assert any(skewed[1:])
+    sc.finalize()
+    assert sc.error_in_measure <= 1e-6

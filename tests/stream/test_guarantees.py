@@ -83,6 +83,49 @@ def test_a_removal_at_1e200_keeps_the_bound_finite():
         assert_bound_holds(sc, B)
 
 
+def test_a_zero_snapshot_beside_tiny_ones_adds_no_error():
+    # a zero column among snapshots of 1e-30 came back as rounding of the size of 1
+    # (3e-18 against ||A|| = 5e-29): its scale 2^0 was applied to the coordinates the
+    # other columns' rounding left in it
+    n = 300
+    x = np.linspace(0, 1, n)[:, None]
+    t = np.linspace(0, 1, 32)[None, :]
+    A = sum(np.sin((j + 1) * np.pi * x * (1 + 0.3 * t)) * np.exp(-j * t) * 2.0**-j
+            for j in range(6))
+    A = (A + 1e-3 * np.random.default_rng(3).standard_normal((n, 32))) * 2.0**-100
+    A[:, 25] = 0.0
+    sc = ss.StreamCompressor(n)
+    for j in range(0, 32, 16):
+        sc.absorb(A[:, j:j + 16])
+    assert_bound_holds(sc, A)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), scale=st.sampled_from([1e-300, 2.0**-100, 1.0, 1e300]),
+       zeros=st.lists(st.integers(0, 39), min_size=1, max_size=4),
+       options=st.sampled_from([{}, {"target_error": 1e-6}, {"window": 24},
+                                {"eps": 1e-8}, {"max_rank": 6}]),
+       mass=st.booleans(), block=st.sampled_from([5, 8, 16]))
+def test_property_zero_snapshots_at_every_scale(seed, scale, zeros, options, mass, block):
+    rng = np.random.default_rng(seed)
+    n, m = 60, 40
+    A = spectrum_matrix(rng, n, m, 12, 8, scale)
+    A[:, zeros] = 0.0
+    d = np.linspace(0.5, 2.0, n) if mass else np.ones(n)
+    sc = ss.StreamCompressor(n, inner=np.diag(d) if mass else None, **options)
+    for j in range(0, m, block):
+        sc.absorb(A[:, j:j + block])
+    sc.finalize()
+    live = A[:, -options["window"]:] if "window" in options else A
+    # the M-norm of the error, through the square root of the diagonal M
+    root = np.sqrt(d)[:, None]
+    W = sc.expansion.to_dense()
+    err_scale = float(np.max(np.abs(live))) or 1.0
+    err = scaled_norm(root * (live - W), err_scale)
+    slack = ROUNDING * max(n, m) * EPS * scaled_norm(root * live, err_scale)
+    assert err <= sc.error_bound + slack, (err, sc.error_bound, slack)
+
+
 @pytest.mark.parametrize("measure", MEASURES)
 @pytest.mark.parametrize("keep", ["window", "forget"])
 def test_a_target_is_met_with_a_window_or_forgetting(measure, keep):

@@ -8,7 +8,8 @@ Covered: the tree and the tall mode through the API and the CLI (equal to the sa
 run in this process), errors that name the worker and the remedy (a path the workers
 cannot see, workers without credentials, the tall mode's temporary panels), BLAS threads
 from the workers' own cores, the tree's default leaves following the workers, and a
-client killed midway whose workers' committed nodes the next run resumes from.
+client killed midway whose workers' committed nodes the next run resumes from (the tree
+and the tall tree).
 """
 
 import os
@@ -271,3 +272,57 @@ def test_tall_tree_on_isolated_workers_with_panels_on_s3(client, data):
     U = np.asarray(tall.factors()[0])
     assert np.abs(np.abs(U.T @ tree.expansion.U) - np.eye(8)).max() <= tol
     tall.close()
+
+
+TALL_CLIENT = """
+import sys
+from distributed import Client
+from streamsvd.parallel import tall_tree_compress
+with Client(sys.argv[1]) as client:
+    with tall_tree_compress(sys.argv[2], workdir=sys.argv[3], block=10, leaf_columns=10,
+                            chunk_rows=32, max_rank=8, client=client, store=sys.argv[4]):
+        pass
+"""
+
+
+def test_a_killed_tall_tree_client_leaves_the_workers_nodes_to_the_next_run(cluster, data):
+    """The tall tree's nodes, committed to S3 by the workers, resume it (bit for bit)."""
+    import s3fs
+
+    from streamsvd.parallel import tall_tree_compress
+    from streamsvd.parallel.tall import TallCompressor
+    from streamsvd.store import POINTER_NAME
+
+    A, url = data
+    store, workdir = f"s3://{BUCKET}/tall-killed", f"s3://{BUCKET}/tall-killed-work"
+    fs = s3fs.S3FileSystem()
+    proc = subprocess.Popen([sys.executable, "-c", TALL_CLIENT, cluster.address, url,
+                             workdir, store],
+                            env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    parts = f"{BUCKET}/tall-killed.tree"
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        fs.invalidate_cache()
+        if fs.exists(parts) and any(fs.exists(f"{p}/{POINTER_NAME}") for p in fs.ls(parts)):
+            break
+        time.sleep(0.05)
+    if proc.poll() is None:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    from distributed import Client
+
+    kw = dict(block=10, leaf_columns=10, chunk_rows=32, max_rank=8)
+    with Client(cluster.address, timeout="30s") as client:
+        fs.invalidate_cache()
+        if not fs.exists(f"{BUCKET}/tall-killed/{POINTER_NAME}"):  # leftovers are replaced
+            tall_tree_compress(url, workdir=workdir, client=client, store=store,
+                               **kw).close(finalize=False)
+        tall_tree_compress(url, workdir=f"{workdir}-whole", client=client,
+                           store=f"{store}-whole", **kw).close(finalize=False)
+    with TallCompressor.open(store, mode="r") as a, \
+            TallCompressor.open(f"{store}-whole", mode="r") as b:
+        assert np.array_equal(np.asarray(a.factors()[0]), np.asarray(b.factors()[0]))
+        assert np.array_equal(a.factors()[1], b.factors()[1])
+        assert a.error_bound == b.error_bound and a.n_seen == b.n_seen == A.shape[1]
+    fs.invalidate_cache()
+    assert not fs.exists(parts)

@@ -271,10 +271,10 @@ def test_pointer_switch_refuses_to_overwrite_another_writers_commit(s3, monkeypa
     open_storage(url).delete(LEASE_NAME)  # as if the lease had been broken by hand
     with open_store(url, "a") as second:
         second.commit({"x": np.full(4, 2.0)})
-    monkeypatch.setattr(first._lock, "owned", lambda: True)  # a zombie that thinks it leads
-    with pytest.raises(StoreLockedError, match="changed by another writer"):
-        first.commit({"x": np.full(4, 1.0)})
-    monkeypatch.undo()
+    with monkeypatch.context() as patch:  # the s3 fixture's variables stay set after it
+        patch.setattr(first._lock, "owned", lambda: True)  # a zombie that thinks it leads
+        with pytest.raises(StoreLockedError, match="changed by another writer"):
+            first.commit({"x": np.full(4, 1.0)})
     first.close()
     with open_store(url) as reader:
         assert np.array_equal(reader.read().arrays["x"], np.full(4, 2.0))

@@ -1,0 +1,195 @@
+"""The ``ingest`` case of ``tight_targets.py``: out of core against the same computation in memory.
+
+A 200000 x 500 float64 zarr array (``outofcore_benchmark.py``'s: chunks 10000 x 50,
+zarr's default zstd codec; and the same array stored uncompressed), rank 60, blocks of
+100. Every contender runs in its own process, the contenders interleaved (round ``r``
+of each before round ``r + 1`` of any), medians of ``--repeat``; ``os.getloadavg()`` is
+recorded before every run. Wall and CPU seconds (all threads):
+
+* ``read``: the raw read, ``z[:, j:j + 100].sum()`` by blocks of 100 columns (zarr's
+  own threads decode);
+* ``read-src``: the read as ``ingest`` does it, :meth:`Source.blocks
+  <streamsvd.io.sources.Source.blocks>` (the reader thread, one block ahead), summed;
+* ``memory``: the in-memory API on the array already loaded (``StreamCompressor(n,
+  max_rank=60)``, ``absorb`` by blocks of 100, ``finalize``), the reference;
+* ``driver``: :func:`streamsvd.stream.ingest.ingest` from the zarr array into the same
+  compressor without a store, finalised, in the process (imports excluded);
+  ``driver-serial``: the same without read-ahead (each block read, then absorbed);
+* ``cli``: ``streamsvd ingest A S --max-rank 60 --block 100 --quiet``, the whole process
+  (interpreter start, imports, store creation and commits included); ``cli@REV`` the
+  same command on revision ``REV`` (``--against``, a git worktree);
+* ``tall``: :func:`streamsvd.parallel.tall_compress` (``block=100, max_rank=60``) and
+  ``finalize``, in the process (dask's import excluded).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+CONTENDERS = ("read", "read-src", "memory", "driver", "driver-serial", "cli", "tall")
+RANK, BLOCK = 60, 100
+
+
+def arrays(data: Path, quick: bool = False) -> dict[str, Path]:
+    """The zstd array (written by ``outofcore_benchmark.py``'s code) and its uncompressed copy.
+
+    ``quick``: 3000 x 250 instead of 200000 x 500 (a smoke test).
+    """
+    import zarr
+    from outofcore_benchmark import write_data
+
+    n, m = (3000, 250) if quick else (200000, 500)
+    data.mkdir(parents=True, exist_ok=True)
+    zstd, raw = data / f"A{n}x{m}.zarr", data / f"A{n}x{m}-raw.zarr"
+    if not zstd.exists():
+        write_data(zstd, n, m, "float64")
+    if not raw.exists():
+        src = zarr.open_array(str(zstd), mode="r")
+        dst = zarr.create_array(str(raw) + ".tmp", shape=src.shape, chunks=src.chunks,
+                                dtype=src.dtype, compressors=None, overwrite=True)
+        for a in range(0, src.shape[0], src.chunks[0]):
+            dst[a : a + src.chunks[0]] = src[a : a + src.chunks[0]]
+        os.replace(str(raw) + ".tmp", raw)
+    return {"zstd": zstd, "raw": raw}
+
+
+def child(what: str, path: str) -> None:
+    """``--child WHAT PATH``: one contender in this process; prints its times as JSON."""
+    import zarr
+
+    z = zarr.open_array(path, mode="r")
+    if what == "read":
+        t0, c0 = time.perf_counter(), time.process_time()
+        total = 0.0
+        for j in range(0, z.shape[1], BLOCK):
+            total += float(z[:, j : j + BLOCK].sum())
+    elif what == "read-src":
+        from streamsvd.io.open import open_source
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        with open_source(path) as src:
+            total = sum(float(X.sum()) for _, X in src.blocks(BLOCK))
+    elif what == "memory":
+        import streamsvd as ss
+
+        A = np.asfortranarray(z[:])
+        t0, c0 = time.perf_counter(), time.process_time()
+        sc = ss.StreamCompressor(A.shape[0], max_rank=RANK)
+        for j in range(0, A.shape[1], BLOCK):
+            sc.absorb(A[:, j : j + BLOCK])
+        sc.finalize()
+    elif what in ("driver", "driver-serial"):
+        import streamsvd as ss
+        from streamsvd.io.open import open_source
+        from streamsvd.stream.ingest import ingest
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        with open_source(path) as src:
+            sc = ss.StreamCompressor(src.n, max_rank=RANK)
+            ingest(src, sc, block=BLOCK, prefetch=what == "driver")
+        sc.finalize()
+    elif what == "tall":
+        import dask  # noqa: F401  (its import is not the mode's time)
+
+        from streamsvd.parallel.cluster import tall_compress
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        tc = tall_compress(path, block=BLOCK, max_rank=RANK)
+        tc.finalize()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        tc.close(finalize=False)
+        print(json.dumps({"wall": wall, "cpu": cpu}))
+        return
+    else:
+        raise SystemExit(f"unknown contender {what!r}")
+    print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0}))
+
+
+def _cli(path: Path, tree: Path) -> dict[str, float]:
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, PYTHONPATH=str(tree))
+        t0 = time.perf_counter()
+        r0 = os.times()
+        subprocess.run([sys.executable, "-m", "streamsvd", "ingest", str(path),
+                        str(Path(tmp) / "S.svd"), "--max-rank", str(RANK), "--block",
+                        str(BLOCK), "--quiet"], check=True, env=env)
+        r1 = os.times()
+    return {"wall": time.perf_counter() - t0,
+            "cpu": (r1.children_user - r0.children_user)
+            + (r1.children_system - r0.children_system)}
+
+
+def rows(paths: dict[str, Path], repeat: int, repo: Path, script: Path,
+         against: tuple[str, Path] | None = None,
+         contenders: tuple[str, ...] = CONTENDERS) -> list[dict[str, Any]]:
+    """Every contender on every array, interleaved; one row per (array, contender)."""
+    env = dict(os.environ, PYTHONPATH=str(repo))
+    names = list(contenders) + ([f"cli@{against[0]}"] if against else [])
+    runs: dict[tuple[str, str], list[dict[str, float]]] = {}
+    for _ in range(repeat):
+        for store, path in paths.items():
+            for what in names:
+                load = os.getloadavg()[0]
+                if what == "cli":
+                    t = _cli(path, repo)
+                elif what.startswith("cli@") and against:
+                    t = _cli(path, against[1])
+                else:
+                    out = subprocess.run([sys.executable, str(script), "--child", what,
+                                          str(path)], check=True, capture_output=True,
+                                         text=True, env=env)
+                    t = json.loads(out.stdout.strip().splitlines()[-1])
+                t["load"] = load
+                runs.setdefault((store, what), []).append(t)
+                print(f"  {store:4s} {what:14s} wall {t['wall']:.2f} s, CPU {t['cpu']:.2f} s,"
+                      f" load {load:.1f}", flush=True)
+    out_rows = []
+    for (store, what), rs in runs.items():
+        out_rows.append({"store": store, "contender": what,
+                         "wall": statistics.median(r["wall"] for r in rs),
+                         "cpu": statistics.median(r["cpu"] for r in rs),
+                         "load": statistics.median(r["load"] for r in rs),
+                         "load_min": min(r["load"] for r in rs),
+                         "load_max": max(r["load"] for r in rs), "runs": rs})
+    for row in out_rows:
+        mem = next(r for r in out_rows if r["store"] == row["store"]
+                   and r["contender"] == "memory")
+        row["wall_over_memory"] = row["wall"] / mem["wall"]
+        row["cpu_over_memory"] = row["cpu"] / mem["cpu"]
+    return out_rows
+
+
+def figure(rows_: list[dict[str, Any]], path: Path) -> None:
+    """Wall and CPU seconds of every contender, one group of bars per store."""
+    from _common import pyplot
+
+    plt = pyplot()
+    stores = sorted({r["store"] for r in rows_})
+    fig, axes = plt.subplots(1, len(stores), figsize=(6 * len(stores), 4), squeeze=False)
+    for ax, store in zip(axes[0], stores, strict=True):
+        rs = [r for r in rows_ if r["store"] == store]
+        x = np.arange(len(rs))
+        ax.bar(x - 0.2, [r["wall"] for r in rs], 0.4, label="wall")
+        ax.bar(x + 0.2, [r["cpu"] for r in rs], 0.4, label="CPU (all threads)")
+        mem = next(r for r in rs if r["contender"] == "memory")
+        ax.axhline(1.2 * mem["wall"], color="k", lw=0.8, ls="--",
+                   label="1.2 x in-memory wall")
+        ax.set_xticks(x, [r["contender"] for r in rs], rotation=30, fontsize=7)
+        ax.set_ylabel("seconds")
+        ax.set_title(f"{store}: load {min(r['load_min'] for r in rs):.1f}-"
+                     f"{max(r['load_max'] for r in rs):.1f}", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle("200000 x 500 float64, rank 60, blocks of 100 (medians)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
