@@ -288,10 +288,11 @@ STUDIES: tuple[Study, ...] = (
               ("err / opt", "error_over_optimal", ".9f"), ("sv error", "sv_error", ".1e"),
               ("update s", "update_seconds", ".2f"),
           ]),)),
-    Study("cluster-benchmark", "On a shared-nothing cluster", ("cluster_benchmark",),
-          shown=("cluster_benchmark.png", "cluster_benchmark_n1e5.png"),
-          files=("cluster_benchmark*",),
-          tables=tuple(table(f"{name}.json", "summary/*contender", [
+    Study("cluster-benchmark", "On a shared-nothing cluster",
+          ("cluster_benchmark", "cluster_memory"),
+          shown=("cluster_benchmark.png", "cluster_benchmark_n1e5.png", "cluster_memory.png"),
+          files=("cluster_benchmark*", "cluster_memory*"),
+          tables=(*(table(f"{name}.json", "summary/*contender", [
               ("contender", "contender"), ("time s", "seconds", ".1f"),
               ("client CPU s", "client_cpu", ".1f"), ("modes", "modes"),
               ("err / opt", "err_over_opt", ".6f"),
@@ -299,7 +300,16 @@ STUDIES: tuple[Study, ...] = (
               ("worker MB", "worker_peak_mb", ".0f"), ("load", "load", ".1f"),
           ], title) for name, title in (
               ("cluster_benchmark", "20000 x 2000"), ("cluster_benchmark_n1e5", "100000 x 500"),
-          ))),
+          )), table("cluster_memory.json", "summary", [
+              ("contender", "contender"), ("n", "n"), ("time s", "seconds", ".1f"),
+              ("worker CPU / wall", "parallelism", ".2f"),
+              ("worker MB (each)", "worker_peaks"),
+              ("scheduler MB", "scheduler_peak_mb", ".0f"),
+              ("client MB", "client_peak_mb", ".0f"),
+              ("client +MB", "client_growth_mb", ".0f"),
+              ("modes", "modes"), ("s vs svd_compressed", "s_rel_diff", ".1e"),
+              ("load", "load", ".1f"),
+          ], "peak memory against n, fresh isolated workers per run"))),
 )
 
 

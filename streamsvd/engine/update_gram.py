@@ -131,7 +131,7 @@ def plan_absorb_by_gram(
 
 def plan_merge_by_gram(
     state: State,
-    Q_o: np.ndarray,
+    Q_o: Any,
     Z_o: np.ndarray,
     R_o: np.ndarray,
     Y_o: np.ndarray | None,
@@ -143,7 +143,9 @@ def plan_merge_by_gram(
 ) -> Plan | None:
     """Plan appending ``m_o`` snapshots ``Q_o Z_o R_o^T Y_o^T`` by the Gram path, or None.
 
-    ``Q_o`` is the other expansion's basis (``n x c``, in memory), ``U_o = Q_o Z_o`` its
+    ``Q_o`` is the other expansion's basis (``n x c``, in memory, or a block the basis
+    reads by row chunks: :class:`~streamsvd.algebra.panels.lazy.LazyBlock`, the left
+    vectors of a tall compressor, read once), ``U_o = Q_o Z_o`` its
     left vectors, ``V_o = Y_o R_o`` its right ones (``Y_o`` orthonormal, None when the
     right vectors are not kept); ``prior`` is the composed bound of both parts. As for
     a block (the theory page ``docs/theory/gram-path.md``) with
@@ -154,7 +156,7 @@ def plan_merge_by_gram(
     apply; None leaves the state and the basis as they were.
     """
     trunc = opts.truncation
-    if not isinstance(Q_o, np.ndarray) or not _path_applies(opts, Q_o.shape[0]):
+    if not _path_applies(opts, Q_o.shape[0]):
         return None
     n, c = Q_o.shape
     basis = state.basis
@@ -163,7 +165,8 @@ def plan_merge_by_gram(
     if _refused_before_block(state, trunc, m_o, n, width=c):
         return None
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        S, C, H = _products(state, np.asfortranarray(Q_o), project=True)
+        S, C, H = _products(state, np.asfortranarray(Q_o) if isinstance(Q_o, np.ndarray)
+                            else Q_o, project=True)
     norms2 = np.diag(S)
     if not np.all((norms2 >= _SAFE_LOW) & (norms2 <= _SAFE_HIGH)):
         return _declined(basis)  # not the basis of an expansion: left to the exact path

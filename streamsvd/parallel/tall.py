@@ -18,9 +18,12 @@ is ever in memory: one row chunk of each input per dask thread (each pass is one
 per row chunk: :mod:`streamsvd.algebra.panels.basis`), the small matrices and the right vectors
 (``m x p``, or none with ``right_vectors=False``). At ``b = 100``, rank 60, the process
 peaked at 317 to 333 MB at ``n = 2e5`` and 327 MB at ``n = 2e6`` without a store
-(``bench/outofcore_benchmark.py``). An update that takes the exact path (no cut, ``eps``
-or ``rtol`` alone, ``window``, ``forget``, a block the Gram path declines) reads its block
-into memory first (``n x b``) and orthonormalises it there.
+(``bench/outofcore_benchmark.py``); on two fresh ``dask worker`` processes with
+``client=``, each worker peaked at 285 to 293 MB from ``n = 2e5`` to ``2e6`` (``m = 400``,
+chunks of 20000 rows) and the client at 264 MB, the row chunks of every pass split
+evenly between the workers (``bench/cluster_memory.py``). An update that takes the exact
+path (no cut, ``eps`` or ``rtol`` alone, ``window``, ``forget``, a block the Gram path
+declines) reads its block into memory first (``n x b``) and orthonormalises it there.
 
 Crash safety: an update writes its new panel (or the compacted basis) before the commit
 that refers to it; a panel is deleted only when neither the state nor the last two

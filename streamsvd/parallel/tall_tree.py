@@ -7,8 +7,11 @@ task: its basis lives in row panels under ``workdir`` (a prefix every worker rea
 own worker (the threaded scheduler there), so a worker holds a few row chunks, the
 small matrices and one block's row chunk at a time, independent of ``n``. The leaves run
 in parallel; the merges (:meth:`~streamsvd.StreamCompressor.merge`, pairwise, left then
-right) read both operands' panels from ``workdir`` and write the merged basis there. The
-root's panels are copied into ``store`` (one commit) or left in ``workdir``.
+right) read both operands' panels from ``workdir`` (the right operand's left vectors by
+row chunks, in the merge's pass: no ``n``-sized array on the merging worker) and write
+the merged basis there. The root comes back to the client as its small matrices and the
+names of its panels; its panels are copied into ``store`` (one commit) or left in
+``workdir``, and that copy and ``finalize`` run on the cluster, not in the client.
 
 Checkpoints. Every finished leaf and merge is committed, from the worker that computed
 it, as a store of its own (its panels copied into one, and its small state) under
@@ -257,6 +260,8 @@ def tall_tree_compress(
                           merge=merge, load=load)
     (root,) = execute([graph], client=client)
     root = cast(StreamCompressor, root)  # with the nodes' options (see the notes)
+    if client is not None:  # its copy into `store` and its finalisation run on the workers
+        root._life.backend.use_client(root._life.state.basis, client)  # type: ignore[attr-defined]
     root.source_record = SourceRecord.of(source, dataset=dataset, shape=(spec.n, spec.m),
                                          description=spec.description)
     if target is not None:

@@ -20,6 +20,8 @@ import scipy.linalg.blas as blas
 from streamsvd._util.validation import as_float_array, check_choice, check_positive_int
 from streamsvd.algebra.inner import InnerProduct, check_same_inner
 from streamsvd.algebra.memory import MemoryBasis
+from streamsvd.algebra.panels.basis import PanelBasis
+from streamsvd.algebra.panels.lazy import LazyBlock
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import r_factor
 from streamsvd.errors import InputError
@@ -45,7 +47,7 @@ class _MergeOperand:
     ``bound`` the error bound the other expansion carries.
     """
 
-    Q: np.ndarray
+    Q: Any  # an array, or a LazyBlock (a tall compressor's left vectors, read by row chunks)
     Z: np.ndarray | None
     R: np.ndarray
     Y: np.ndarray | None
@@ -56,8 +58,14 @@ class _MergeOperand:
         """Return ``Z`` (the identity when ``Q`` holds the left vectors)."""
         return np.eye(self.Q.shape[1]) if self.Z is None else self.Z
 
-    def left_vectors(self) -> np.ndarray:
-        """Return ``U_o = Q Z`` (column-major when formed here)."""
+    def left_vectors(self, load: Any = None) -> np.ndarray:
+        """Return ``U_o = Q Z`` (column-major when formed here).
+
+        ``load`` reads a :class:`~streamsvd.algebra.panels.lazy.LazyBlock` ``Q`` into
+        memory (the receiving backend's ``in_memory``).
+        """
+        if isinstance(self.Q, LazyBlock):
+            return cast(np.ndarray, load(self.Q))
         if self.Z is None:
             return self.Q
         if self.Q.shape[1] == 0 or self.Z.shape[1] == 0:
@@ -65,14 +73,16 @@ class _MergeOperand:
         return blas.dgemm(1.0, self.Q, self.Z)
 
 
-def _merge_operand(other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
-                   ) -> _MergeOperand:
+def _merge_operand(other: Any, *, n: int, inner: InnerProduct, keep_rows: bool,
+                   by_rows: bool = False) -> _MergeOperand:
     """Return what :meth:`StreamCompressor.merge` absorbs of ``other``.
 
     ``other`` is checked first: a compressor (whose parts hold a
     :class:`~streamsvd.stream.lifecycle.Lifecycle`) or an expansion of snapshots of size
     ``n`` in the inner product ``inner``. A compressor's basis in memory is used as it is;
-    a basis elsewhere (panels) gives its left vectors.
+    a basis elsewhere (panels) gives its left vectors: with ``by_rows`` (the receiving
+    basis is in panels too) as a :class:`~streamsvd.algebra.panels.lazy.LazyBlock` that
+    the merge reads by row chunks (never ``n x p`` in memory), else in memory.
     """
     life = getattr(other, "_life", None)
     if not isinstance(life, Lifecycle) and not isinstance(other, Expansion):
@@ -93,6 +103,9 @@ def _merge_operand(other: Any, *, n: int, inner: InnerProduct, keep_rows: bool
         coords, _, R = o.settled()
         if isinstance(o.basis, MemoryBasis):
             return _MergeOperand(o.basis.Q, coords, R, Y_o, o.m, o.bound)
+        if by_rows and isinstance(o.basis, PanelBasis):
+            left = LazyBlock(o.basis.lazy(coords), 0, "the left vectors of `other`")
+            return _MergeOperand(left, None, R, Y_o, o.m, o.bound)
         return _MergeOperand(o.basis.lincomb(coords), None, R, Y_o, o.m, o.bound)
     expansion = cast(Expansion, other)  # what is not a compressor
     U_o, V_o = np.array(expansion.U, order="F"), np.array(expansion.V)

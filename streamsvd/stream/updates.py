@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import (
     plan_absorb,
@@ -148,13 +149,15 @@ class Updates:
         t0 = time.perf_counter()
         life = self._life
         s = life.state
-        op = _merge_operand(other, n=life.n, inner=life.inner, keep_rows=s.rows is not None)
+        op = _merge_operand(other, n=life.n, inner=life.inner, keep_rows=s.rows is not None,
+                            by_rows=isinstance(s.basis, PanelBasis))
         prior = s.bound.combine(op.bound)
         opts = _merge_options(life.opts, spend_target=spend_target)
         return life.run(
             lambda: plan_merge_by_gram(s, op.Q, op.coordinates(), op.R, op.Y, op.m, prior,
                                        opts, t0=t0)
-            or plan_merge(s, op.left_vectors(), op.R, op.Y, op.m, prior, opts, t0=t0),
+            or plan_merge(s, op.left_vectors(life.backend.in_memory), op.R, op.Y, op.m,
+                          prior, opts, t0=t0),
             life.source_offset + op.m,
             ledger=life.ledger.appended(s.m + op.m, prior.bound),
         )

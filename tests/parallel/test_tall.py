@@ -494,6 +494,40 @@ def test_tall_basis_is_never_in_memory(rng, tmp_path):
     assert max(sizes) <= n * b * 8 < n * 12 * 8
 
 
+def test_tall_merge_reads_the_other_basis_by_row_chunks(rng, monkeypatch):
+    """A tall compressor merged into another: no n-sized array in memory (its left
+    vectors are read by row chunks in the merge's pass), the in-memory merge's result."""
+    from streamsvd.algebra.panels.basis import PanelBasis
+
+    n, rows = 3000, 256
+    A = low_rank(rng, n=n, m=48, rank=20, noise=1e-6)
+    opts = {"max_rank": 8, "oversampling": 4}
+    ref = stream(A[:, :24], 8, **opts)
+    ref.merge(stream(A[:, 24:], 8, **opts), spend_target=False)
+
+    def whole(self, G):
+        raise AssertionError("the other basis was formed in memory")
+
+    monkeypatch.setattr(PanelBasis, "lincomb", whole)
+    sizes = []
+
+    class Largest(dask.callbacks.Callback):
+        def _posttask(self, key, result, dsk, state, id):
+            sizes.append(getattr(result, "nbytes", 0))
+
+    left, right = (TallCompressor(n, chunk_rows=rows, **opts) for _ in range(2))
+    with left, right:
+        for tc, cols in ((left, slice(0, 24)), (right, slice(24, 48))):
+            for j in range(cols.start, cols.stop, 8):
+                tc.absorb(A[:, j:j + 8])
+        with Largest():
+            left.merge(right, spend_target=False)
+        tol = 50 * n * np.finfo(float).eps
+        assert left.rank == ref.rank and left.history[-1].kind == "merge"
+        assert np.abs(left.amplitudes - ref.amplitudes).max() <= tol * ref.amplitudes[0]
+    assert max(sizes) <= rows * 16 * 8  # a row chunk of the stored columns at most
+
+
 def _zarr_source(tmp_path, A, rows, cols, dtype="float64"):
     z = zarr.create_array(str(tmp_path / "a.zarr"), shape=A.shape, chunks=(rows, cols),
                           dtype=dtype)

@@ -193,6 +193,17 @@ class PanelBackend:
             raise block.failed(exc) from exc
         return np.asfortranarray(out)
 
+    def use_client(self, basis: BasisBackend, client: Any) -> None:
+        """Run ``basis``'s row-chunk products (and this backend's reads) on ``client``.
+
+        A compressor built inside a dask task (a tall tree's node) computes on its
+        worker's threads; handed back to the client, it is given the cluster again, so
+        that its later passes (the copy into a store, the finalisation) run on the
+        workers instead of streaming every row chunk through the client.
+        """
+        assert isinstance(basis, PanelBasis)
+        self.client = basis.rows.client = client
+
     def describe(self, basis: BasisBackend) -> str:
         """Return the number of panels and the rows per chunk."""
         assert isinstance(basis, PanelBasis)
