@@ -86,8 +86,15 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
     if abs(e) > _MAX_SPREAD // 2:  # 4^e outside the range: left to the checks that follow
         return False
     old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
-    room = (trunc.share * trunc.target) ** 2 * math.ldexp(float(b), -2 * e)
+    room = _scaled_square(trunc.share * trunc.target, e) * b
     return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
+
+
+def _scaled_square(x: float, e: int) -> float:
+    """Return ``(x 2^-e)^2``, ``inf`` past the range (a target of 1e200 has no square)."""
+    mantissa, exponent = math.frexp(x)
+    twice = 2 * (exponent - e)
+    return math.inf if twice > 1000 else math.ldexp(mantissa * mantissa, twice)
 
 
 def _path_applies(opts: StepOptions, n: int) -> bool:
@@ -133,8 +140,8 @@ def _room(
     if trunc.target is not None and trunc.measure in GRAM_MEASURES:
         share_eps = trunc.share * trunc.target
         if trunc.measure == "mean_l2":
-            return share_eps**2 * math.ldexp(float(added), -2 * top)
-        return share_eps**2 * block_energy
+            return _scaled_square(share_eps, top) * added
+        return _scaled_square(share_eps, 0) * block_energy
     return float(np.sum(cut))
 
 

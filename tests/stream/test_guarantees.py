@@ -100,6 +100,21 @@ def test_a_zero_snapshot_beside_tiny_ones_adds_no_error():
     assert_bound_holds(sc, A)
 
 
+@pytest.mark.parametrize("measure", ["mean_l2", "absolute"])
+def test_targets_of_1e245_on_data_of_1e250(measure):
+    # the Gram path squared the target before scaling it: OverflowError
+    rng = np.random.default_rng(72)
+    A = spectrum_matrix(rng, 60, 30, 12, 6, 1e250)
+    norm = scaled_norm(A, 1e250)
+    target = 1e-4 * norm / np.sqrt(30) if measure == "mean_l2" else 1e-4 * norm
+    sc = ss.StreamCompressor(60, target_error=target, error_measure=measure)
+    for j in range(0, 30, 6):
+        sc.absorb(A[:, j:j + 6])
+    sc.finalize()
+    assert_bound_holds(sc, A)
+    assert sc.target_met
+
+
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), scale=st.sampled_from([1e-300, 2.0**-100, 1.0, 1e300]),
        zeros=st.lists(st.integers(0, 39), min_size=1, max_size=4),
