@@ -19,6 +19,7 @@ import platform
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -288,3 +289,93 @@ def rows_of_revision(rev: str, script: str | os.PathLike[str], args: Sequence[st
         finally:
             subprocess.run(["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force",
                             str(tree)], check=True)
+
+
+def _tree_of(proc: Any) -> list[Any]:
+    """``proc`` and its descendants (none when it is gone)."""
+    import psutil
+
+    try:
+        return [proc, *proc.children(recursive=True)]
+    except psutil.Error:
+        return []
+
+
+def tree_rss(proc: Any) -> int:
+    """Resident bytes of the psutil process ``proc`` and its descendants."""
+    import psutil
+
+    total = 0
+    for p in _tree_of(proc):
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
+def tree_cpu(proc: Any) -> float:
+    """CPU seconds (user and system) of ``proc`` and its living descendants."""
+    import psutil
+
+    total = 0.0
+    for p in _tree_of(proc):
+        try:
+            t = p.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
+
+
+class ProcessPeaks:
+    """Sample, in a thread, the peak resident memory of this process and of others.
+
+    ``client`` is the peak of this process (with its descendants when ``client_tree``:
+    a ``LocalCluster``'s workers), ``base`` its memory on entry; ``sched`` the peak of
+    the ``scheduler`` process's tree, ``worker`` that of each of ``workers``' trees
+    (``worker_base`` on entry, ``worker_cpu`` their CPU seconds in the block). The
+    processes are ``subprocess.Popen`` objects or anything with a ``pid``.
+    """
+
+    def __init__(self, *, workers: Sequence[Any] = (), scheduler: Any = None,
+                 client_tree: bool = False, period: float = 0.05) -> None:
+        import psutil
+
+        self.me = psutil.Process()
+        self.client_tree = client_tree
+        self.scheduler = None if scheduler is None else psutil.Process(scheduler.pid)
+        self.workers = [psutil.Process(p.pid) for p in workers]
+        self.period = period
+        self.client = self.sched = 0
+        self.worker = [0] * len(self.workers)
+        self.cpu0 = [tree_cpu(w) for w in self.workers]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _mine(self) -> int:
+        return tree_rss(self.me) if self.client_tree else int(self.me.memory_info().rss)
+
+    def _sample(self) -> None:
+        self.client = max(self.client, self._mine())
+        if self.scheduler is not None:
+            self.sched = max(self.sched, tree_rss(self.scheduler))
+        self.worker = [max(a, tree_rss(w)) for a, w in zip(self.worker, self.workers, strict=True)]
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.period)
+
+    def __enter__(self) -> ProcessPeaks:
+        self.base = self._mine()
+        self.client = self.base
+        self.worker_base = [tree_rss(w) for w in self.workers]
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+        self.worker_cpu = [tree_cpu(w) - c for w, c in zip(self.workers, self.cpu0, strict=True)]

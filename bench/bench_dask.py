@@ -40,7 +40,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -48,7 +47,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
+from _common import ProcessPeaks, Run, machine_info, out_dir, print_table, pyplot  # noqa: E402
 
 GB = 1e9
 STREAM_METHODS = ("streamsvd tree", "streamsvd tall")
@@ -106,54 +105,6 @@ def write_data(cfg: dict, path: Path) -> float:
     return time.perf_counter() - t0
 
 
-# --------------------------------------------------------------------------- memory
-
-
-class PeakRSS:
-    """Sample the resident memory of this process and its children (dask workers)."""
-
-    def __init__(self, period: float = 0.05) -> None:
-        import psutil
-
-        self.proc = psutil.Process()
-        self.period = period
-        self.peak = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _sample(self) -> int:
-        import psutil
-
-        total = 0
-        procs = [self.proc]
-        try:
-            procs += self.proc.children(recursive=True)
-        except psutil.Error:
-            pass
-        for p in procs:
-            try:
-                total += p.memory_info().rss
-            except psutil.Error:
-                pass
-        return total
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.peak = max(self.peak, self._sample())
-            self._stop.wait(self.period)
-
-    def __enter__(self) -> PeakRSS:
-        self.base = self._sample()
-        self.peak = self.base
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, self._sample())
-
-
 # --------------------------------------------------------------------------- methods
 
 
@@ -192,7 +143,7 @@ def run_method(method: str, cfg: dict, path: Path, work: Path) -> dict[str, Any]
     sched = client if client is not None else "threads"
     result = None
     try:
-        with PeakRSS() as mem:
+        with ProcessPeaks(client_tree=True) as mem:
             t0 = time.perf_counter()
             if method == "read":
                 dask.compute(x.sum(), scheduler=sched)
@@ -213,7 +164,7 @@ def run_method(method: str, cfg: dict, path: Path, work: Path) -> dict[str, Any]
             else:
                 raise SystemExit(f"unknown method {method!r}")
             out["seconds"] = time.perf_counter() - t0
-        out["peak_rss"] = mem.peak
+        out["peak_rss"] = mem.client
         out["base_rss"] = mem.base
         if method in STREAM_METHODS:
             out.update(_stream_errors(method, sc, cfg, x, client))

@@ -40,7 +40,6 @@ import argparse
 import os
 import statistics
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -48,55 +47,10 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Run, load_average, out_dir, print_table, pyplot  # noqa: E402
+from _common import ProcessPeaks, Run, load_average, out_dir, print_table, pyplot  # noqa: E402
 
 BUCKET = "cluster-bench"
 CONTENDERS = ("tree", "tall", "tall_tree", "svd_compressed", "dist_hapod")
-
-
-class Peaks:
-    """Sample the resident memory of this process and of each worker's process tree."""
-
-    def __init__(self, workers: list[Any]) -> None:
-        import psutil
-
-        self.me = psutil.Process()
-        self.workers = [psutil.Process(p.pid) for p in workers]
-        self.client = 0
-        self.worker = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    @staticmethod
-    def _tree(proc: Any) -> int:
-        import psutil
-
-        total = 0
-        try:
-            procs = [proc, *proc.children(recursive=True)]
-        except psutil.Error:
-            return 0
-        for p in procs:
-            try:
-                total += p.memory_info().rss
-            except psutil.Error:
-                pass
-        return total
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.client = max(self.client, self.me.memory_info().rss)
-            self.worker = max([self.worker, *(self._tree(w) for w in self.workers)])
-            self._stop.wait(0.05)
-
-    def __enter__(self) -> Peaks:
-        self.base = self.me.memory_info().rss  # the benchmark's own A, its SVD, ...
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
 
 
 def make_data(n: int, m: int, k: int, seed: int = 0) -> np.ndarray:
@@ -212,7 +166,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 for r in range(args.repeat):
                     for name in contenders:
                         load = load_average()
-                        with Peaks(list(cl.processes[1:])) as peaks:
+                        with ProcessPeaks(workers=cl.processes[1:]) as peaks:
                             t0, c0 = time.perf_counter(), time.process_time()
                             try:
                                 res = run_one(name, r, cfg, client, url)
@@ -223,7 +177,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         row = {"seconds": wall, "client_cpu": cpu, "load": load,
                                "client_peak_mb": peaks.client / 1e6,
                                "client_growth_mb": (peaks.client - peaks.base) / 1e6,
-                               "worker_peak_mb": peaks.worker / 1e6, "failed": failed,
+                               "worker_peak_mb": max(peaks.worker) / 1e6, "failed": failed,
                                "read_seconds": res.get("read_seconds")}
                         if "Q" in res:
                             row["modes"] = int(np.asarray(res["Q"]).shape[1])

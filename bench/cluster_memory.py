@@ -43,7 +43,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -51,85 +50,11 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Run, load_average, out_dir, print_table, pyplot  # noqa: E402
+from _common import ProcessPeaks, Run, load_average, out_dir, print_table, pyplot  # noqa: E402
 
 BUCKET = "cluster-memory"
 CONTENDERS = ("tall", "tall_tree", "svd_compressed")
 MB = 1e6
-
-
-class ProcessPeaks:
-    """Sample the resident memory of this process, the scheduler and each worker's tree."""
-
-    def __init__(self, scheduler: Any, workers: list[Any], period: float = 0.05) -> None:
-        import psutil
-
-        self.me = psutil.Process()
-        self.scheduler = psutil.Process(scheduler.pid)
-        self.workers = [psutil.Process(p.pid) for p in workers]
-        self.period = period
-        self.client = 0
-        self.sched = 0
-        self.worker = [0] * len(self.workers)
-        self.cpu0 = [self._cpu(w) for w in self.workers]
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    @staticmethod
-    def _procs(proc: Any) -> list[Any]:
-        import psutil
-
-        try:
-            return [proc, *proc.children(recursive=True)]
-        except psutil.Error:
-            return []
-
-    @classmethod
-    def _rss(cls, proc: Any) -> int:
-        import psutil
-
-        total = 0
-        for p in cls._procs(proc):
-            try:
-                total += p.memory_info().rss
-            except psutil.Error:
-                pass
-        return total
-
-    @classmethod
-    def _cpu(cls, proc: Any) -> float:
-        import psutil
-
-        total = 0.0
-        for p in cls._procs(proc):
-            try:
-                t = p.cpu_times()
-                total += t.user + t.system
-            except psutil.Error:
-                pass
-        return total
-
-    def _sample(self) -> None:
-        self.client = max(self.client, self.me.memory_info().rss)
-        self.sched = max(self.sched, self._rss(self.scheduler))
-        self.worker = [max(a, self._rss(w)) for a, w in zip(self.worker, self.workers, strict=True)]
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self._sample()
-            self._stop.wait(self.period)
-
-    def __enter__(self) -> ProcessPeaks:
-        self.base = self.me.memory_info().rss
-        self.worker_base = [self._rss(w) for w in self.workers]
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-        self._sample()
-        self.worker_cpu = [self._cpu(w) - c for w, c in zip(self.workers, self.cpu0, strict=True)]
 
 
 def data_config(n: int, m: int, k: int, block: int, chunk_rows: int) -> dict[str, Any]:
@@ -183,7 +108,7 @@ def child(spec: dict[str, Any]) -> dict[str, Any]:
     try:
         with Client(cl.address, timeout="60s") as client:
             load = load_average()
-            with ProcessPeaks(cl.processes[0], list(cl.processes[1:])) as peaks:
+            with ProcessPeaks(scheduler=cl.processes[0], workers=cl.processes[1:]) as peaks:
                 t0, c0 = time.perf_counter(), time.process_time()
                 out = run_contender(spec["name"], cfg, client, spec["src"], spec["work"])
                 wall, cpu = time.perf_counter() - t0, time.process_time() - c0
