@@ -9,6 +9,7 @@ neither the leaves nor the copy of the root into the store nor its finalisation)
 """
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -18,6 +19,12 @@ from streamsvd.testing import with_spectrum
 pytest.importorskip("distributed")
 pytest.importorskip("moto.server")
 pytest.importorskip("s3fs")
+
+import cloudpickle  # noqa: E402  (distributed's)
+
+# the workers run in directories of their own, where this module cannot be imported:
+# its functions (_instrument, _touched) travel by value
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 BUCKET = "row-chunk-tests"
 ROWS = 64  # chunk_rows of the runs; n = 400 is not a multiple of it
