@@ -21,9 +21,10 @@ def apply_into(inner: InnerProduct, X: np.ndarray, out: np.ndarray) -> np.ndarra
     return out
 
 
-def m_norms(X: np.ndarray, inner: InnerProduct) -> np.ndarray:
-    """``M``-norms of the columns of an already scaled block."""
-    MX = X if inner.is_euclidean else inner.apply(X)
+def m_norms(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:
+    """``M``-norms of the columns of an already scaled block (``MX``: ``M X``, when known)."""
+    if MX is None:
+        MX = X if inner.is_euclidean else inner.apply(X)
     return np.sqrt(np.maximum(np.einsum("ij,ij->j", X, MX), 0.0))
 
 

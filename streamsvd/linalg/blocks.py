@@ -26,6 +26,8 @@ if TYPE_CHECKING:
     from streamsvd.algebra.interface import BasisBackend
 
 _EPS = np.finfo(np.float64).eps
+# Higham and Mary's constant of the probabilistic rounding model
+_ROUNDING_LAMBDA = 4.0
 # A residual whose Gram has its eigenvalues within COND_SPLIT of the largest is
 # orthonormalised in one go (condition number at most 2^20, so that a second CholeskyQR
 # pass restores orthogonality to working accuracy); the smaller directions are measured
@@ -100,6 +102,11 @@ def _eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lam[::-1].copy(), np.asfortranarray(W[:, ::-1])
 
 
+def _image(Z: np.ndarray, inner: InnerProduct) -> np.ndarray:
+    """``M Z``, column-major (``Z`` itself for the Euclidean product)."""
+    return Z if inner.is_euclidean else np.asfortranarray(inner.apply(Z))
+
+
 def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Return ``A @ B`` as a new column-major array (for in-place triangular solves)."""
     out = np.empty((A.shape[0], B.shape[1]), order="F")
@@ -160,23 +167,31 @@ def orthonormalize_in_rounds(
     reject_tol: float,
     ref: np.ndarray,
     F0: np.ndarray | None = None,
+    aside: float = 0.0,
 ) -> tuple[list[np.ndarray], np.ndarray, list[tuple[np.ndarray, np.ndarray, np.ndarray]], int,
-           list[np.ndarray]]:
+           list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
     """Orthonormalise an ill-conditioned residual round by round (see :func:`extend_basis`).
 
     Returns the orthonormal parts, the coefficients ``Rz`` of the residual on them, the
-    directions set aside below the floor ``(T, M T, F)``, the passes made and the parts'
-    ``M`` images. ``C`` (the
+    directions set aside below the floor ``(T, M T, F)``, the passes made, the parts'
+    ``M`` images and the directions set aside within ``aside``. ``C`` (the
     coefficients on the basis) receives what the re-projections of later rounds find.
     ``F0`` (``s x b``), when given, says that ``Z`` holds ``s`` combinations of the ``b``
-    columns (``Z = Z_columns F0^T``, the directions :func:`set_aside` kept).
+    columns (``Z = Z_columns F0^T``, the directions :func:`set_aside` kept). ``aside``
+    is an energy (in the block's scaled units) the rounds may set aside: the Gram of each
+    later round's unresolved part, measured after its re-projection, has the trace of
+    that part alone, so its weakest directions are rejected by :func:`set_aside` within
+    what is left of ``aside`` even when the first Gram's rounding allowance exceeded it;
+    they are returned last, as ``(F, G_t)`` (their map to the columns and their Gram).
     """
     b = C.shape[1]
     parts: list[np.ndarray] = []
     mparts: list[np.ndarray] = []
     rows: list[np.ndarray] = []
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    apart: list[tuple[np.ndarray, np.ndarray]] = []
     Zc, Sc, Fc = Z, S, (np.eye(b) if F0 is None else F0)
+    MZc: np.ndarray | None = None  # M Zc, once measured
     passes = 0
     # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
     # directions are set aside (smallest first) while, in every column k, what they add
@@ -189,7 +204,7 @@ def orthonormalize_in_rounds(
             # the unresolved part is small next to the block: its rounding along the
             # basis and the directions found is projected out, a second time when the
             # first pass cancelled more than half of a column (DGKS)
-            before = m_norms(Zc, inner)
+            before = m_norms(Zc, inner, MZc)
             for _ in range(2):
                 if basis.width:
                     P = basis.project(Zc, G)
@@ -200,11 +215,23 @@ def orthonormalize_in_rounds(
                     c = MQp.T @ Zc
                     Zc -= Qp @ c
                     rows[i] += c @ Fc
-                after = m_norms(Zc, inner)
+                MZc = _image(Zc, inner)
+                after = m_norms(Zc, inner, MZc)
                 if np.all(after >= _REPROJECT * before):
                     break
                 before = after
-            Sc = gram(Zc, inner)
+            Sc = gram(Zc, inner, MZc)
+            split = set_aside(Sc, aside, Zc.shape[0], _ROUNDING_LAMBDA)
+            if split is not None:
+                # the unresolved part's Gram has the trace of this part alone: what the
+                # first Gram could not set aside under its rounding fits now
+                Wk, lam_k, Wt, Gt = split
+                apart.append((Wt.T @ Fc, Gt))
+                aside -= float(np.trace(Gt))
+                if lam_k.size == 0:
+                    break
+                Zc, Fc = _mm(Zc, Wk), Wk.T @ Fc
+                Sc = gram(Zc, inner)
         lam, W = _eigh_desc(Sc)
         if lam.size == 0 or lam[0] <= 0.0:
             break
@@ -218,13 +245,13 @@ def orthonormalize_in_rounds(
             L2 = np.linalg.cholesky(gram(Qb, inner))
             right_solve(Qb, L2)
             parts.append(Qb)
-            mparts.append(Qb if inner.is_euclidean else np.asfortranarray(inner.apply(Qb)))
+            mparts.append(_image(Qb, inner))
             rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * (W[:, big].T @ Fc)))
         rest = ~big
         if not rest.any():
             break
         Tt = _mm(Zc, W[:, rest])
-        MTt = Tt if inner.is_euclidean else np.asfortranarray(inner.apply(Tt))
+        MTt = _image(Tt, inner)
         Ft = W[:, rest].T @ Fc
         norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Tt, MTt), 0.0))
         adds = (norms[:, np.newaxis] * np.abs(Ft) * weight) ** 2
@@ -238,9 +265,9 @@ def orthonormalize_in_rounds(
             floor.append((Tt[:, low], MTt[:, low], Ft[low]))
         if low.all():
             break
-        Zc, Fc = np.asfortranarray(Tt[:, ~low]), Ft[~low]
+        Zc, MZc, Fc = np.asfortranarray(Tt[:, ~low]), np.asfortranarray(MTt[:, ~low]), Ft[~low]
     Rz = np.vstack(rows) if rows else np.zeros((0, b))
-    return parts, Rz, floor, passes, mparts
+    return parts, Rz, floor, passes, mparts, apart
 
 
 def column_rule(

@@ -223,6 +223,11 @@ def extend_basis(
         smallest energy within it are rejected (``rejected_gram``, ``rejected_map``), the
         rest orthonormalised. A compressor with a target error passes a small share of
         the budget's growth in this update; ``(0, 0)`` (the default) sets nothing aside.
+        What the residual's Gram cannot set aside (its rounding allowance, relative to
+        the residual's energy, exceeds the budget: a first block, or one far from the
+        basis) the rounds of step 2 set aside on the Gram of a later round's unresolved
+        part, whose trace is that part's energy alone
+        (:func:`~streamsvd.linalg.blocks.orthonormalize_in_rounds`).
     """
     n, b = X.shape
     w = basis.width
@@ -242,6 +247,7 @@ def extend_basis(
     S = gram(Z, inner, MZ)
     split = None
     skewed = False
+    budget = 0.0
     if w:
         # what the projection left along the basis decides a second projection: not
         # made when it is below _LOSS_MAX of every column's residual, nor when the
@@ -251,7 +257,8 @@ def extend_basis(
         norms = np.sqrt(np.maximum(np.diag(S), 0.0))
         reproject = bool(np.any(loss > _LOSS_MAX * norms))
         if reproject and b and (aside[0] > 0 or aside[1] > 0) and basis_gram is not None:
-            split = _split(S, _norms(C, S), exps, aside, n)
+            budget = _aside_budget(_norms(C, S), exps, aside)
+            split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
             reproject = split is None or not kept_clean(along, split[0], split[1], _KEPT_LOSS_MAX)
             if reproject:
                 split = None
@@ -279,19 +286,22 @@ def extend_basis(
     if not skewed:
         nu = _norms(C, S)
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
-    if split is None and b and (aside[0] > 0 or aside[1] > 0):
-        split = _split(S, nu, exps, aside, n)
+    if split is None and b:
+        budget = _aside_budget(nu, exps, aside)
+        split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
     lam = np.linalg.eigvalsh(S)[::-1] if b and split is None else np.zeros(0)
     well = split is None and b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     pre: list[tuple[np.ndarray, np.ndarray]] = []
+    apart: list[tuple[np.ndarray, np.ndarray]] = []
     if split is not None:
         # the kept combinations Z W_k go through the rounds (the tail is never formed)
         Wk, lam_k, Wt, Gt = split
         pre.append((Wt.T, Gt))
         Zk = np.asfortranarray(Z @ Wk)
-        parts, Rz, floor, more, mparts = orthonormalize_in_rounds(
-            basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T)
+        parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
+            basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T,
+            aside=budget - float(np.trace(Gt)))
         passes += more
     elif well:
         # the common case: Z = Q_z L^T in place, Rz = L^T triangular
@@ -299,8 +309,8 @@ def extend_basis(
         passes += more
         parts, mparts = [Z], []
     else:
-        parts, Rz, floor, more, mparts = orthonormalize_in_rounds(
-            basis, G, Z, S, C, inner, reject_tol, ref)
+        parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
+            basis, G, Z, S, C, inner, reject_tol, ref, aside=budget)
         passes += more
     accepted, Wacc = column_rule(Rz, ref, reject_tol)
     s, r = Rz.shape[0], Wacc.shape[1]
@@ -311,7 +321,7 @@ def extend_basis(
         # the rejected part in the directions' coordinates, orthogonal to the kept ones
         maps.append(complement(Wacc, s).T @ Rz)
         grams.append(np.eye(s - r))
-    for F, Gt in pre:
+    for F, Gt in pre + apart:
         maps.append(F)
         grams.append(Gt)
     for T, MT, F in floor:
@@ -384,17 +394,16 @@ def _norms(C: np.ndarray, S: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->j", C, C) + np.maximum(np.diag(S), 0.0))
 
 
-def _split(S: np.ndarray, nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float],
-           n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`set_aside` with the caller's energy ``aside`` in the block's scaled units.
+def _aside_budget(nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float]) -> float:
+    """The energy ``aside`` lets the block set aside, in its scaled units (0: none).
 
     The columns were scaled by ``2^-e``: an energy ``E`` of the scaled residual is at
     most ``4^max(e) E`` of the block's, so the budget is scaled by ``4^-max(e)``.
     """
+    if nu.size == 0 or not (aside[0] > 0 or aside[1] > 0):
+        return 0.0
     top = int(exps.max())
     energy = float(np.sum(nu * nu * np.ldexp(1.0, 2 * (exps - top))))
     with np.errstate(over="ignore"):
         budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
-    if not math.isfinite(budget):
-        return None
-    return set_aside(S, budget, n, _ROUNDING_LAMBDA)
+    return budget if math.isfinite(budget) else 0.0

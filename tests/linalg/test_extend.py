@@ -46,8 +46,11 @@ def test_set_aside_takes_the_tail_within_the_budget():
     assert set_aside(S, 1e-15, 1000, 4.0) is None
 
 
+# 1e-12: set aside on the block's residual Gram; 1e-15: below that Gram's rounding
+# allowance (about 2e-14 of the energy), set aside on the Gram of a later round's tail
+@pytest.mark.parametrize("share", [1e-12, 1e-15])
 @pytest.mark.parametrize("euclidean", [True, False])
-def test_a_block_with_a_budget_keeps_x_within_the_rejected_norm(euclidean):
+def test_a_block_with_a_budget_keeps_x_within_the_rejected_norm(euclidean, share):
     n = 400
     X = _collinear(n)
     M = None if euclidean else _mass(n)
@@ -56,11 +59,11 @@ def test_a_block_with_a_budget_keeps_x_within_the_rejected_norm(euclidean):
     basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
     plain = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n))
     basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
-    budget = 1e-12 * energy
+    budget = share * energy
     ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
                        aside=(budget, 0.0))
     r = ext.rank
-    assert r <= plain.rank
+    assert r < plain.rank
     Q = basis.workspace(X.shape[1])[0][:, :r].copy()
     # the new directions are M-orthonormal
     G = Q.T @ ip.apply(Q)
@@ -99,6 +102,26 @@ def test_the_budget_sets_directions_aside():
                            aside=(budget, 0.0))
         ranks.append(ext.rank)
     assert ranks[1] < ranks[0]
+
+
+def test_a_budget_below_the_first_grams_rounding_is_spent_on_a_later_round():
+    n = 400
+    X = _collinear(n)
+    ip = as_inner(_mass(n), n)
+    S = X.T @ ip.apply(X)
+    budget = 1e-15 * float(np.trace(S))
+    # the block's Gram cannot set anything aside: its rounding allowance is larger
+    assert set_aside(0.5 * (S + S.T), budget, n, 4.0) is None
+    ranks, rejected = [], []
+    for aside in ((0.0, 0.0), (budget, 0.0)):
+        basis = MemoryBasis(n, ip, capacity=2 * X.shape[1])
+        ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                           aside=aside)
+        ranks.append(ext.rank)
+        rejected.append(ext.rejected_norm())
+    # the tail of a later round, of a smaller trace, is set aside within the budget
+    assert ranks[1] < ranks[0]
+    assert rejected[1] ** 2 <= budget * (1 + 1e-9) + rejected[0] ** 2
 
 
 def _widening_pulse(n, m):
