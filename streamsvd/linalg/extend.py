@@ -241,10 +241,12 @@ def extend_basis(
         basis.subtract(Y, G, C)
         passes += 2
     Z = Y
-    cross0 = basis.project(Z, None) if w else np.zeros((0, b))
-    passes += 1 if w else 0
     MZ = apply_into(Z, MY, inner)
-    S = gram(Z, inner, MZ)
+    if w:
+        cross0, S = basis.residual_products(Z, MZ)
+        passes += 1
+    else:
+        cross0, S = np.zeros((0, b)), gram(Z, inner, MZ)
     split = None
     skewed = False
     budget = 0.0
@@ -395,7 +397,7 @@ def _norms(C: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 
 def _aside_budget(nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float]) -> float:
-    """The energy ``aside`` lets the block set aside, in its scaled units (0: none).
+    """Return the energy ``aside`` lets the block set aside, in its scaled units (0: none).
 
     The columns were scaled by ``2^-e``: an energy ``E`` of the scaled residual is at
     most ``4^max(e) E`` of the block's, so the budget is scaled by ``4^-max(e)``.

@@ -682,6 +682,24 @@ def test_the_products_beside_the_basis_give_the_separate_ones_and_keep_the_block
         np.testing.assert_array_equal(basis.MQ[:, w:], MX)
 
 
+def test_the_residual_products_give_the_separate_ones(rng):
+    """MemoryBasis.residual_products: what a residual in the workspace keeps along the
+    basis and its Gram (one product over [MQ, MZ] with a matrix M), each within rounding
+    of the separate products; a residual elsewhere gets the separate products."""
+    n, w, b = 500, 12, 7
+    for basis, inner, X in _bases_and_blocks(rng, n, w, b):
+        Z, MZ = basis.workspace(b)
+        Z[...] = X
+        MZ[...] = inner.apply(X)
+        tol = 10 * n * EPS * max(1.0, np.abs(X).max() ** 2)
+        for Zi, MZi in ((Z, MZ), (X, inner.apply(X))):
+            along, S = basis.residual_products(Zi, MZi)
+            np.testing.assert_allclose(along, basis.MQ.T @ X, rtol=0, atol=tol)
+            np.testing.assert_allclose(S, X.T @ inner.apply(X), rtol=0, atol=tol)
+            np.testing.assert_array_equal(S, S.T)
+        assert basis.width == w
+
+
 @pytest.mark.parametrize("right_vectors", [True, False])
 def test_a_zero_first_snapshot_keeps_the_block_on_the_gram_path(right_vectors):
     A = _pulses()

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.panels import staging
 from streamsvd.algebra.panels import tasks as panel_tasks
@@ -130,6 +131,10 @@ class PanelBasis:
         (C,) = self.rows.compute([self.rows.weighted(Q).T @ self.rows.block(X)])
         C = np.asarray(C)
         return C if G is None else G.T @ C
+
+    def residual_products(self, Z: np.ndarray, MZ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``MQ^T Z`` (by row chunks) and ``Z^T M Z`` (``MZ`` the image of ``Z``)."""
+        return self.project(Z, None), gram(Z, self.inner, MZ)
 
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
         """``X -= Q (G C)`` in place, row chunk by row chunk."""
