@@ -2,6 +2,7 @@
 
 ```
 python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a,ingest] [--repeat 3]
+       [--blocks traj,10,1000] [--dtypes float64,float32]
        [--ingest ZARR] [--ingest-data DIR] [--against REV] [--out DIR] [--quick]
 ```
 
@@ -19,6 +20,10 @@ of ``--repeat``; ``os.getloadavg()`` recorded with every row.
   (``mean_l2``) or ``target ||A||_M / sqrt(m)`` (``relative``, the same budget). Reported:
   CPU seconds, their ratio, the modes, the true error over the target (the
   ``M``-orthogonal projection on the modes) and streamsvd's certified bound over it.
+  ``--blocks``: the updates' widths (``traj``, one trajectory, the default; or a number
+  of columns: both contenders take the slices ``inc_vectorarray_hapod`` makes of
+  ``ceil(m / width)`` steps); ``--dtypes``: the snapshots as given (``float64``) or
+  rounded once to ``float32``, the same array for both.
 * ``cap``: the synthetic stream of ``hapod_benchmark.py`` (n 20000, m 2000, blocks of
   100, ``max_rank=60``): streamsvd with its default oversampling and with 20, pyMOR's
   incremental HAPOD tree with ``pod(modes=60)`` and with 70 modes per step; the largest
@@ -138,20 +143,56 @@ def _hapod_target(U: Any, prod: Any, steps: int, eps: float) -> tuple[float, np.
     return time.process_time() - c0, modes.to_numpy()
 
 
-def target_rows(case: str, cache: Path, repeat: int, quick: bool) -> list[dict[str, Any]]:
-    """Every measure and target of ``case``: streamsvd and HAPOD interleaved."""
+def _chunks(lengths: np.ndarray, block: str) -> tuple[np.ndarray, int]:
+    """The widths of the updates and HAPOD's ``steps``: one trajectory, or ``block`` columns.
+
+    ``inc_vectorarray_hapod(steps, ...)`` slices the snapshots by ``ceil(m / steps)``
+    columns; streamsvd absorbs the same slices.
+    """
+    m = int(np.sum(lengths))
+    steps = len(lengths) if block == "traj" else math.ceil(m / int(block))
+    size = math.ceil(m / steps)
+    widths = np.diff(np.append(np.arange(0, m, size), m))
+    return widths, len(widths)
+
+
+def target_rows(case: str, cache: Path, repeat: int, quick: bool, *,
+                blocks: tuple[str, ...] = ("traj",),
+                dtypes: tuple[str, ...] = ("float64",)) -> list[dict[str, Any]]:
+    """Every measure and target of ``case``: streamsvd and HAPOD interleaved.
+
+    For each block width (``"traj"``: one trajectory per update) and each dtype of the
+    snapshots (``float32``: rounded once, both contenders read the same array); the
+    errors are measured against the snapshots in that dtype.
+    """
     from pymor.core.logger import set_log_levels
     from pymor.operators.numpy import NumpyMatrixOperator
     from pymor.vectorarrays.numpy import NumpyVectorSpace
 
     set_log_levels({"pymor": "WARN"})
-    X, M, lengths = _load_case(case, cache, quick)
-    n, m = X.shape
-    U = NumpyVectorSpace(n).from_numpy(X)
+    X64, M, lengths = _load_case(case, cache, quick)
+    n, m = X64.shape
     prod = NumpyMatrixOperator(M)
-    norm = math.sqrt(float(np.sum(_projection_error2(X, np.zeros((n, 0)), M))))
-    _streamsvd_target(X[:, :20], M, np.array([10, 10]), 1e-3, "mean_l2")  # warm-up
-    _hapod_target(U[:20], prod, 2, 1e-3)
+    rows = []
+    for dtype in dtypes:
+        X = np.asfortranarray(X64.astype(dtype))
+        U = NumpyVectorSpace(n).from_numpy(X)
+        Xe = X.astype(np.float64)
+        norm = math.sqrt(float(np.sum(_projection_error2(Xe, np.zeros((n, 0)), M))))
+        _streamsvd_target(X[:, :20], M, np.array([10, 10]), 1e-3, "mean_l2")  # warm-up
+        _hapod_target(U[:20], prod, 2, 1e-3)
+        for block in blocks:
+            widths, steps = _chunks(lengths, block)
+            rows += _block_rows(case, dtype, block, X, U, Xe, M, prod, widths, steps, norm,
+                                repeat)
+    return rows
+
+
+def _block_rows(case: str, dtype: str, block: str, X: np.ndarray, U: Any, Xe: np.ndarray,
+                M: Any, prod: Any, widths: np.ndarray, steps: int, norm: float,
+                repeat: int) -> list[dict[str, Any]]:
+    """The rows of one case, dtype and block width (every measure and target)."""
+    n, m = X.shape
     rows = []
     for measure in MEASURES:
         scale = math.sqrt(m) if measure == "mean_l2" else norm
@@ -159,13 +200,14 @@ def target_rows(case: str, cache: Path, repeat: int, quick: bool) -> list[dict[s
             eps = target if measure == "mean_l2" else target * norm / math.sqrt(m)
             ts, th = [], []
             for _ in range(repeat):
-                t, Q, bound = _streamsvd_target(X, M, lengths, target, measure)
+                t, Q, bound = _streamsvd_target(X, M, widths, target, measure)
                 ts.append(t)
-                t, H = _hapod_target(U, prod, len(lengths), eps)
+                t, H = _hapod_target(U, prod, steps, eps)
                 th.append(t)
-            err_s = math.sqrt(float(np.sum(_projection_error2(X, Q, M)))) / scale
-            err_h = math.sqrt(float(np.sum(_projection_error2(X, H, M)))) / scale
-            row = {"case": case, "measure": measure, "target": target,
+            err_s = math.sqrt(float(np.sum(_projection_error2(Xe, Q, M)))) / scale
+            err_h = math.sqrt(float(np.sum(_projection_error2(Xe, H, M)))) / scale
+            row = {"case": case, "dtype": dtype, "block": block,
+                   "width": int(widths[0]), "measure": measure, "target": target,
                    "streamsvd_cpu": statistics.median(ts), "hapod_cpu": statistics.median(th),
                    "streamsvd_modes": int(Q.shape[1]), "hapod_modes": int(H.shape[1]),
                    "streamsvd_error": err_s / target, "hapod_error": err_h / target,
@@ -173,9 +215,9 @@ def target_rows(case: str, cache: Path, repeat: int, quick: bool) -> list[dict[s
                    "streamsvd_runs": ts, "hapod_runs": th}
             row["ratio"] = row["streamsvd_cpu"] / row["hapod_cpu"]
             rows.append(row)
-            print(f"{case} {measure} {target:g}: ratio {row['ratio']:.2f}, modes "
-                  f"{row['streamsvd_modes']}/{row['hapod_modes']}, bound/target "
-                  f"{row['bound']:.3f}", file=sys.stderr, flush=True)
+            print(f"{case} {dtype} block {block} {measure} {target:g}: ratio "
+                  f"{row['ratio']:.2f}, modes {row['streamsvd_modes']}/{row['hapod_modes']}, "
+                  f"bound/target {row['bound']:.3f}", file=sys.stderr, flush=True)
     return rows
 
 
@@ -290,7 +332,9 @@ def _measure(args: argparse.Namespace) -> dict[str, Any]:
     data: dict[str, Any] = {"targets": [], "cap": [], "rbs480a": [], "ingest": []}
     for case in cases:
         if case in ("heat", "burgers"):
-            data["targets"] += target_rows(case, cache, args.repeat, args.quick)
+            data["targets"] += target_rows(case, cache, args.repeat, args.quick,
+                                           blocks=tuple(args.blocks.split(",")),
+                                           dtypes=tuple(args.dtypes.split(",")))
         elif case == "cap":
             data["cap"] = cap_rows(cache, args.repeat, args.quick)
         elif case == "rbs480a":
@@ -320,22 +364,31 @@ def _against(rev: str, args: argparse.Namespace) -> dict[str, Any]:
     cases = ",".join(c for c in args.cases.split(",") if c in ("heat", "burgers"))
     return dict(rows_of_revision(rev, __file__, [
         "--cases", cases, "--cache", args.cache, "--repeat", str(args.repeat),
+        "--blocks", args.blocks, "--dtypes", args.dtypes,
         *(["--quick"] if args.quick else [])]))
 
 
+def _key(row: dict[str, Any]) -> tuple[Any, ...]:
+    """A target row's case, dtype, block, measure and target (rows without: float64, traj)."""
+    return (row["case"], row.get("dtype", "float64"), row.get("block", "traj"),
+            row["measure"], row["target"])
+
+
 def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
-    old = {(r["case"], r["measure"], r["target"]): r for r in (before or {}).get("targets", [])}
+    old = {_key(r): r for r in (before or {}).get("targets", [])}
     rows = []
     for r in data["targets"]:
-        o = old.get((r["case"], r["measure"], r["target"]))
-        rows.append([r["case"], r["measure"], f"{r['target']:g}", f"{r['streamsvd_cpu']:.3f}",
+        o = old.get(_key(r))
+        rows.append([r["case"], r.get("dtype", "float64"), r.get("width", ""), r["measure"],
+                     f"{r['target']:g}", f"{r['streamsvd_cpu']:.3f}",
                      f"{r['hapod_cpu']:.3f}", f"{r['ratio']:.2f}",
                      "" if o is None else f"{o['ratio']:.2f}",
                      f"{r['streamsvd_modes']}/{r['hapod_modes']}",
                      f"{r['streamsvd_error']:.3f}/{r['hapod_error']:.3f}", f"{r['bound']:.3f}",
                      f"{r['load']:.1f}"])
     if rows:
-        print_table(["case", "measure", "target", "streamsvd CPU s", "HAPOD CPU s", "ratio",
+        print_table(["case", "dtype", "block", "measure", "target", "streamsvd CPU s",
+                     "HAPOD CPU s", "ratio",
                      "ratio before", "modes s/H", "true err/target s/H", "bound/target",
                      "load"], rows, title="\ntargets: streamsvd against inc_vectorarray_hapod")
     if data["cap"]:
@@ -364,39 +417,44 @@ def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
 
 def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> None:
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    ax = axes[0]
-    old = (before or {}).get("targets", [])
-    for case in sorted({r["case"] for r in data["targets"]}):
-        for measure, mk in zip(MEASURES, ("o", "s"), strict=True):
-            pts = [(r["target"], r["ratio"]) for r in data["targets"]
-                   if r["case"] == case and r["measure"] == measure]
-            if pts:
-                x, y = zip(*pts, strict=True)
-                line, = ax.plot(x, y, marker=mk, label=f"{case} {measure}")
-            prev = [(r["target"], r["ratio"]) for r in old
-                    if r["case"] == case and r["measure"] == measure]
-            if prev and pts:
-                x, y = zip(*prev, strict=True)
-                ax.plot(x, y, marker=mk, ls=":", color=line.get_color(), alpha=0.6,
-                        label=f"{case} {measure} (before)")
-    ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_xscale("log")
-    ax.set_xlabel("target error")
-    ax.set_ylabel("CPU time streamsvd / HAPOD")
-    ax.set_title("targets (dotted: before)")
-    ax.legend(fontsize=7)
-    ax.grid(True, which="both", alpha=0.3)
-    ax = axes[1]
+    dtypes = sorted({r.get("dtype", "float64") for r in data["targets"]}, reverse=True) or [""]
+    panels = len(dtypes) + (1 if data["rbs480a"] else 0)
+    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4.2), squeeze=False)
+    axes = axes[0]
+    old = {_key(r): r for r in (before or {}).get("targets", [])}
+    styles = ("-", "--", "-.", (0, (3, 1, 1, 1)))
+    for ax, dtype in zip(axes, dtypes, strict=False):
+        rows = [r for r in data["targets"] if r.get("dtype", "float64") == dtype]
+        blocks = list(dict.fromkeys(r.get("block", "traj") for r in rows))
+        for case in sorted({r["case"] for r in rows}):
+            for measure, mk in zip(MEASURES, ("o", "s"), strict=True):
+                for block, ls in zip(blocks, styles, strict=False):
+                    sel = [r for r in rows if r["case"] == case and r["measure"] == measure
+                           and r.get("block", "traj") == block]
+                    if not sel:
+                        continue
+                    label = f"{case} {measure}, blocks of {sel[0].get('width', block)}"
+                    line, = ax.plot([r["target"] for r in sel], [r["ratio"] for r in sel],
+                                    marker=mk, ls=ls, label=label)
+                    prev = [old[_key(r)] for r in sel if _key(r) in old]
+                    if prev:
+                        ax.plot([r["target"] for r in prev], [r["ratio"] for r in prev],
+                                marker=mk, ls=":", color=line.get_color(), alpha=0.5)
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_xlabel("target error (mean_l2 or relative)")
+        ax.set_ylabel("CPU time streamsvd / HAPOD")
+        ax.set_title(f"{dtype} snapshots (dotted: before)")
+        ax.legend(fontsize=6)
+        ax.grid(True, which="both", alpha=0.3)
     if data["rbs480a"]:
+        ax = axes[-1]
         names = [r["method"] for r in data["rbs480a"]]
         ax.bar(range(len(names)), [r["cpu"] for r in data["rbs480a"]])
         ax.set_xticks(range(len(names)), [n.replace(" (", "\n(") for n in names], fontsize=7)
         ax.set_yscale("log")
         ax.set_ylabel("CPU time (s)")
         ax.set_title("rbs480a: full SVD")
-    else:
-        ax.set_visible(False)  # the targets alone (--cases heat,burgers)
     loads = [r["load"] for key in ("targets", "cap", "rbs480a") for r in data[key]]
     if loads:
         fig.suptitle(f"1 BLAS thread, CPU time; load {min(loads):.1f}-{max(loads):.1f}",
@@ -411,6 +469,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="heat,burgers,cap,rbs480a")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--blocks", default="traj",
+                    help="update widths of heat and burgers: traj (a trajectory) or columns,"
+                         " comma-separated (e.g. traj,10,1000)")
+    ap.add_argument("--dtypes", default="float64", help="float64, float32 or both")
     ap.add_argument("--cache", default=str(DEFAULT_CACHE), help="snapshot cache directory")
     ap.add_argument("--ingest", default=None, help="a 200000 x 500 zarr array")
     ap.add_argument("--ingest-data", default=str(Path(tempfile.gettempdir()) / "streamsvd-ooc"),

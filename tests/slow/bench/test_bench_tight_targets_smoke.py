@@ -18,10 +18,14 @@ def test_tight_targets_quick(monkeypatch, tmp_path, rbs480a_path):
     monkeypatch.syspath_prepend(str(BENCH))
     mod = importlib.import_module("tight_targets")
     mod.main(["--quick", "--repeat", "1", "--out", str(tmp_path),
-              "--cache", str(tmp_path / "cache")])
+              "--cache", str(tmp_path / "cache"), "--blocks", "traj,10",
+              "--dtypes", "float64,float32"])
     assert_drawn(tmp_path / "tight_targets_quick.png")
     data = json.loads((tmp_path / "tight_targets_quick.json").read_text())["results"]
-    assert len(data["targets"]) == 20
+    # 2 cases x 2 measures x 5 targets, for each block width and dtype
+    assert len(data["targets"]) == 80
+    assert {(r["dtype"], r["block"]) for r in data["targets"]} == {
+        (d, b) for d in ("float64", "float32") for b in ("traj", "10")}
     for r in data["targets"]:
         # the certified bound holds and covers the true error; never more modes than HAPOD
         assert r["streamsvd_error"] <= r["bound"] * (1 + 1e-9) <= 1.0 + 1e-9, r
