@@ -359,19 +359,19 @@ def set_aside(
     return W[:, :k], lam[:k], W[:, k:], G_t
 
 
-def kept_clean(along: np.ndarray, Wk: np.ndarray, lam_k: np.ndarray, limit: float) -> bool:
+def kept_clean(along_kept: np.ndarray, lam_k: np.ndarray, limit: float) -> bool:
     """Whether the kept directions ``Z W_k`` lie along the basis by at most ``limit``.
 
-    ``along`` (``q x b``) is what the residual ``Z`` kept along the basis, measured; a
-    kept direction ``Z w_i`` has the norm ``sqrt(lam_i)`` and keeps ``along w_i``. The
-    directions set aside (:func:`set_aside`) are discarded whole, so only the kept ones
-    decide a second projection (:func:`streamsvd.linalg.extend.extend_basis`).
+    ``along_kept`` (``q x k``) is what the kept directions hold along the basis,
+    measured (``MQ^T Z W_k``); a kept direction ``Z w_i`` has the norm ``sqrt(lam_i)``.
+    The directions set aside (:func:`set_aside`) are discarded whole, so only the kept
+    ones decide a second projection (:func:`streamsvd.linalg.extend.extend_basis`).
     """
     if lam_k.size == 0:
         return True
     if lam_k[-1] <= 0.0:
         return False
-    A = along @ Wk
+    A = along_kept
     return bool(np.all(np.sqrt(np.einsum("ij,ij->j", A, A)) <= limit * np.sqrt(lam_k)))
 
 

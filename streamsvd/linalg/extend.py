@@ -174,10 +174,12 @@ def extend_basis(
        for it. With an ``aside`` budget and ``basis_gram`` the second pass is not made
        either when the directions kept after setting the weakest aside (step 2) lie along
        the basis by at most ``_KEPT_LOSS_MAX`` of their norm (nearly collinear time steps:
-       the block is mostly along the basis, its residual small): the directions set aside
-       leave their part along the basis to the coefficients, the kept ones keep theirs,
-       measured in ``cross_gram`` (``skewed``), and the caller truncates in the
-       coordinates of the extended basis made orthonormal
+       the block is mostly along the basis, its residual small), which is measured on
+       the kept directions alone (``MQ^T Z W_k``, a narrow product, before the whole
+       block's): the directions set aside keep their part along the basis (the
+       projection's rounding, of the order of ``eps ||X||``, which the bound leaves
+       out), the kept ones keep theirs, measured in ``cross_gram`` (``skewed``), and the
+       caller truncates in the coordinates of the extended basis made orthonormal
        (:func:`~streamsvd.linalg.blocks.skew_factor`).
     2. **The residual's Gram** ``S = Z^T M Z`` and its eigenvalues. When they lie within
        ``COND_SPLIT`` of the largest (the common case), ``Z = Q_new L^T`` by CholeskyQR
@@ -242,7 +244,10 @@ def extend_basis(
         passes += 2
     Z = Y
     MZ = apply_into(Z, MY, inner)
-    if w:
+    # with a budget, the directions kept after setting the weakest aside decide first
+    # whether what the projection left along the basis is measured (below)
+    lazy = bool(w and b and basis_gram is not None and (aside[0] > 0 or aside[1] > 0))
+    if w and not lazy:
         cross0, S = basis.residual_products(Z, MZ)
         passes += 1
     else:
@@ -250,29 +255,32 @@ def extend_basis(
     split = None
     skewed = False
     budget = 0.0
-    if w:
+    Zk = None
+    if lazy:
+        # the second projection is not made when the directions kept after setting the
+        # weakest aside lie along the basis by at most _KEPT_LOSS_MAX (nearly collinear
+        # time steps): their part along the basis is measured on them alone (a narrow
+        # product), kept in cross_gram; the directions set aside keep theirs, of the
+        # order of the projection's rounding (eps ||X||), which the bound does not count
+        budget = _aside_budget(_norms(C, S), exps, aside)
+        split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
+        if split is not None:
+            Zk = np.asfortranarray(Z @ split[0])
+            skewed = kept_clean(basis.project(Zk, G), split[1], _KEPT_LOSS_MAX)
+            passes += 1
+        if skewed:
+            nu = _norms(C, S)
+        else:
+            split, Zk = None, None
+            cross0 = basis.project(Z, None)
+            passes += 1
+    if w and not skewed:
         # what the projection left along the basis decides a second projection: not
-        # made when it is below _LOSS_MAX of every column's residual, nor when the
-        # directions kept after setting the weakest aside (below) are that clean
+        # made when it is below _LOSS_MAX of every column's residual
         along = cross0 if G is None else G.T @ cross0
         loss = np.sqrt(np.einsum("ij,ij->j", along, along))
         norms = np.sqrt(np.maximum(np.diag(S), 0.0))
         reproject = bool(np.any(loss > _LOSS_MAX * norms))
-        if reproject and b and (aside[0] > 0 or aside[1] > 0) and basis_gram is not None:
-            budget = _aside_budget(_norms(C, S), exps, aside)
-            split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
-            reproject = split is None or not kept_clean(along, split[0], split[1], _KEPT_LOSS_MAX)
-            if reproject:
-                split = None
-            else:
-                # the directions set aside leave their part along the basis to it (so
-                # what is rejected is M-orthogonal to the basis, of at most the energy
-                # counted); the kept ones keep theirs, measured in cross_gram
-                assert split is not None
-                nu = _norms(C, S)
-                Wt = split[2]
-                C += (along @ Wt) @ Wt.T
-                skewed = True
         if reproject:
             basis.subtract(Z, G, along)
             C += along
@@ -300,7 +308,8 @@ def extend_basis(
         # the kept combinations Z W_k go through the rounds (the tail is never formed)
         Wk, lam_k, Wt, Gt = split
         pre.append((Wt.T, Gt))
-        Zk = np.asfortranarray(Z @ Wk)
+        if Zk is None:
+            Zk = np.asfortranarray(Z @ Wk)
         parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
             basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T,
             aside=budget - float(np.trace(Gt)))
