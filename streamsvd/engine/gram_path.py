@@ -62,7 +62,7 @@ def _drift(H: np.ndarray) -> float:
 
 def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
                           width: int | None = None) -> bool:
-    """Whether a ``mean_l2`` or ``relative`` target refuses the update whatever the block holds.
+    """Whether a target refuses the update whatever the block holds.
 
     The rounding allowance grows with ``||F||^2 = ||R||^2 + ||X||^2``. With ``mean_l2``
     the growth of the budget (``b (share target)^2``) does not depend on the block: when
@@ -72,9 +72,14 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
     exceeds the share of ``(share target)^2`` the block is refused whatever its energy
     (the check :func:`~streamsvd.engine.update_gram.plan_absorb_by_gram` makes after
     measuring it would refuse it). ``b`` is the number of snapshots appended, ``width``
-    the block's columns (``b`` by default; a merge's basis is narrower).
+    the block's columns (``b`` by default; a merge's basis is narrower). An
+    ``absolute`` target: :func:`_refused_absolute`.
     """
-    if trunc.target is None or trunc.measure not in GRAM_MEASURES:
+    if trunc.target is None:
+        return False
+    if trunc.measure == "absolute":
+        return _refused_absolute(state, trunc, (b if width is None else width), n)
+    if trunc.measure not in GRAM_MEASURES:
         return False
     if trunc.measure == "relative":
         se = trunc.share * trunc.target
@@ -88,6 +93,26 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
     old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
     room = _scaled_square(trunc.share * trunc.target, e) * b
     return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
+
+
+def _refused_absolute(state: State, trunc: Truncation, cols: int, n: int) -> bool:
+    """Whether an ``absolute`` target refuses the update whatever the block holds.
+
+    The update's room is the energy it cuts, at most what is left of the squared
+    budget, ``(share target)^2 - b^2`` (``b`` the bound before: the bound after a cut
+    ``d`` is at least ``sqrt(b^2 + d^2)``), when nothing else cuts (no ``max_rank``,
+    ``eps`` or ``rtol``); the allowance is at least that of the energy absorbed before.
+    """
+    if (trunc.target is None or trunc.max_rank is not None or trunc.eps > 0
+            or trunc.rtol is not None or state.R.size == 0):
+        return False
+    e = pow2_exponent(state.R)
+    if abs(e) > _MAX_SPREAD // 2:
+        return False
+    old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
+    room = (_scaled_square(trunc.share * trunc.target, e)
+            - _scaled_square(state.bound.bound, e))
+    return _allowance(old, state.R.shape[0] + cols, n) > _ALLOWANCE_SHARE * max(room, 0.0)
 
 
 def _scaled_square(x: float, e: int) -> float:

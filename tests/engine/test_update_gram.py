@@ -129,6 +129,33 @@ def test_a_cut_by_rank_threshold_or_absolute_target_takes_the_gram_path(
     np.testing.assert_allclose(fast.amplitudes[:k], exact.amplitudes[:k], rtol=1e-6)
 
 
+@pytest.mark.parametrize("measure, target", [("absolute", 1e-5), ("relative", 1e-9)])
+def test_a_target_the_rounding_cannot_meet_skips_the_blocks_products(measure, target,
+                                                                      monkeypatch):
+    """Below what the Gram's rounding can certify the update is refused before the
+    block's M product and Gram (what the energy absorbed before, or a unit of it,
+    already allows), with the digits of the exact path alone."""
+    import streamsvd.engine.update_gram as update_gram
+
+    made = []
+    products = update_gram._products
+
+    def counted(*args, **kwargs):
+        made.append(1)
+        return products(*args, **kwargs)
+
+    monkeypatch.setattr(update_gram, "_products", counted)
+    A = _pulses()
+    kw = {"target_error": target, "error_measure": measure}
+    fast = _stream(A, **kw)
+    assert not any(_by_gram(r) for r in fast.history)
+    assert len(made) <= 1  # the first block only: nothing absorbed before it
+    monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
+    exact = _stream(A, **kw)
+    np.testing.assert_array_equal(fast.amplitudes, exact.amplitudes)
+    assert fast.error_bound == exact.error_bound
+
+
 @pytest.mark.parametrize("scale", [2.0**-664, 2.0**664])
 def test_the_gram_path_on_extreme_scales(scale):
     """Data scaled by 2^-664 or 2^664 (about 1e-200 and 1e200): the same decisions and
