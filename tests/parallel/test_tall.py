@@ -241,15 +241,22 @@ class KillInMerge:
 @pytest.mark.slow
 def test_worker_killed_during_a_merge_does_not_corrupt_the_store(rng, tmp_path, client):
     A = low_rank(rng, n=100, m=80, noise=1e-8)
-    ref = tree_compress(A, block=10, leaf_columns=20, max_rank=8, store=tmp_path / "ref")
+    # the reference takes the same (non-Euclidean) path without a kill: its marker exists
+    (tmp_path / "never").touch()
+    ref = tree_compress(A, block=10, leaf_columns=20, max_rank=8, store=tmp_path / "ref",
+                        inner=KillInMerge(str(tmp_path / "never")))
     ref.close(finalize=False)
-    # killed once: the cluster recomputes what the dead worker held, the result is exact
+    # killed once: the cluster recomputes what the dead worker held; the result is the
+    # reference's to rounding, eps ||A|| for every amplitude (the merge recomputed on
+    # another worker may sum in another order), as LAPACK's tests scale it
     inner = KillInMerge(str(tmp_path / "killed-once"))
     path = tmp_path / "s.zarr"
     with tree_compress(A, block=10, leaf_columns=20, max_rank=8, inner=inner,
                        client=client, store=path) as sc:
         assert (tmp_path / "killed-once").exists()
-        np.testing.assert_allclose(sc.amplitudes, ref.amplitudes, rtol=1e-10)
+        assert sc.amplitudes.shape == ref.amplitudes.shape
+        tol = 50 * max(A.shape) * EPS * ref.amplitudes[0]
+        np.testing.assert_allclose(sc.amplitudes, ref.amplitudes, rtol=0, atol=tol)
     with ss.StreamCompressor.open(path, inner=inner, mode="r") as back:
         assert back.n_seen == 80
     # killed at every attempt: the computation fails and an existing store is untouched
