@@ -190,8 +190,13 @@ class Backend(Protocol):
         offset in the source, named when that read fails).
         """
 
-    def in_memory(self, block: Any) -> np.ndarray:
-        """Return a block from :meth:`load` as a float64 array, its entries checked finite."""
+    def in_memory(self, block: Any, *, check: bool = True) -> np.ndarray:
+        """Return a block from :meth:`load` as a float64 array, its entries checked finite.
+
+        ``check=False``: a block in memory already is returned as it is, its entries left
+        to the caller (the exact path checks them from its columns' peaks, at no extra
+        pass: :func:`~streamsvd.linalg.blocks.scale_into`).
+        """
 
     def describe(self, basis: BasisBackend) -> str:
         """Return what ``repr`` of a compressor shows of its basis (may be empty)."""

@@ -90,9 +90,14 @@ class MemoryBackend:
         return as_float_array(columns, "columns", ndim=2, rows=rows, allow_empty=False,
                               finite=False)
 
-    def in_memory(self, block: Any) -> np.ndarray:
-        """Return the block (in memory already) once its entries are checked finite."""
-        check_finite(block, "columns")
+    def in_memory(self, block: Any, *, check: bool = True) -> np.ndarray:
+        """Return the block (in memory already) once its entries are checked finite.
+
+        ``check=False`` leaves them to the caller (:meth:`Backend.in_memory
+        <streamsvd.algebra.interface.Backend.in_memory>`).
+        """
+        if check:
+            check_finite(block, "columns")
         return block
 
     def describe(self, basis: BasisBackend) -> str:

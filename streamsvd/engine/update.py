@@ -63,8 +63,13 @@ _ASIDE_SHARE = 0.003
 
 
 # ---------------------------------------------------------------------------- planning
-def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) -> Plan:
+def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
+                name: str | None = None) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``).
+
+    ``name``: ``X``'s name in the caller's words; given, ``X`` is checked finite by
+    :func:`~streamsvd.linalg.extend.extend_basis` (a NaN or infinite entry raises
+    :class:`~streamsvd.errors.NonFiniteError` naming it), else it must be finite.
 
     The right factor grows to ``blockdiag(Y, I_b) K`` with the core
     ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
@@ -74,7 +79,7 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float) ->
     b = X.shape[1]
     ext = extend_basis(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-        basis_gram=state.gram, aside=_aside(opts, b),
+        basis_gram=state.gram, aside=_aside(opts, b), name=name,
     )
     k, p = state.R.shape
     K = np.zeros((k + b, p + ext.rank))

@@ -18,6 +18,7 @@ import scipy.linalg.blas as blas
 
 from streamsvd._util.scaling import column_exponents
 from streamsvd._util.slabs import copy_by_row_slabs
+from streamsvd._util.validation import check_finite
 from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
@@ -40,8 +41,13 @@ ONE_PASS_COND = 16.0
 _REPROJECT = 0.5
 
 
-def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Write ``X 2^-e`` into ``Y``, ``e`` per column, so that its peak lies in [1/2, 1).
+
+    ``name`` given, a NaN or infinite entry (a peak that is not finite: NaN and
+    infinities propagate through the maxima) raises
+    :class:`~streamsvd.errors.NonFiniteError` naming it, before ``Y`` is scaled.
 
     Returns the exponents (0 for a zero column) and the mask of the zero columns. The
     copy is made first and the peaks
@@ -54,16 +60,24 @@ def scale_into(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(X, np.ndarray) and X.dtype == np.float64 and X.flags.f_contiguous:
         # already column-major: the peaks taken on X, the scaled copy written in one pass
         exps, peak = column_exponents(X)
+        _check_peaks(X, peak, name)
         if np.all(np.abs(exps) < 1000):
             np.multiply(X, np.ldexp(1.0, -exps), out=Y)
             return exps, peak == 0
     copy_by_row_slabs(Y, X)
     exps, peak = column_exponents(Y)
+    _check_peaks(X, peak, name)
     if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
         Y *= np.ldexp(1.0, -exps)
     else:
         np.ldexp(Y, -exps[np.newaxis, :], out=Y)
     return exps, peak == 0
+
+
+def _check_peaks(X: np.ndarray, peak: np.ndarray, name: str | None) -> None:
+    """Raise :class:`~streamsvd.errors.NonFiniteError` naming ``X`` if a peak is not finite."""
+    if name is not None and not np.isfinite(peak).all():
+        check_finite(np.asarray(X), name)
 
 
 def apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray:

@@ -159,6 +159,7 @@ def extend_basis(
     reference: np.ndarray | None = None,
     basis_gram: np.ndarray | None = None,
     aside: tuple[float, float] = (0.0, 0.0),
+    name: str | None = None,
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
 
@@ -208,7 +209,7 @@ def extend_basis(
     G : ndarray, shape (w, q), or None
         The basis is ``Q G`` (``M``-orthonormal); ``None``: the basis is ``Q``.
     X : ndarray, shape (n, b)
-        Finite block; not modified.
+        Finite block (checked when ``name`` is given); not modified.
     inner : InnerProduct
     reject_tol : float
         Relative rejection threshold.
@@ -230,12 +231,16 @@ def extend_basis(
         basis) the rounds of step 2 set aside on the Gram of a later round's unresolved
         part, whose trace is that part's energy alone
         (:func:`~streamsvd.linalg.blocks.orthonormalize_in_rounds`).
+    name : str, optional
+        ``X``'s name in the caller's words: ``X`` is then checked finite from its
+        columns' peaks, which the scaling takes anyway (a NaN or infinite entry raises
+        :class:`~streamsvd.errors.NonFiniteError` naming it, before any other work).
     """
     n, b = X.shape
     w = basis.width
     q = w if G is None else G.shape[1]
     Y, MY = basis.workspace(b)
-    exps, zero = scale_into(X, Y)
+    exps, zero = scale_into(X, Y, name=name)
     C = np.zeros((q, b))
     passes = 0
     if w:

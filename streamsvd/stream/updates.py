@@ -86,7 +86,8 @@ class Updates:
         try:
             return life.run(
                 lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
-                or plan_absorb(state, life.backend.in_memory(B), life.opts, t0=t0),
+                or plan_absorb(state, life.backend.in_memory(B, check=False), life.opts,
+                               t0=t0, name="columns"),
                 offset, ledger=ledger, removed=removed,
             )
         except BaseException:

@@ -264,6 +264,40 @@ def test_the_gram_path_refuses_a_non_finite_entry(rng, value, options):
     assert sc.n_seen == 30 and sc.history[-1].passes == 2
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+@pytest.mark.parametrize("layout", ["C", "F"])
+@pytest.mark.parametrize("scale", [1.0, 1e300])
+def test_the_exact_path_refuses_a_non_finite_entry(rng, value, layout, scale):
+    """The exact path checks the block from the peaks its scaling takes, whichever the
+    layout (a column-major block is scaled in place of a copy); a first block and a later
+    one are refused with the state bitwise unchanged."""
+    U = np.linalg.qr(rng.standard_normal((20, 20)))[0]
+    V = np.linalg.qr(rng.standard_normal((30, 20)))[0]
+    A = scale * (U * np.logspace(0, -2, 20)) @ V.T
+    sc = ss.StreamCompressor(20)
+
+    def bad_block(cols, row):
+        bad = np.array(A[:, cols], order=layout)
+        bad[row, 5] = value
+        return bad
+
+    for row in (0, 19):
+        with pytest.raises(ss.NonFiniteError, match=r"`columns` must be finite; got 1 NaN or "
+                           rf"infinite entries, the first at index \({row}, 5\)"):
+            sc.absorb(bad_block(slice(0, 10), row))
+        assert sc.n_seen == 0 and sc.rank == 0
+    sc.absorb(A[:, :10])
+    state = _snapshot(sc)
+    for row in (0, 19):
+        with pytest.raises(ss.NonFiniteError, match=rf"the first at index \({row}, 5\)"):
+            sc.absorb(bad_block(slice(10, 20), row))
+        after = _snapshot(sc)
+        assert all(np.array_equal(a, b) for a, b in zip(state[0], after[0], strict=True))
+        assert state[1:] == after[1:]
+    sc.absorb(np.array(A[:, 10:20], order=layout))
+    assert sc.n_seen == 20 and sc.history[-1].passes != 2  # the exact path
+
+
 def test_add_checks_shapes(rng):
     sc = ss.StreamCompressor(10)
     sc.add(rng.standard_normal((10, 2)), rng.standard_normal((7, 2)))

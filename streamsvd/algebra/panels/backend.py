@@ -176,13 +176,16 @@ class PanelBackend:
             raise InputError(f"`columns` must not be empty; got shape {shape}.")
         return block
 
-    def in_memory(self, block: Any) -> np.ndarray:
+    def in_memory(self, block: Any, *, check: bool = True) -> np.ndarray:
         """Return a block as a float64 array: a lazy block is read by row chunks.
 
         Raises the block's :class:`~streamsvd.errors.SourceError` when the read fails.
+        ``check=False`` leaves the entries of a block in memory to the caller
+        (:meth:`Backend.in_memory <streamsvd.algebra.interface.Backend.in_memory>`).
         """
         if not isinstance(block, LazyBlock):
-            check_finite(block, "columns")
+            if check:
+                check_finite(block, "columns")
             return cast(np.ndarray, block)
         try:
             (out,) = execute([block.data.astype(np.float64)], client=self.client,
