@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from streamsvd.cli.parsing import add_json, add_rtol, load_inner
 from streamsvd.cli.types import nonnegative_float, positive_float, positive_int
 from streamsvd.errors import InputError
 
@@ -27,9 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     cut.add_argument("--rank", metavar="K", type=positive_int,
                      help="keep at most K directions of the pairs' first snapshots "
                      "(default: their numerical rank)")
-    cut.add_argument("--rtol", metavar="R", type=nonnegative_float,
-                     help="keep the directions with singular value > R times the largest "
-                     "(default: the numerical rank)")
+    add_rtol(cut, help="keep the directions with singular value > R times the largest "
+             "(default: the numerical rank)")
     parser.add_argument("--model-error", metavar="D", type=nonnegative_float, default=0.0,
                         help="model error D >= ||A X0 - X1||_F of the operators A the "
                         "bounds are about, in the norm of --inner; measurement noise "
@@ -37,8 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dt", metavar="DT", type=positive_float,
                         help="time step between snapshots: also print the continuous-time "
                         "eigenvalues log(lambda)/DT (default: none)")
-    parser.add_argument("--json", action="store_true",
-                        help="print the result as JSON (default: off, a text table)")
+    add_json(parser, what="the result", otherwise="a text table")
     parser.add_argument("--modes", metavar="OUT",
                         help="write the modes (n x r, complex) and eigenvalues to OUT, "
                         ".npz (default: none)")
@@ -49,7 +48,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: Any) -> int:
     """Run ``streamsvd dmd``: print the eigenvalues and bounds, write what is asked."""
-    from streamsvd.cli.parsing import load_inner
     from streamsvd.cli.printing import print_json
     from streamsvd.cli.reading import open_readonly
 

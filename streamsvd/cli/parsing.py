@@ -1,7 +1,8 @@
 """The ``streamsvd`` command's arguments: the parser, the option types and the defaults.
 
-:func:`build_parser` describes every command and option (the ``--help`` texts); the
-option types turn a word of the command line into a value or a one-line usage error.
+:func:`build_parser` describes every command and option (the ``--help`` texts), an
+option that several commands take once (:func:`add_json`, :func:`add_rtol`); the option
+types turn a word of the command line into a value or a one-line usage error.
 An option left out parses as None, so that a command can tell an option given from its
 default (``--resume`` refuses an option that differs from the store's). :func:`locate`
 and :func:`load_inner` turn STORE, a SOURCE URL and ``--inner`` into the objects the
@@ -38,6 +39,8 @@ __all__ = [
     "DEFAULT_OVERSAMPLING",
     "DEFAULT_RULE",
     "DEFAULT_SWEEPS",
+    "add_json",
+    "add_rtol",
     "build_parser",
     "diagonal_as_weights",
     "load_inner",
@@ -78,12 +81,6 @@ output:
   the progress bar goes to stderr; the JSON summary (as `streamsvd info --json`) goes
   to stdout; --quiet prints neither.
 """
-
-_INNER_HELP = (
-    ".npy (1-D positive weights or a 2-D SPD matrix), .npz (a scipy sparse matrix saved "
-    "by scipy.sparse.save_npz) or .mtx (Matrix Market)"
-)
-
 
 # a word that Python reads as a negative float (-1, -.5, -1e-3, -inf): argparse's own
 # pattern misses the exponent and the infinities, and takes such a word for an option
@@ -128,6 +125,32 @@ def _storage_options(args: Any) -> dict[str, Any] | None:
             node = child
         node[last] = value
     return out
+
+
+def add_json(parser: Any, *, what: str, otherwise: str) -> None:
+    """Add ``--json`` to ``parser``: print ``what`` as JSON instead of ``otherwise``."""
+    parser.add_argument("--json", action="store_true",
+                        help=f"print {what} as JSON (default: off, {otherwise})")
+
+
+def add_rtol(parser: Any, *, help: str) -> None:
+    """Add ``--rtol R`` (a number >= 0) to ``parser`` or to one of its groups."""
+    parser.add_argument("--rtol", metavar="R", type=nonnegative_float, help=help)
+
+
+def _add_store(parser: Any, *, help: str = "basis store written by `streamsvd ingest`"
+               ) -> None:
+    """Add the argument STORE, which ``help`` describes."""
+    parser.add_argument("store", metavar="STORE", help=help)
+
+
+def _add_inner(parser: Any, *, what: str, then: str) -> None:
+    """Add ``--inner FILE``, whose help is ``what``, the file formats, then ``then``."""
+    parser.add_argument(
+        "--inner", metavar="FILE",
+        help=f"{what}: .npy (1-D positive weights or a 2-D SPD matrix), .npz (a scipy "
+        f"sparse matrix saved by scipy.sparse.save_npz) or .mtx (Matrix Market); {then}",
+    )
 
 
 def _add_storage_option(parser: argparse.ArgumentParser) -> None:
@@ -216,9 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     ing.add_argument("source", metavar="SOURCE",
                      help=".npy, .h5/.hdf5/.he5 file or zarr array/group, or the URL of a "
                      "zarr array/group (s3://BUCKET/run.zarr); columns are snapshots")
-    ing.add_argument("store", metavar="STORE",
-                     help="basis store (zarr v3): a directory or a URL (file://, "
-                     "s3://BUCKET/basis.zarr); created, or continued with --resume")
+    _add_store(ing, help="basis store (zarr v3): a directory or a URL (file://, "
+               "s3://BUCKET/basis.zarr); created, or continued with --resume")
     ing.add_argument("--dataset", metavar="NAME",
                      help="dataset of an HDF5 file or array of a zarr group (default: the "
                      "only one there)")
@@ -228,9 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
     tol.add_argument("--eps", metavar="E", type=nonnegative_float,
                      help="absolute cut: drop the terms with ||v_i|| < E, in the units of "
                      "the data (default: 0, no cut)")
-    tol.add_argument("--rtol", metavar="R", type=nonnegative_float,
-                     help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
-                     "none; not with --eps)")
+    add_rtol(tol, help="relative cut: drop the terms with ||v_i|| < R ||v_1|| (default: "
+             "none; not with --eps)")
     tol.add_argument("--target-error", metavar="T", type=positive_float,
                      help="keep the fewest terms whose guaranteed error bound is at most T, "
                      "a positive number, in --error-measure (default: none; not with --eps "
@@ -285,14 +306,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "after it, which bounds what a kill loses; the end and Ctrl-C commit "
                      "what is pending; the tree mode commits once (default: "
                      f"{DEFAULT_COMMIT_EVERY})")
-    ing.add_argument("--inner", metavar="FILE",
-                     help="inner product in which U is orthonormal (a mass matrix, "
-                     f"quadrature weights): {_INNER_HELP}; with --tall, weights only (a "
-                     "matrix with nothing off its diagonal is read as its weights); STORE "
-                     "keeps it, so --resume, "
-                     "info, export and plot need it only for a store written before "
-                     "stores kept it (checked against STORE when given) (default: "
-                     "Euclidean, or the one STORE keeps)")
+    _add_inner(ing, what="inner product in which U is orthonormal (a mass matrix, "
+               "quadrature weights)", then="with --tall, weights only (a matrix with "
+               "nothing off its diagonal is read as its weights); STORE keeps it, so "
+               "--resume, info, export and plot need it only for a store written before "
+               "stores kept it (checked against STORE when given) (default: Euclidean, or "
+               "the one STORE keeps)")
     ing.add_argument("--resume", action="store_true",
                      help="continue STORE from its recorded source offset, with the "
                      "options it was created with (an option given again must have the "
@@ -326,21 +345,18 @@ def build_parser() -> argparse.ArgumentParser:
     def reader(name: str, *, help: str, description: str) -> argparse.ArgumentParser:
         """Add a command that reads STORE (its first argument)."""
         parser = sub.add_parser(name, help=help, description=description)
-        parser.add_argument("store", metavar="STORE",
-                            help="basis store written by `streamsvd ingest`")
-        parser.add_argument("--inner", metavar="FILE",
-                            help="the inner product STORE was written with, for a store "
-                            f"that does not keep it (written before stores kept it): "
-                            f"{_INNER_HELP}; checked against STORE (default: the one STORE "
-                            "keeps, else Euclidean)")
+        _add_store(parser)
+        _add_inner(parser, what="the inner product STORE was written with, for a store "
+                   "that does not keep it (written before stores kept it)",
+                   then="checked against STORE (default: the one STORE keeps, else "
+                   "Euclidean)")
         _add_storage_option(parser)
         return parser
 
     info = reader("info", help="summarise a store",
                   description="Summarise a basis store: sizes, rank, options, error bound, "
                   "orthogonality and the leading amplitudes.")
-    info.add_argument("--json", action="store_true",
-                      help="print the summary as JSON (default: off, a text report)")
+    add_json(info, what="the summary", otherwise="a text report")
 
     exp = reader("export", help="write U, V and the amplitudes to .npz or .h5",
                  description="Write U, V, the amplitudes ||v_i|| and the error bound of a "
@@ -362,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
         "current and previous generations, every segment) without changing it. Exit 0 if "
         "it is healthy, 2 if it is damaged: one line per problem, naming what is damaged "
         "and the last readable generation.")
-    check.add_argument("store", metavar="STORE", help="basis store written by `streamsvd ingest`")
+    _add_store(check)
     _add_storage_option(check)
 
     plot = reader("plot", help="amplitudes, error bound against k, orthogonality as PNG",

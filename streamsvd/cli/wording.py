@@ -43,6 +43,9 @@ _REWRITES = (
      "Drop --tall, or lump the mass matrix into weights."),
     (r"Drop the `dataset` argument\.", "Drop --dataset."),
     (r"got dataset=('[^']*')", r"got --dataset \1"),
+    # a storage option by its key (`storage_options['zarr_store']`), with its value or not
+    (r"`storage_options\['([\w.]+)'\]='([^'`]*)'`", r"--storage-option \1=\2"),
+    (r"`storage_options\['([\w.]+)'\]`", r"--storage-option \1"),
 )
 
 # Python argument names (as the library quotes them) -> command-line words

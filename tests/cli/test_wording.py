@@ -1,5 +1,5 @@
-"""The streamsvd command's messages: option values, bad data, SOURCE's layout, --tall's
-weights, a closed stdout, and data near the ends of the float range."""
+"""The streamsvd command's messages: option values, storage options, bad data, SOURCE's
+layout, --tall's weights, a closed stdout, and data near the ends of the float range."""
 
 import hashlib
 import json
@@ -230,6 +230,47 @@ def test_an_empty_file_is_named_in_one_line(tmp_path, npy, capsys, what):
     assert_one_line_error(status, err)
     assert str(empty) in err and what.split()[0] in err
     assert not store.exists()
+
+
+# ------------------------------------------------------------------ --storage-option
+
+
+@pytest.mark.parametrize("argv,named", [
+    (["info", "s3://bucket/basis.zarr"], "STORE"),
+    (["ingest", "s3://bucket/run.zarr", "s.zarr"], "SOURCE"),
+])
+def test_a_zarr_store_not_known_is_named_as_its_storage_option(tmp_path, capsys, monkeypatch,
+                                                               argv, named):
+    """Refused before any request: the option and the value given, in command-line words."""
+    monkeypatch.chdir(tmp_path)
+    status, _, err = run_cli([*argv, "--storage-option", "zarr_store=s3fs"], capsys)
+    assert_one_line_error(status, err)
+    assert (f"--storage-option zarr_store must be one of 'fsspec', 'obstore'; got 's3fs' "
+            f"(for {named})." in err)
+    assert "storage_options" not in err and not (tmp_path / "s.zarr").exists()
+
+
+@pytest.fixture
+def memory_source(matrix):
+    """:func:`matrix` as a zarr array in fsspec's in-memory file system, removed after."""
+    import fsspec
+    import zarr
+
+    url = "memory://streamsvd-cli-wording/run.zarr"
+    zarr.save_array(url, matrix)
+    yield url
+    fsspec.filesystem("memory").rm(url.removeprefix("memory://"), recursive=True)
+
+
+def test_obstore_for_a_source_not_on_s3_is_named_as_its_storage_option(tmp_path, capsys,
+                                                                       memory_source):
+    store = tmp_path / "s.zarr"
+    status, _, err = run_cli(["ingest", memory_source, store, "--storage-option",
+                              "zarr_store=obstore"], capsys)
+    assert_one_line_error(status, err)
+    assert (f"--storage-option zarr_store=obstore is for s3:// URLs; got SOURCE "
+            f"{memory_source}. Drop the option for other URLs." in err)
+    assert "storage_options" not in err and not store.exists()
 
 
 # ------------------------------------------------------------------- a missed target

@@ -44,27 +44,19 @@ def hidden_dir():
 
 
 @pytest.fixture(scope="module")
-def server_env(s3_server):
-    env = s3_server.environment()
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
+def server_env(s3_environment):
+    """The S3 server's variables, with the bucket of these tests made."""
     import s3fs
 
     s3fs.S3FileSystem().mkdir(BUCKET)
-    yield env
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    return s3_environment
 
 
 @pytest.fixture(scope="module")
-def cluster(server_env, hidden_dir):
+def cluster(server_env, workers_environment, hidden_dir):
     from streamsvd.testing.cluster import start
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
-    env.update(server_env)  # the workers' own credentials
+    env = workers_environment(**server_env)  # the workers' own credentials
     running = start(workers=2, env=env, hidden=[hidden_dir])
     yield running
     running.stop()
@@ -166,16 +158,16 @@ def test_tall_panels_in_a_client_temporary_directory_are_named(client, cluster, 
         tall_compress(A, block=10, max_rank=8, client=client, chunk_rows=32)
 
 
-def test_workers_without_credentials_are_told_how_to_get_them(server_env, data):
+def test_workers_without_credentials_are_told_how_to_get_them(server_env, data,
+                                                             workers_environment):
     from distributed import Client
 
     from streamsvd.parallel import tall_compress, tree_compress
     from streamsvd.testing.cluster import start
 
     _, url = data
-    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
-    env.update(AWS_ENDPOINT_URL=server_env["AWS_ENDPOINT_URL"],  # no keys
-               AWS_EC2_METADATA_DISABLED="true")
+    env = workers_environment(AWS_ENDPOINT_URL=server_env["AWS_ENDPOINT_URL"],  # no keys
+                              AWS_EC2_METADATA_DISABLED="true")
     # the client's secrets given as options: they must not reach the workers
     options = {"key": server_env["AWS_ACCESS_KEY_ID"],
                "secret": server_env["AWS_SECRET_ACCESS_KEY"]}
@@ -206,6 +198,21 @@ def test_blas_threads_and_default_leaves_follow_the_workers(client):
     assert default_leaf_columns(120, 10, tasks=worker_threads(client)) == 60
 
 
+def _kill_once_a_node_is_committed(proc, fs, parts):
+    """SIGKILL the client ``proc`` once a node under ``parts`` has a pointer (or it ends)."""
+    from streamsvd.store import POINTER_NAME
+
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        fs.invalidate_cache()
+        if fs.exists(parts) and any(fs.exists(f"{p}/{POINTER_NAME}") for p in fs.ls(parts)):
+            break
+        time.sleep(0.05)
+    if proc.poll() is None:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
 CLIENT = """
 import sys
 from distributed import Client
@@ -230,16 +237,7 @@ def test_a_killed_client_leaves_the_workers_nodes_to_the_next_run(cluster, data)
     fs = s3fs.S3FileSystem()
     proc = subprocess.Popen([sys.executable, "-c", CLIENT, cluster.address, url, store],
                             env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline:
-        fs.invalidate_cache()
-        if fs.exists(f"{BUCKET}/killed.tree") and any(
-                fs.exists(f"{p}/{POINTER_NAME}") for p in fs.ls(f"{BUCKET}/killed.tree")):
-            break
-        time.sleep(0.05)
-    if proc.poll() is None:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    _kill_once_a_node_is_committed(proc, fs, f"{BUCKET}/killed.tree")
     fs.invalidate_cache()
     if fs.exists(f"{BUCKET}/killed") and not fs.exists(f"{BUCKET}/killed/{POINTER_NAME}"):
         fs.rm(f"{BUCKET}/killed", recursive=True)  # killed within the store's creation
@@ -300,15 +298,7 @@ def test_a_killed_tall_tree_client_leaves_the_workers_nodes_to_the_next_run(clus
                              workdir, store],
                             env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     parts = f"{BUCKET}/tall-killed.tree"
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline:
-        fs.invalidate_cache()
-        if fs.exists(parts) and any(fs.exists(f"{p}/{POINTER_NAME}") for p in fs.ls(parts)):
-            break
-        time.sleep(0.05)
-    if proc.poll() is None:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    _kill_once_a_node_is_committed(proc, fs, parts)
     from distributed import Client
 
     kw = dict(block=10, leaf_columns=10, chunk_rows=32, max_rank=8)

@@ -8,7 +8,6 @@ workers, and the client reads no row of the source or of a panel (for the tall t
 neither the leaves nor the copy of the root into the store nor its finalisation).
 """
 
-import os
 import sys
 
 import numpy as np
@@ -73,10 +72,7 @@ def _touched() -> list[tuple[str, int]]:
 
 
 @pytest.fixture(scope="module")
-def setting(s3_server):
-    env = s3_server.environment()
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
+def setting(s3_environment, workers_environment):
     import s3fs
     import zarr
     from zarr.storage import FsspecStore
@@ -89,15 +85,9 @@ def setting(s3_server):
     arr = zarr.create_array(store=FsspecStore.from_url(url, read_only=False),
                             shape=A.shape, dtype=A.dtype, chunks=(100, 10))
     arr[...] = A
-    workers_env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
-    running = start(workers=2, env=dict(workers_env, **env))
+    running = start(workers=2, env=workers_environment(**s3_environment))
     yield A, url, running
     running.stop()
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
 
 
 @pytest.mark.parametrize("mode", ["tall", "tall_tree"])

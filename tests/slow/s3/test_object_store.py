@@ -179,6 +179,12 @@ def _foreign_lease(url, *, expires, host="elsewhere", pid=1):
     open_storage(url).put(LEASE_NAME, json.dumps(doc).encode())
 
 
+def _store_under_foreign_lease(url, **lease):
+    """Create a store at ``url`` and close it; then another writer holds its lease."""
+    BasisStore.create(url, n=3, inner_fingerprint="e").close()
+    _foreign_lease(url, **lease)
+
+
 def test_second_writer_is_refused_while_the_first_holds_the_lease(s3):
     url = f"{s3}/l.zarr"
     with BasisStore.create(url, n=3, inner_fingerprint="e") as first:
@@ -191,16 +197,14 @@ def test_second_writer_is_refused_while_the_first_holds_the_lease(s3):
 
 def test_live_lease_of_another_host_is_respected(s3):
     url = f"{s3}/live.zarr"
-    BasisStore.create(url, n=3, inner_fingerprint="e").close()
-    _foreign_lease(url, expires=time.time() + 3600)
+    _store_under_foreign_lease(url, expires=time.time() + 3600)
     with pytest.raises(StoreLockedError, match="host 'elsewhere'"):
         open_store(url, "a")
 
 
 def test_expired_lease_of_a_dead_writer_is_taken_over(s3, caplog):
     url = f"{s3}/exp.zarr"
-    BasisStore.create(url, n=3, inner_fingerprint="e").close()
-    _foreign_lease(url, expires=time.time() - 5)
+    _store_under_foreign_lease(url, expires=time.time() - 5)
     with caplog.at_level(logging.WARNING, logger="streamsvd.storage.lockfile"):
         with open_store(url, "a") as st:
             st.commit({"x": np.zeros(3)})
@@ -209,10 +213,10 @@ def test_expired_lease_of_a_dead_writer_is_taken_over(s3, caplog):
 
 def test_lease_of_a_dead_process_on_this_host_is_taken_over(s3, caplog):
     url = f"{s3}/dead.zarr"
-    BasisStore.create(url, n=3, inner_fingerprint="e").close()
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
-    _foreign_lease(url, expires=time.time() + 3600, host=socket.gethostname(), pid=proc.pid)
+    _store_under_foreign_lease(url, expires=time.time() + 3600, host=socket.gethostname(),
+                               pid=proc.pid)
     with caplog.at_level(logging.WARNING, logger="streamsvd.storage.lockfile"):
         with open_store(url, "a"):
             pass
@@ -221,8 +225,7 @@ def test_lease_of_a_dead_process_on_this_host_is_taken_over(s3, caplog):
 
 def test_conditional_write_losing_the_race_raises_store_locked(s3, monkeypatch):
     url = f"{s3}/race.zarr"
-    BasisStore.create(url, n=3, inner_fingerprint="e").close()
-    _foreign_lease(url, expires=time.time() - 5)
+    _store_under_foreign_lease(url, expires=time.time() - 5)
     real = ObjectStorage.put_if_match
 
     def rival_first(self, key, data, tag):
@@ -287,6 +290,13 @@ def _problem(rng, n=120, m=240):
     return with_spectrum(np.logspace(0, -9, 30), n, m, rng)
 
 
+def _endpoint_in_options_only(monkeypatch):
+    """Unset ``AWS_ENDPOINT_URL`` for the test and return it, for the options to name."""
+    endpoint = os.environ["AWS_ENDPOINT_URL"]
+    monkeypatch.delenv("AWS_ENDPOINT_URL")
+    return endpoint
+
+
 def test_cli_s3_source_into_s3_store_matches_local_bit_for_bit(s3, rng, tmp_path, capsys):
     A = _problem(rng)
     np.save(tmp_path / "a.npy", A)
@@ -304,8 +314,7 @@ def test_cli_s3_source_into_s3_store_matches_local_bit_for_bit(s3, rng, tmp_path
 def test_cli_storage_option_reaches_the_file_system(s3, rng, tmp_path, capsys, monkeypatch):
     A = _problem(rng, m=32)
     _write_zarr(f"{s3}/a.zarr", A)
-    endpoint = os.environ.pop("AWS_ENDPOINT_URL")
-    monkeypatch.delenv("AWS_ENDPOINT_URL", raising=False)
+    endpoint = _endpoint_in_options_only(monkeypatch)
     code = main(["ingest", f"{s3}/a.zarr", f"{s3}/b.zarr", "--quiet",
                  "--storage-option", f"endpoint_url={endpoint}",
                  "--storage-option", "client_kwargs.region_name=us-east-1"])
@@ -323,9 +332,7 @@ def test_python_api_takes_storage_options(s3, rng, monkeypatch):
     from streamsvd.parallel.cluster import TallCompressor, open_compressor, tree_compress
 
     A = _problem(rng, m=40)
-    endpoint = os.environ.pop("AWS_ENDPOINT_URL")
-    monkeypatch.delenv("AWS_ENDPOINT_URL", raising=False)
-    options = {"endpoint_url": endpoint}
+    options = {"endpoint_url": _endpoint_in_options_only(monkeypatch)}
     with StreamCompressor(A.shape[0], max_rank=6, store=f"{s3}/m.zarr",
                           storage_options=options) as sc:
         sc.absorb(A)
@@ -522,8 +529,7 @@ def test_sources_at_urls(s3, rng, tmp_path, monkeypatch):
     _write_zarr(f"{s3}/a.zarr", A)
     with open_source(f"{s3}/a.zarr") as src:
         assert src.shape == (20, 30) and np.array_equal(src.read(3, 9), A[:, 3:9])
-    endpoint = os.environ["AWS_ENDPOINT_URL"]
-    monkeypatch.delenv("AWS_ENDPOINT_URL")  # the options alone reach the server
+    endpoint = _endpoint_in_options_only(monkeypatch)  # the options alone reach the server
     with open_source(f"{s3}/a.zarr", storage_options={"endpoint_url": endpoint}) as src:
         assert np.array_equal(src.read(0, 30), A)
     import zarr
