@@ -108,12 +108,21 @@ def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
     return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
 
 
-def _eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (decreasing) and eigenvectors of a small symmetric matrix."""
+def eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (decreasing) and eigenvectors of a small symmetric matrix: its spectrum.
+
+    One decomposition serves every decision taken on a Gram (:func:`set_aside`, the
+    rounds of :func:`orthonormalize_in_rounds`, the conditioning that picks CholeskyQR).
+    """
     if S.shape[0] == 0:
         return np.zeros(0), np.zeros((0, 0))
     lam, W = np.linalg.eigh(S)
     return lam[::-1].copy(), np.asfortranarray(W[:, ::-1])
+
+
+def _mapped(A: np.ndarray, F: np.ndarray | None) -> np.ndarray:
+    """Return ``A F`` (``F`` None: the identity, ``A`` itself)."""
+    return A if F is None else A @ F
 
 
 def _image(Z: np.ndarray, inner: InnerProduct) -> np.ndarray:
@@ -175,7 +184,7 @@ def orthonormalize_in_rounds(
     basis: BasisBackend,
     G: np.ndarray | None,
     Z: np.ndarray,
-    S: np.ndarray,
+    spectrum: tuple[np.ndarray, np.ndarray],
     C: np.ndarray,
     inner: InnerProduct,
     reject_tol: float,
@@ -190,8 +199,11 @@ def orthonormalize_in_rounds(
     directions set aside below the floor ``(T, M T, F)``, the passes made, the parts'
     ``M`` images and the directions set aside within ``aside``. ``C`` (the
     coefficients on the basis) receives what the re-projections of later rounds find.
-    ``F0`` (``s x b``), when given, says that ``Z`` holds ``s`` combinations of the ``b``
-    columns (``Z = Z_columns F0^T``, the directions :func:`set_aside` kept). ``aside``
+    ``spectrum`` is ``(lam, W)`` of the first round: ``Z^T M Z W = W diag(lam)``, ``lam``
+    decreasing, ``W`` (``s x k``) orthonormal columns; the first round resolves
+    ``Z W`` alone (``k < s``: the directions :func:`set_aside` kept, never formed as a
+    block of their own). ``F0`` (``s x b``), when given, says that ``Z`` holds ``s``
+    combinations of the ``b`` columns (``Z = Z_columns F0^T``). ``aside``
     is an energy (in the block's scaled units) the rounds may set aside: the Gram of each
     later round's unresolved part, measured after its re-projection, has the trace of
     that part alone, so its weakest directions are rejected by :func:`set_aside` within
@@ -204,7 +216,8 @@ def orthonormalize_in_rounds(
     rows: list[np.ndarray] = []
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     apart: list[tuple[np.ndarray, np.ndarray]] = []
-    Zc, Sc, Fc = Z, S, (np.eye(b) if F0 is None else F0)
+    # Fc maps Zc's columns to the block's; None: the identity (the first round's, unless F0)
+    Zc, Fc, spec = Z, F0, spectrum
     MZc: np.ndarray | None = None  # M Zc, once measured
     passes = 0
     # a direction t with coefficients f (over the columns) adds |f_k| ||t|| to column k:
@@ -223,33 +236,35 @@ def orthonormalize_in_rounds(
                 if basis.width:
                     P = basis.project(Zc, G)
                     basis.subtract(Zc, G, P)
-                    C += P @ Fc
+                    C += _mapped(P, Fc)
                     passes += 2
                 for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
                     c = MQp.T @ Zc
                     Zc -= Qp @ c
-                    rows[i] += c @ Fc
+                    rows[i] += _mapped(c, Fc)
                 MZc = _image(Zc, inner)
                 after = m_norms(Zc, inner, MZc)
                 if np.all(after >= _REPROJECT * before):
                     break
                 before = after
             Sc = gram(Zc, inner, MZc)
-            split = set_aside(Sc, aside, Zc.shape[0], _ROUNDING_LAMBDA)
+            spec = eigh_desc(Sc)
+            split = set_aside(Sc, aside, Zc.shape[0], _ROUNDING_LAMBDA, spectrum=spec)
             if split is not None:
                 # the unresolved part's Gram has the trace of this part alone: what the
                 # first Gram could not set aside under its rounding fits now
                 Wk, lam_k, Wt, Gt = split
-                apart.append((Wt.T @ Fc, Gt))
+                apart.append((_mapped(Wt.T, Fc), Gt))
                 aside -= float(np.trace(Gt))
                 if lam_k.size == 0:
                     break
-                Zc, Fc = _mm(Zc, Wk), Wk.T @ Fc
-                Sc = gram(Zc, inner)
-        lam, W = _eigh_desc(Sc)
+                Zc, Fc = _mm(Zc, Wk), _mapped(Wk.T, Fc)
+                spec = eigh_desc(gram(Zc, inner))
+        lam, W = spec
         if lam.size == 0 or lam[0] <= 0.0:
             break
-        sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(W.T @ Fc) * weight, axis=1)
+        WF = _mapped(W.T, Fc)  # the directions' coefficients over the block's columns
+        sizes = np.sqrt(np.maximum(lam, 0.0)) * np.max(np.abs(WF) * weight, axis=1)
         big = (lam >= COND_SPLIT * lam[0]) & (sizes > half_tol)
         # every round resolves at least its largest direction (the column rule rejects it
         # if it is too small), so the rounds end
@@ -260,13 +275,13 @@ def orthonormalize_in_rounds(
             right_solve(Qb, L2)
             parts.append(Qb)
             mparts.append(_image(Qb, inner))
-            rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * (W[:, big].T @ Fc)))
+            rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * WF[big]))
         rest = ~big
         if not rest.any():
             break
         Tt = _mm(Zc, W[:, rest])
         MTt = _image(Tt, inner)
-        Ft = W[:, rest].T @ Fc
+        Ft = WF[rest]
         norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", Tt, MTt), 0.0))
         adds = (norms[:, np.newaxis] * np.abs(Ft) * weight) ** 2
         order = np.argsort(np.max(adds, axis=1), kind="stable")
@@ -334,7 +349,8 @@ def complement(Wacc: np.ndarray, s: int) -> np.ndarray:
 
 
 def set_aside(
-    S: np.ndarray, budget: float, n: int, lam_factor: float
+    S: np.ndarray, budget: float, n: int, lam_factor: float,
+    *, spectrum: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Split a residual's Gram ``S`` (``b x b``) into kept and set-aside directions.
 
@@ -351,12 +367,13 @@ def set_aside(
 
     Returns ``(W_k, lam_k, W_t, G_t)`` with ``G_t = diag(lam_t) + (a / d) I`` the Gram the
     tail is accounted with (``trace(D W_t G_t W_t^T D) >= sum_j ||z_j' d_j||^2`` for any
-    column scaling ``D`` of norm at most one), or None when nothing fits.
+    column scaling ``D`` of norm at most one), or None when nothing fits. ``spectrum``:
+    :func:`eigh_desc` of ``S``, when the caller has it.
     """
     b = S.shape[0]
     if b == 0 or not budget > 0.0:
         return None
-    lam, W = _eigh_desc(S)
+    lam, W = eigh_desc(S) if spectrum is None else spectrum
     lam = np.maximum(lam, 0.0)
     trace = float(np.sum(np.maximum(np.diag(S), 0.0)))
     if not math.isfinite(trace):

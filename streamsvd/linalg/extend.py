@@ -28,6 +28,7 @@ from streamsvd.linalg.blocks import (
     cholesky_qr_in_place,
     column_rule,
     complement,
+    eigh_desc,
     kept_clean,
     orthonormalize_in_rounds,
     place_directions,
@@ -261,6 +262,7 @@ def extend_basis(
     skewed = False
     budget = 0.0
     Zk = None
+    spectrum = None  # eigh_desc(S), once taken (S changes only with a second projection)
     if lazy:
         # the second projection is not made when the directions kept after setting the
         # weakest aside lie along the basis by at most _KEPT_LOSS_MAX (nearly collinear
@@ -268,7 +270,8 @@ def extend_basis(
         # product), kept in cross_gram; the directions set aside keep theirs, of the
         # order of the projection's rounding (eps ||X||), which the bound does not count
         budget = _aside_budget(_norms(C, S), exps, aside)
-        split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
+        spectrum = eigh_desc(S) if budget > 0 else None
+        split = set_aside(S, budget, n, _ROUNDING_LAMBDA, spectrum=spectrum)
         if split is not None:
             Zk = np.asfortranarray(Z @ split[0])
             skewed = kept_clean(basis.project(Zk, G), split[1], _KEPT_LOSS_MAX)
@@ -297,26 +300,36 @@ def extend_basis(
                 cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
             MZ = apply_into(Z, MY, inner)
             S = gram(Z, inner, MZ)
+            spectrum = None
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
     if not skewed:
         nu = _norms(C, S)
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
     if split is None and b:
         budget = _aside_budget(nu, exps, aside)
-        split = set_aside(S, budget, n, _ROUNDING_LAMBDA)
-    lam = np.linalg.eigvalsh(S)[::-1] if b and split is None else np.zeros(0)
+        if budget > 0 and spectrum is None:
+            spectrum = eigh_desc(S)
+        split = set_aside(S, budget, n, _ROUNDING_LAMBDA, spectrum=spectrum)
+    if not b or split is not None:
+        lam = np.zeros(0)
+    else:  # the eigenvalues decide between CholeskyQR and the rounds
+        lam = np.linalg.eigvalsh(S)[::-1] if spectrum is None else spectrum[0]
     well = split is None and b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
     floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     pre: list[tuple[np.ndarray, np.ndarray]] = []
     apart: list[tuple[np.ndarray, np.ndarray]] = []
     if split is not None:
-        # the kept combinations Z W_k go through the rounds (the tail is never formed)
+        # the kept combinations Z W_k go through the rounds (the tail is never formed):
+        # on Z itself, whose first round forms only what it resolves, unless Z W_k was
+        # formed already (the narrow product above)
         Wk, lam_k, Wt, Gt = split
         pre.append((Wt.T, Gt))
         if Zk is None:
-            Zk = np.asfortranarray(Z @ Wk)
+            kept, F0, spec = Z, None, (lam_k, Wk)
+        else:
+            kept, F0, spec = Zk, Wk.T, (lam_k, np.eye(lam_k.size))
         parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
-            basis, G, Zk, np.diag(lam_k), C, inner, reject_tol, ref, F0=Wk.T,
+            basis, G, kept, spec, C, inner, reject_tol, ref, F0=F0,
             aside=budget - float(np.trace(Gt)))
         passes += more
     elif well:
@@ -326,7 +339,8 @@ def extend_basis(
         parts, mparts = [Z], []
     else:
         parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
-            basis, G, Z, S, C, inner, reject_tol, ref, aside=budget)
+            basis, G, Z, eigh_desc(S) if spectrum is None else spectrum, C, inner,
+            reject_tol, ref, aside=budget)
         passes += more
     accepted, Wacc = column_rule(Rz, ref, reject_tol)
     s, r = Rz.shape[0], Wacc.shape[1]
