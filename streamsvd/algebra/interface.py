@@ -10,7 +10,10 @@ pyMOR writes ``gram_schmidt`` once over its vector arrays):
 * ``residual_products(Z, MZ)``: ``MQ^T Z`` and ``Z^T M Z``, what a projection left
   along the basis and the residual's Gram (one product over ``[MQ, MZ]`` in memory);
 * ``workspace(b)``: room for ``b`` new columns right after the stored ones, where a block
-  is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns;
+  is orthonormalised in place; ``accept(r)`` makes the first ``r`` of them basis columns
+  (these four and ``width`` are :class:`BasisProducts`, what block Gram-Schmidt needs,
+  which a basis with directions found beside it presents as well:
+  :mod:`streamsvd.linalg.slices`);
 * ``compact_planned(G, r)`` then ``swap(p)``: ``Q <- [Q, Y_r] G`` (and ``M Q`` likewise),
   written aside first so that nothing stored changes before ``swap``; its Gram is
   measured from the written columns;
@@ -53,21 +56,17 @@ import numpy as np
 
 from streamsvd.algebra.inner import InnerProduct
 
-__all__ = ["Backend", "BasisAlgebra", "BasisBackend", "BasisStaging", "DeferredGram"]
+__all__ = [
+    "Backend", "BasisAlgebra", "BasisBackend", "BasisProducts", "BasisStaging", "DeferredGram",
+]
 
 
-class BasisAlgebra(Protocol):
-    """The products an update computes on the n-sized factor (module docstring)."""
-
-    n: int
+class BasisProducts(Protocol):
+    """What block Gram-Schmidt needs of a basis (:mod:`streamsvd.linalg.extend`)."""
 
     @property
     def width(self) -> int:
         """Number of stored columns ``w``."""
-
-    @property
-    def capacity(self) -> int:
-        """Columns the basis can hold (stored and workspace) without growing its storage."""
 
     def project(self, X: np.ndarray, G: np.ndarray | None) -> np.ndarray:
         """Return ``G^T (MQ^T X)`` (``G = None``: the identity)."""
@@ -80,6 +79,16 @@ class BasisAlgebra(Protocol):
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Return views ``(Y, MY)`` of ``b`` columns after the stored ones."""
+
+
+class BasisAlgebra(BasisProducts, Protocol):
+    """The products an update computes on the n-sized factor (module docstring)."""
+
+    n: int
+
+    @property
+    def capacity(self) -> int:
+        """Columns the basis can hold (stored and workspace) without growing its storage."""
 
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""

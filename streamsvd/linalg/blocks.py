@@ -5,7 +5,7 @@ from :mod:`streamsvd.algebra.blas`), CholeskyQR in place,
 the rounds that orthonormalise a nearly collinear residual (SVQB with re-measured
 tails), and the column-by-column rejection rule on the residual's small coefficients.
 Every function works on arrays; the basis is reached only through
-:class:`~streamsvd.algebra.interface.BasisBackend`.
+:class:`~streamsvd.algebra.interface.BasisProducts`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
 
 if TYPE_CHECKING:
-    from streamsvd.algebra.interface import BasisBackend
+    from streamsvd.algebra.interface import BasisProducts
 
 _EPS = np.finfo(np.float64).eps
 # Higham and Mary's constant of the probabilistic rounding model
@@ -148,7 +148,7 @@ def right_solve(A: np.ndarray, L: np.ndarray) -> np.ndarray:
 
 
 def cholesky_qr_in_place(
-    basis: BasisBackend,
+    basis: BasisProducts,
     Z: np.ndarray,
     MZ: np.ndarray,
     S: np.ndarray,
@@ -181,7 +181,7 @@ def cholesky_qr_in_place(
 
 
 def orthonormalize_in_rounds(
-    basis: BasisBackend,
+    basis: BasisProducts,
     G: np.ndarray | None,
     Z: np.ndarray,
     spectrum: tuple[np.ndarray, np.ndarray],

@@ -20,7 +20,7 @@ from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
-from streamsvd.algebra.interface import BasisBackend
+from streamsvd.algebra.interface import BasisProducts
 from streamsvd.linalg.blocks import (
     COND_SPLIT,
     ONE_PASS_COND,
@@ -93,6 +93,11 @@ class BasisExtension:
         Whether the residual was projected once, its new directions along the basis by
         at most ``_KEPT_LOSS_MAX`` (measured in ``cross_gram``): the caller truncates in
         the coordinates of the extended basis made orthonormal.
+    column_energies : ndarray, shape (b,), or None
+        ``||Res e_j||_M^2`` of the scaled columns, when the rejected part is known by its
+        columns alone (:func:`~streamsvd.linalg.slices.extend_in_slices`; ``rejected_map``
+        and ``rejected_gram`` are then empty): its norm is known for a block of snapshots,
+        not for an increment or a merge.
     """
 
     coeffs: np.ndarray
@@ -106,6 +111,7 @@ class BasisExtension:
     gram_new: np.ndarray
     passes: int = 0
     skewed: bool = False
+    column_energies: np.ndarray | None = None
 
     @classmethod
     def empty(cls, q: int, w: int) -> BasisExtension:
@@ -134,6 +140,11 @@ class BasisExtension:
         increment, the core of an expansion); ``None`` stands for distinct columns of
         their own (a block of snapshots), where the norm is ``||Res||_F``.
         """
+        if self.column_energies is not None:
+            if V is not None:
+                raise ValueError("the rejected part is known by its columns' energies "
+                                 "alone: its norm against right vectors is not")
+            return scaled_norm(np.sqrt(self.column_energies), self.exponents)
         F = self.rejected_map
         if F.size == 0:
             return 0.0
@@ -151,7 +162,7 @@ class BasisExtension:
 
 
 def extend_basis(
-    basis: BasisBackend,
+    basis: BasisProducts,
     G: np.ndarray | None,
     X: np.ndarray,
     *,
@@ -205,7 +216,7 @@ def extend_basis(
 
     Parameters
     ----------
-    basis : BasisBackend
+    basis : BasisProducts
         The stored basis; the new directions are left in its workspace.
     G : ndarray, shape (w, q), or None
         The basis is ``Q G`` (``M``-orthonormal); ``None``: the basis is ``Q``.

@@ -394,3 +394,76 @@ def test_property_rejections_beside_unconverged_cuts(seed, sweeps, reject_tol, m
         assert_bound_holds(sc, A[:, :j + 6])
     sc.finalize()
     assert_bound_holds(sc, A)
+
+
+# ------------------------------------------------------- wide blocks, slice by slice
+
+
+def _sliced(slice_columns):
+    """Patch the slice width (and count the blocks extended in slices)."""
+    from unittest import mock
+
+    import streamsvd.engine.update as update_module
+    import streamsvd.linalg.slices as slices_module
+
+    taken = []
+    original = update_module.extend_in_slices
+
+    def spy(*args, **kwargs):
+        taken.append(kwargs["width"])
+        return original(*args, **kwargs)
+
+    return taken, (mock.patch.object(slices_module, "SLICE", slice_columns),
+                   mock.patch.object(update_module, "extend_in_slices", spy))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(["relative", "mean_l2"]),
+       scale=st.sampled_from([1e-300, 2.0**-100, 1.0, 1e300]), mass=st.booleans(),
+       block=st.sampled_from([16, 24, 40]), zero=st.booleans())
+def test_property_wide_blocks_in_slices_meet_the_target(seed, measure, scale, mass, block,
+                                                         zero):
+    rng = np.random.default_rng(seed)
+    n, m = 60, 80
+    A = spectrum_matrix(rng, n, m, 20, rng.uniform(4, 12), scale)
+    if zero:
+        A[:, rng.integers(m)] = 0.0
+    d = np.linspace(0.5, 2.0, n) if mass else np.ones(n)
+    # a target of 1e-6 of the data's norm, in either measure
+    t = 1e-6 if measure == "relative" else 1e-6 * scaled_norm(A, scale) / np.sqrt(m)
+    taken, patches = _sliced(8)
+    with patches[0], patches[1]:
+        sc = ss.StreamCompressor(n, inner=np.diag(d) if mass else None, target_error=t,
+                                 error_measure=measure, rule="jacobi", sweeps=None)
+        for j in range(0, m, block):
+            sc.absorb(A[:, j:j + block])
+            root = np.sqrt(d)[:, None]
+            live = A[:, :j + block]
+            err_scale = float(np.max(np.abs(live))) or 1.0
+            err = scaled_norm(root * (live - sc.expansion.to_dense()), err_scale)
+            slack = ROUNDING * max(n, m) * EPS * scaled_norm(root * live, err_scale)
+            assert err <= sc.error_bound + slack, (err, sc.error_bound, slack)
+        sc.finalize()
+    # the blocks were extended in slices, unless the budget's square leaves the range (a
+    # mean_l2 target of 1e-306 or 1e294: nothing is set aside, the blocks are taken whole)
+    assert bool(taken) != (measure == "mean_l2" and not 1e-150 < scale < 1e150)
+    assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
+
+
+def test_a_wide_block_in_slices_refuses_a_non_finite_entry_and_changes_nothing():
+    rng = np.random.default_rng(5)
+    A = spectrum_matrix(rng, 50, 64, 20, 8)
+    taken, patches = _sliced(8)
+    with patches[0], patches[1]:
+        sc = ss.StreamCompressor(50, target_error=1e-6, error_measure="mean_l2")
+        sc.absorb(A[:, :32])
+        before = (sc.rank, sc.n_seen, sc.error_bound, sc.expansion.to_dense().copy())
+        bad = A[:, 32:].copy()
+        bad[7, 20] = np.nan
+        with pytest.raises(ss.NonFiniteError, match=r"`columns` must be finite.*\(7, 20\)"):
+            sc.absorb(bad)
+        assert (sc.rank, sc.n_seen, sc.error_bound) == before[:3]
+        assert np.array_equal(sc.expansion.to_dense(), before[3])
+        sc.absorb(A[:, 32:])
+    assert len(taken) == 2
+    assert_bound_holds(sc, A)

@@ -1,0 +1,107 @@
+"""Tests of streamsvd.linalg.slices: a wide block extended slice by slice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from streamsvd.algebra.inner import as_inner
+from streamsvd.algebra.memory import MemoryBasis
+from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from streamsvd.linalg.slices import extend_in_slices, slice_width
+
+EPS = np.finfo(np.float64).eps
+
+
+def _pulse(n, m):
+    """Snapshots of a pulse that drifts and widens: nearly collinear columns."""
+    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
+    t = np.linspace(0.0, 1.0, m)[np.newaxis, :]
+    return np.exp(-((x - 0.2 - 0.6 * t) / (0.05 + 0.05 * t)) ** 2)
+
+
+def _mass(n):
+    h = 1.0 / n
+    return sp.diags([np.full(n - 1, h / 6), np.full(n, 2 * h / 3), np.full(n - 1, h / 6)],
+                    [-1, 0, 1], format="csr")
+
+
+def _norm(X, ip):
+    return float(np.sqrt(max(np.sum(X * ip.apply(X)), 0.0)))
+
+
+def test_blocks_are_sliced_when_at_least_two_slices_as_wide_as_the_basis_fit():
+    assert slice_width(191, 0) is None
+    assert slice_width(192, 0) == 96
+    assert slice_width(400, 150) == 150
+    assert slice_width(299, 150) is None
+
+
+@pytest.mark.parametrize("scale", [0, 400, -400])
+@pytest.mark.parametrize("first", [True, False])
+@pytest.mark.parametrize("euclidean", [True, False])
+def test_a_wide_block_in_slices_is_decomposed_exactly(euclidean, first, scale):
+    n, b, w0 = 400, 200, 0 if first else 40
+    A = np.ldexp(_pulse(n, w0 + b), scale)
+    ip = as_inner(None if euclidean else _mass(n), n)
+    basis = MemoryBasis(n, ip, capacity=2 * (w0 + b))
+    gram = None
+    if w0:
+        ext0 = extend_basis(basis, None, A[:, :w0], inner=ip, reject_tol=default_reject_tol(n))
+        basis.accept(ext0.rank)
+        gram = basis.measure_gram()
+    X = A[:, w0:]
+    energy = _norm(np.ldexp(X, -scale), ip) ** 2
+    budget = np.ldexp(1e-12 * energy, 2 * scale)
+    w = basis.width
+    ext = extend_in_slices(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                           basis_gram=gram, aside=(budget, 0.0), width=50)
+    r = ext.rank
+    Q = basis.Q[:, :w].copy()
+    Qn = basis.workspace(b)[0][:, :r].copy()
+    MQn = ip.apply(Qn)
+    # the new directions are M-orthonormal and M-orthogonal to the basis, as measured
+    assert np.linalg.norm(Qn.T @ MQn - np.eye(r), 2) <= 100 * n * EPS
+    assert np.linalg.norm(Q.T @ MQn) <= 100 * n * EPS
+    np.testing.assert_allclose(ext.cross_gram, Q.T @ MQn, rtol=0, atol=100 * n * EPS)
+    # X = Q coeffs + Q_new R_new + Res: the rejected norm is ||Res||, measured, and Res
+    # is M-orthogonal to the basis and to the new directions
+    res = np.ldexp(X, -scale) - Q @ np.ldexp(ext.coeffs, -scale) \
+        - Qn @ np.ldexp(ext.R_new, -scale)
+    rounding = 10 * n * EPS * np.sqrt(energy)
+    reported = np.ldexp(ext.rejected_norm(), -scale)
+    assert abs(_norm(res, ip) - reported) <= 1e-6 * reported + rounding
+    assert np.linalg.norm(np.hstack([Q, Qn]).T @ ip.apply(res)) <= rounding
+    # what was set aside fits the budget, up to the rounding of the slices' rejections
+    assert reported**2 <= 1e-12 * energy * (1 + 1e-9) + rounding**2
+    assert abs(np.ldexp(ext.block_norm, -scale) - np.sqrt(energy)) <= 1e-12 * np.sqrt(energy)
+    # its norm is known for a block of snapshots only
+    with pytest.raises(ValueError, match="columns' energies"):
+        ext.rejected_norm(np.ones((2, b)))
+
+
+def test_slices_find_the_span_the_whole_block_finds():
+    n, b = 400, 240
+    X = _pulse(n, b)
+    ip = as_inner(_mass(n), n)
+    budget = 1e-12 * _norm(X, ip) ** 2
+    exts, spans = [], []
+    for sliced in (False, True):
+        basis = MemoryBasis(n, ip, capacity=2 * b)
+        if sliced:
+            ext = extend_in_slices(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                                   basis_gram=None, aside=(budget, 0.0), width=60)
+        else:
+            ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                               aside=(budget, 0.0))
+        exts.append(ext)
+        spans.append(basis.workspace(b)[0][:, :ext.rank].copy())
+    # every direction the whole block keeps, beyond what it sets aside, lies in the span
+    # the slices found, to the square root of the budget
+    whole, sliced = spans
+    left = whole - sliced @ (sliced.T @ ip.apply(whole))
+    kept = whole @ exts[0].R_new  # the block as the whole extension keeps it
+    lost = kept - sliced @ (sliced.T @ ip.apply(kept))
+    assert _norm(lost, ip) <= 2 * np.sqrt(budget) + 100 * n * EPS * _norm(X, ip)
+    assert left.shape[1] == exts[0].rank
