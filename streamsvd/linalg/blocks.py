@@ -101,11 +101,21 @@ def place_directions(
 
 
 def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
-    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow."""
-    if x.size == 0:
+    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow or underflow.
+
+    The common scale is the largest exponent of a nonzero ``x_k``: a zero column's
+    exponent (0 by convention) beside columns of 1e-300 would push them below the
+    normal range, where their squares vanish.
+    """
+    top = top_exponent(exps, x != 0)
+    if top is None:
         return 0.0
-    top = int(exps.max())
     return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
+
+
+def top_exponent(exps: np.ndarray, live: np.ndarray) -> int | None:
+    """Return the largest of the exponents ``exps`` where ``live`` (None: nothing live)."""
+    return int(exps[live].max()) if np.any(live) else None
 
 
 def eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

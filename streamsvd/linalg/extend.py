@@ -36,6 +36,7 @@ from streamsvd.linalg.blocks import (
     scale_into,
     scaled_norm,
     set_aside,
+    top_exponent,
 )
 
 __all__ = ["BasisExtension", "default_reject_tol", "extend_basis"]
@@ -149,7 +150,9 @@ class BasisExtension:
         if F.size == 0:
             return 0.0
         e = self.exponents
-        shift = int(e.max())
+        shift = top_exponent(e, np.any(F != 0, axis=0))
+        if shift is None:
+            return 0.0
         DF = np.ldexp(F, (e - shift)[np.newaxis, :]).T  # (b, k): D F^T, scaled
         if V is not None:
             ev = pow2_exponent(V)
@@ -439,12 +442,14 @@ def _aside_budget(nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float]) 
     """Return the energy ``aside`` lets the block set aside, in its scaled units (0: none).
 
     The columns were scaled by ``2^-e``: an energy ``E`` of the scaled residual is at
-    most ``4^max(e) E`` of the block's, so the budget is scaled by ``4^-max(e)``.
+    most ``4^max(e) E`` of the block's (the maximum over the nonzero columns: a zero
+    column has no residual), so the budget is scaled by ``4^-max(e)``.
     """
-    if nu.size == 0 or not (aside[0] > 0 or aside[1] > 0):
+    live = nu > 0
+    top = top_exponent(exps, live)
+    if top is None or not (aside[0] > 0 or aside[1] > 0):
         return 0.0
-    top = int(exps.max())
-    energy = float(np.sum(nu * nu * np.ldexp(1.0, 2 * (exps - top))))
+    energy = float(np.sum(nu[live] ** 2 * np.ldexp(1.0, 2 * (exps[live] - top))))
     with np.errstate(over="ignore"):
         budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
     return budget if math.isfinite(budget) else 0.0

@@ -263,3 +263,26 @@ def test_a_stream_projected_once_stays_orthonormal_and_holds_its_bound(monkeypat
     assert any(skewed[1:])
     sc.finalize()
     assert sc.error_in_measure <= 1e-6
+
+
+def test_norms_of_tiny_columns_beside_a_zero_column_do_not_underflow():
+    # a zero column's exponent (0) was the common scale of columns of 2^-996: their
+    # scaled values fell to 1e-300, whose squares vanish (a rejected norm of 0)
+    from streamsvd.linalg.blocks import scaled_norm
+
+    assert scaled_norm(np.array([0.75, 0.0]), np.array([-996, 0])) == np.ldexp(0.75, -996)
+    n = 300
+    X = _collinear(n, b=16) + 1e-10 * np.random.default_rng(4).standard_normal((n, 16))
+    ip = as_inner(_mass(n), n)
+    exts = []
+    for scale in (0, -996):
+        Xs = np.ldexp(X, scale)
+        Xs[:, 5] = 0.0
+        basis = MemoryBasis(n, ip, capacity=32)
+        exts.append(extend_basis(basis, None, Xs, inner=ip, reject_tol=1e-8))
+    plain, tiny = exts
+    assert plain.rejected_norm() > 0
+    # the same digits but the rounding of the tail's energies (1e-11 here)
+    np.testing.assert_allclose(np.ldexp(tiny.rejected_norm(), 996), plain.rejected_norm(),
+                               rtol=1e-8)
+    np.testing.assert_allclose(np.ldexp(tiny.block_norm, 996), plain.block_norm, rtol=1e-14)

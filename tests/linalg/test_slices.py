@@ -31,11 +31,11 @@ def _norm(X, ip):
     return float(np.sqrt(max(np.sum(X * ip.apply(X)), 0.0)))
 
 
-def test_blocks_are_sliced_when_at_least_two_slices_as_wide_as_the_basis_fit():
+def test_blocks_of_two_slices_are_sliced_beside_a_basis_narrower_than_a_slice():
     assert slice_width(191, 0) is None
     assert slice_width(192, 0) == 96
-    assert slice_width(400, 150) == 150
-    assert slice_width(299, 150) is None
+    assert slice_width(1000, 95) == 96
+    assert slice_width(1000, 96) is None
 
 
 @pytest.mark.parametrize("scale", [0, 400, -400])
