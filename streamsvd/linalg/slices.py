@@ -50,11 +50,14 @@ class _Beside:
     """The basis ``Q`` with orthonormal directions ``P`` beside it: ``[Q, P]``.
 
     ``P`` is ``M``-orthogonal to ``Q``; the coordinates ``G`` of the basis ``[Q, P] G``
-    are ``blockdiag(G_Q, I)`` (:func:`_coordinates`). The workspace is the basis's.
+    are ``blockdiag(G_Q, I)`` (:func:`_coordinates`). The workspace is the slices' own
+    ``(Y, MY)``: a basis may make a new one at every call (the panels do), and the
+    block's new directions go to the basis's own workspace once, at the end.
     """
 
-    def __init__(self, basis: BasisProducts, P: np.ndarray, MP: np.ndarray) -> None:
-        self.basis, self.P, self.MP = basis, P, MP
+    def __init__(self, basis: BasisProducts, P: np.ndarray, MP: np.ndarray,
+                 Y: np.ndarray, MY: np.ndarray) -> None:
+        self.basis, self.P, self.MP, self.Y, self.MY = basis, P, MP, Y, MY
 
     @property
     def width(self) -> int:
@@ -75,7 +78,7 @@ class _Beside:
         return np.vstack([cross, self.MP.T @ Z]), S
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
-        return self.basis.workspace(b)
+        return self.Y[:, :b], self.MY[:, :b]
 
 
 def _coordinates(G: np.ndarray | None, r: int) -> np.ndarray | None:
@@ -113,7 +116,8 @@ def extend_in_slices(
         The slices' width.
     """
     n, b = X.shape
-    Yw, MYw = basis.workspace(b)  # the widest workspace first: the slices' fit in it
+    Y = np.empty((n, width), order="F")
+    MY = Y if inner.is_euclidean else np.empty((n, width), order="F")
     Xs = np.empty((n, b), order="F")
     exps, zero = scale_into(X, Xs, name=name)
     P = np.zeros((n, 0), order="F")
@@ -123,21 +127,21 @@ def extend_in_slices(
     for start in range(0, b, width):
         part = X[:, start:start + width]  # unscaled: the budget is in X's units
         r = P.shape[1]
-        beside = _Beside(basis, P, MP) if r else basis
-        gram_beside = None if basis_gram is None or not r else scipy.linalg.block_diag(
+        beside = _Beside(basis, P, MP, Y, MY)
+        gram_beside = None if basis_gram is None else scipy.linalg.block_diag(
             basis_gram, np.eye(r))
-        if gram_beside is not None and basis.width:
+        if gram_beside is not None and basis.width and r:
             cross = basis.project(P, None)
             gram_beside[:basis.width, basis.width:] = cross
             gram_beside[basis.width:, :basis.width] = cross.T
-        G_beside = _coordinates(G, r) if r else G
+        G_beside = _coordinates(G, r)
         ext = extend_basis(beside, G_beside, part, inner=inner, reject_tol=reject_tol,
                            basis_gram=gram_beside, aside=(aside[0] * part.shape[1] / b,
                                                           aside[1]))
         accepted.append(ext.accepted)
         passes += ext.passes
         if ext.rank:
-            Qi = np.array(Yw[:, :ext.rank], order="F")
+            Qi = np.array(Y[:, :ext.rank], order="F")
             Qi, MQi, more = _orthonormal_beside(beside, G_beside, Qi, inner)
             passes += more
             P = np.hstack([P, Qi])
@@ -155,6 +159,7 @@ def extend_in_slices(
     energies = np.maximum(np.einsum("ij,ij->j", Xs, MZ), 0.0)
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.einsum("ij,ij->j", R_new, R_new)
                  + energies)
+    Yw, MYw = basis.workspace(b)
     Yw[:, :r] = P
     if not inner.is_euclidean:
         MYw[:, :r] = MP

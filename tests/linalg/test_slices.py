@@ -105,3 +105,38 @@ def test_slices_find_the_span_the_whole_block_finds():
     lost = kept - sliced @ (sliced.T @ ip.apply(kept))
     assert _norm(lost, ip) <= 2 * np.sqrt(budget) + 100 * n * EPS * _norm(X, ip)
     assert left.shape[1] == exts[0].rank
+
+
+@pytest.mark.parametrize("kind", ["panels", "store"])
+def test_a_basis_in_panels_or_in_a_store_takes_wide_blocks_in_slices(tmp_path, kind):
+    # the panels make a new workspace at every call: the slices keep their own
+    from unittest import mock
+
+    import streamsvd as ss
+    import streamsvd.engine.update as update_module
+    from streamsvd.parallel.tall import tall_compress
+
+    taken = []
+    original = update_module.extend_in_slices
+
+    def spy(*args, **kwargs):
+        taken.append(kwargs["width"])
+        return original(*args, **kwargs)
+
+    n, m = 1000, 400
+    A = _pulse(n, m)
+    kw = dict(target_error=1e-6, error_measure="relative", rule="jacobi", sweeps=None)
+    with mock.patch.object(update_module, "extend_in_slices", spy):
+        if kind == "panels":
+            sc = tall_compress(A, block=200, chunk_rows=300, **kw)
+        else:
+            sc = ss.StreamCompressor(n, store=tmp_path / "s.zarr", **kw)
+            for j in range(0, m, 200):
+                sc.absorb(A[:, j:j + 200])
+        sc.finalize()
+    assert taken
+    U, V = sc.factors()
+    err = np.linalg.norm(A - np.asarray(U) @ V.T)
+    assert err <= sc.error_bound * (1 + 1e-9) + 50 * m * EPS * np.linalg.norm(A)
+    assert sc.error_in_measure <= 1e-6
+    sc.close()
