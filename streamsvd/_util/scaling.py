@@ -12,10 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from streamsvd._util.slabs import row_slabs
+from streamsvd._util.slabs import copy_by_row_slabs, row_slabs
+from streamsvd._util.validation import check_finite
 
 __all__ = [
     "column_exponents", "pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm",
+    "scale_into", "scaled_norm", "top_exponent",
 ]
 
 
@@ -81,3 +83,60 @@ def safe_m_norms(X: np.ndarray, inner: Any) -> np.ndarray:
     e = column_exponents(X)[0]
     Y = np.ldexp(X, -e[np.newaxis, :])
     return np.ldexp(np.sqrt(np.maximum(np.einsum("ij,ij->j", Y, inner.apply(Y)), 0.0)), e)
+
+
+def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Write ``X 2^-e`` into ``Y``, ``e`` per column, so that its peak lies in [1/2, 1).
+
+    ``name`` given, a NaN or infinite entry (a peak that is not finite: NaN and
+    infinities propagate through the maxima) raises
+    :class:`~streamsvd.errors.NonFiniteError` naming it, before ``Y`` is scaled.
+
+    Returns the exponents (0 for a zero column) and the mask of the zero columns. The
+    copy is made first and the peaks
+    are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
+    a column-major ``X`` is measured where it is and scaled into ``Y`` in one pass.
+    The scaling is exact, subnormal peaks included.
+    """
+    if Y.shape[0] == 0:
+        return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
+    if isinstance(X, np.ndarray) and X.dtype == np.float64 and X.flags.f_contiguous:
+        # already column-major: the peaks taken on X, the scaled copy written in one pass
+        exps, peak = column_exponents(X)
+        _check_peaks(X, peak, name)
+        if np.all(np.abs(exps) < 1000):
+            np.multiply(X, np.ldexp(1.0, -exps), out=Y)
+            return exps, peak == 0
+    copy_by_row_slabs(Y, X)
+    exps, peak = column_exponents(Y)
+    _check_peaks(X, peak, name)
+    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
+        Y *= np.ldexp(1.0, -exps)
+    else:
+        np.ldexp(Y, -exps[np.newaxis, :], out=Y)
+    return exps, peak == 0
+
+
+def _check_peaks(X: np.ndarray, peak: np.ndarray, name: str | None) -> None:
+    """Raise :class:`~streamsvd.errors.NonFiniteError` naming ``X`` if a peak is not finite."""
+    if name is not None and not np.isfinite(peak).all():
+        check_finite(np.asarray(X), name)
+
+
+def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
+    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow or underflow.
+
+    The common scale is the largest exponent of a nonzero ``x_k``: a zero column's
+    exponent (0 by convention) beside columns of 1e-300 would push them below the
+    normal range, where their squares vanish.
+    """
+    top = top_exponent(exps, x != 0)
+    if top is None:
+        return 0.0
+    return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
+
+
+def top_exponent(exps: np.ndarray, live: np.ndarray) -> int | None:
+    """Return the largest of the exponents ``exps`` where ``live`` (None: nothing live)."""
+    return int(exps[live].max()) if np.any(live) else None

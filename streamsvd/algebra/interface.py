@@ -204,7 +204,7 @@ class Backend(Protocol):
 
         ``check=False``: a block in memory already is returned as it is, its entries left
         to the caller (the exact path checks them from its columns' peaks, at no extra
-        pass: :func:`~streamsvd.linalg.blocks.scale_into`).
+        pass: :func:`~streamsvd._util.scaling.scale_into`).
         """
 
     def describe(self, basis: BasisBackend) -> str:

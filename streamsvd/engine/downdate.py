@@ -51,7 +51,7 @@ import numpy as np
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.state import Plan, State, StepOptions
 from streamsvd.engine.update import _plan
-from streamsvd.linalg.extend import BasisExtension
+from streamsvd.linalg.extension import BasisExtension
 
 __all__ = [
     "EXACT_BELOW", "Downdate", "Ledger", "bound_after_removal", "downdate", "intervals_add",

@@ -42,7 +42,8 @@ from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
 from streamsvd.linalg.blocks import skew_factor
-from streamsvd.linalg.extend import BasisExtension, extend_basis
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.extension import BasisExtension
 from streamsvd.linalg.slices import extend_in_slices, slice_width
 
 __all__ = [

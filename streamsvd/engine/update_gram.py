@@ -19,7 +19,7 @@ from typing import Any, cast
 import numpy as np
 from scipy.linalg.lapack import dtrtri
 
-from streamsvd._util.scaling import pow2_exponent
+from streamsvd._util.scaling import pow2_exponent, scale_into
 from streamsvd.algebra.interface import DeferredGram
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before
@@ -50,7 +50,6 @@ from streamsvd.engine.gram_path import (
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
 from streamsvd.engine.update import COMPACT_PER_COLUMN, plan_rows
-from streamsvd.linalg.blocks import scale_into
 
 __all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]
 

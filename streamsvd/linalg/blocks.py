@@ -1,6 +1,6 @@
 """The BLAS-3 kernels of block Gram-Schmidt (:func:`streamsvd.linalg.extend.extend_basis`).
 
-Scaling a block by powers of two, ``M``-products (the Gram matrices and ``M``-norms come
+``M``-products (the Gram matrices and ``M``-norms come
 from :mod:`streamsvd.algebra.blas`), CholeskyQR in place,
 the rounds that orthonormalise a nearly collinear residual (SVQB with re-measured
 tails), and the column-by-column rejection rule on the residual's small coefficients.
@@ -16,9 +16,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg.blas as blas
 
-from streamsvd._util.scaling import column_exponents
-from streamsvd._util.slabs import copy_by_row_slabs
-from streamsvd._util.validation import check_finite
 from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram, m_norms
 from streamsvd.algebra.inner import InnerProduct
@@ -41,45 +38,6 @@ ONE_PASS_COND = 16.0
 _REPROJECT = 0.5
 
 
-def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Write ``X 2^-e`` into ``Y``, ``e`` per column, so that its peak lies in [1/2, 1).
-
-    ``name`` given, a NaN or infinite entry (a peak that is not finite: NaN and
-    infinities propagate through the maxima) raises
-    :class:`~streamsvd.errors.NonFiniteError` naming it, before ``Y`` is scaled.
-
-    Returns the exponents (0 for a zero column) and the mask of the zero columns. The
-    copy is made first and the peaks
-    are taken on ``Y`` (column-major: contiguous columns, whatever the layout of ``X``);
-    a column-major ``X`` is measured where it is and scaled into ``Y`` in one pass.
-    The scaling is exact, subnormal peaks included.
-    """
-    if Y.shape[0] == 0:
-        return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
-    if isinstance(X, np.ndarray) and X.dtype == np.float64 and X.flags.f_contiguous:
-        # already column-major: the peaks taken on X, the scaled copy written in one pass
-        exps, peak = column_exponents(X)
-        _check_peaks(X, peak, name)
-        if np.all(np.abs(exps) < 1000):
-            np.multiply(X, np.ldexp(1.0, -exps), out=Y)
-            return exps, peak == 0
-    copy_by_row_slabs(Y, X)
-    exps, peak = column_exponents(Y)
-    _check_peaks(X, peak, name)
-    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
-        Y *= np.ldexp(1.0, -exps)
-    else:
-        np.ldexp(Y, -exps[np.newaxis, :], out=Y)
-    return exps, peak == 0
-
-
-def _check_peaks(X: np.ndarray, peak: np.ndarray, name: str | None) -> None:
-    """Raise :class:`~streamsvd.errors.NonFiniteError` naming ``X`` if a peak is not finite."""
-    if name is not None and not np.isfinite(peak).all():
-        check_finite(np.asarray(X), name)
-
-
 def apply_into(Z: np.ndarray, MY: np.ndarray, inner: InnerProduct) -> np.ndarray:
     """``M Z`` written into ``MY`` (``Z`` itself for the Euclidean product)."""
     if inner.is_euclidean:
@@ -98,24 +56,6 @@ def place_directions(
             m_apply_into(inner, Qn, MY[:, :r])
         else:
             MY[:, :r] = MQn
-
-
-def scaled_norm(x: np.ndarray, exps: np.ndarray) -> float:
-    """``sqrt(sum (x_k 2^e_k)^2)`` without overflow or underflow.
-
-    The common scale is the largest exponent of a nonzero ``x_k``: a zero column's
-    exponent (0 by convention) beside columns of 1e-300 would push them below the
-    normal range, where their squares vanish.
-    """
-    top = top_exponent(exps, x != 0)
-    if top is None:
-        return 0.0
-    return math.ldexp(float(np.linalg.norm(np.ldexp(x, exps - top))), top)
-
-
-def top_exponent(exps: np.ndarray, live: np.ndarray) -> int | None:
-    """Return the largest of the exponents ``exps`` where ``live`` (None: nothing live)."""
-    return int(exps[live].max()) if np.any(live) else None
 
 
 def eigh_desc(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -3,20 +3,20 @@
 :func:`extend_basis` projects a block of columns onto the basis twice (or more, DGKS),
 orthonormalises the residual (CholeskyQR, or rounds of SVQB for a nearly collinear one)
 and rejects the columns whose residual is negligible (:func:`default_reject_tol`); the
-new directions and their measurements are returned as a :class:`BasisExtension`. The
+new directions and their measurements are returned as a
+:class:`~streamsvd.linalg.extension.BasisExtension`. The
 rejection rule is the one of :mod:`streamsvd.linalg.gram_schmidt`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 
-from streamsvd._util.scaling import pow2_exponent
+from streamsvd._util.scaling import scale_into, scaled_norm, top_exponent
 from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
@@ -33,13 +33,11 @@ from streamsvd.linalg.blocks import (
     orthonormalize_in_rounds,
     place_directions,
     right_solve,
-    scale_into,
-    scaled_norm,
     set_aside,
-    top_exponent,
 )
+from streamsvd.linalg.extension import BasisExtension
 
-__all__ = ["BasisExtension", "default_reject_tol", "extend_basis"]
+__all__ = ["default_reject_tol", "extend_basis"]
 
 _EPS = np.finfo(np.float64).eps
 # a residual that kept more than this of its component along the basis (relative to its
@@ -57,111 +55,6 @@ _ROUNDING_LAMBDA = 4.0
 def default_reject_tol(n: int) -> float:
     """Return the default rejection threshold ``n * eps`` (relative to a column's norm)."""
     return max(n, 1) * _EPS
-
-
-@dataclass(frozen=True)
-class BasisExtension:
-    """How a block ``X`` (``n x b``) decomposes on a basis ``Q G`` extended by new directions.
-
-    ``X = Q G coeffs + Q_new R_new + Res``, where ``Q_new`` (``n x r``) sits in the basis
-    backend's workspace (accepted by the caller with ``basis.accept(r)``) and ``Res`` is
-    the rejected part, ``M``-orthogonal to ``Q_new``: ``Res = T F D`` with
-    ``D = diag(2^e)`` the columns' scalings, ``F = rejected_map`` and ``T`` (never
-    formed) of Gram ``T^T M T = rejected_gram``.
-
-    Attributes
-    ----------
-    coeffs : ndarray, shape (q, b)
-        Coefficients on the existing basis ``Q G``.
-    R_new : ndarray, shape (r, b)
-        Coefficients on the new directions.
-    accepted : ndarray of bool, shape (b,)
-        Whether each column brought a new direction (the rule of :func:`extend_basis`).
-    rejected_gram : ndarray, shape (k, k)
-    rejected_map : ndarray, shape (k, b)
-    exponents : ndarray of int, shape (b,)
-        The columns' power-of-two scalings ``e``.
-    block_norm : float
-        ``||X||_M`` (Frobenius in ``M``) of the block, overflow-safe.
-    cross_gram : ndarray, shape (w, r)
-        ``(M Q)^T Q_new`` over every stored column: the new block of the basis Gram.
-    gram_new : ndarray, shape (r, r)
-        ``Q_new^T M Q_new``.
-    passes : int
-        Products of an ``n``-sized block with the stored basis (projections and
-        subtractions): what an update costs.
-    skewed : bool
-        Whether the residual was projected once, its new directions along the basis by
-        at most ``_KEPT_LOSS_MAX`` (measured in ``cross_gram``): the caller truncates in
-        the coordinates of the extended basis made orthonormal.
-    column_energies : ndarray, shape (b,), or None
-        ``||Res e_j||_M^2`` of the scaled columns, when the rejected part is known by its
-        columns alone (:func:`~streamsvd.linalg.slices.extend_in_slices`; ``rejected_map``
-        and ``rejected_gram`` are then empty): its norm is known for a block of snapshots,
-        not for an increment or a merge.
-    """
-
-    coeffs: np.ndarray
-    R_new: np.ndarray
-    accepted: np.ndarray
-    rejected_gram: np.ndarray
-    rejected_map: np.ndarray
-    exponents: np.ndarray
-    block_norm: float
-    cross_gram: np.ndarray
-    gram_new: np.ndarray
-    passes: int = 0
-    skewed: bool = False
-    column_energies: np.ndarray | None = None
-
-    @classmethod
-    def empty(cls, q: int, w: int) -> BasisExtension:
-        """Return the extension by a block of no column."""
-        return cls(
-            coeffs=np.zeros((q, 0)), R_new=np.zeros((0, 0)), accepted=np.zeros(0, dtype=bool),
-            rejected_gram=np.zeros((0, 0)), rejected_map=np.zeros((0, 0)),
-            exponents=np.zeros(0, dtype=np.int64), block_norm=0.0, cross_gram=np.zeros((w, 0)),
-            gram_new=np.zeros((0, 0)),
-        )
-
-    @property
-    def rank(self) -> int:
-        """Number of new directions ``r``."""
-        return int(self.R_new.shape[0])
-
-    @property
-    def rejected(self) -> int:
-        """Number of columns that brought no new direction."""
-        return int(np.count_nonzero(~self.accepted))
-
-    def rejected_norm(self, V: np.ndarray | None = None) -> float:
-        """Return ``||Res V^T||_F`` in the inner product ``M``, exactly and overflow-safe.
-
-        ``V`` (``rows x b``) holds the right vectors of the block's columns (``V_k`` of an
-        increment, the core of an expansion); ``None`` stands for distinct columns of
-        their own (a block of snapshots), where the norm is ``||Res||_F``.
-        """
-        if self.column_energies is not None:
-            if V is not None:
-                raise ValueError("the rejected part is known by its columns' energies "
-                                 "alone: its norm against right vectors is not")
-            return scaled_norm(np.sqrt(self.column_energies), self.exponents)
-        F = self.rejected_map
-        if F.size == 0:
-            return 0.0
-        e = self.exponents
-        shift = top_exponent(e, np.any(F != 0, axis=0))
-        if shift is None:
-            return 0.0
-        DF = np.ldexp(F, (e - shift)[np.newaxis, :]).T  # (b, k): D F^T, scaled
-        if V is not None:
-            ev = pow2_exponent(V)
-            DF = np.ldexp(V, -ev) @ DF
-            shift += ev
-        top = pow2_exponent(DF)
-        DF = np.ldexp(DF, -top)
-        energy = float(np.sum(self.rejected_gram * (DF.T @ DF)))
-        return math.ldexp(math.sqrt(max(energy, 0.0)), shift + top)
 
 
 def extend_basis(

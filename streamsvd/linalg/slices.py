@@ -21,11 +21,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
+from streamsvd._util.scaling import scale_into, scaled_norm
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
-from streamsvd.linalg.blocks import ONE_PASS_COND, right_solve, scale_into, scaled_norm
-from streamsvd.linalg.extend import BasisExtension, extend_basis
+from streamsvd.linalg.blocks import ONE_PASS_COND, right_solve
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.extension import BasisExtension
 
 __all__ = ["SLICE", "extend_in_slices", "slice_width"]
 
@@ -100,7 +102,7 @@ def extend_in_slices(
 ) -> BasisExtension:
     """Decompose a wide block on the basis ``Q G`` and on new directions found by slices.
 
-    Returns the :class:`~streamsvd.linalg.extend.BasisExtension` of the whole block,
+    Returns the :class:`~streamsvd.linalg.extension.BasisExtension` of the whole block,
     ``X = Q G coeffs + Q_new R_new + Res``: ``Q_new`` orthonormal and orthogonal to the
     basis, ``coeffs`` and ``R_new`` the block's projections on the basis and on
     ``Q_new``, ``Res`` what is left, known by its columns' energies, measured.

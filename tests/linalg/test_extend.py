@@ -268,7 +268,7 @@ def test_a_stream_projected_once_stays_orthonormal_and_holds_its_bound(monkeypat
 def test_norms_of_tiny_columns_beside_a_zero_column_do_not_underflow():
     # a zero column's exponent (0) was the common scale of columns of 2^-996: their
     # scaled values fell to 1e-300, whose squares vanish (a rejected norm of 0)
-    from streamsvd.linalg.blocks import scaled_norm
+    from streamsvd._util.scaling import scaled_norm
 
     assert scaled_norm(np.array([0.75, 0.0]), np.array([-996, 0])) == np.ldexp(0.75, -996)
     n = 300
