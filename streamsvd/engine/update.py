@@ -44,7 +44,7 @@ from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthog
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
-from streamsvd.linalg.slices import extend_in_slices, slice_width
+from streamsvd.linalg.slices import extend_block
 
 __all__ = [
     "COMPACT_PER_COLUMN", "plan_absorb", "plan_add", "plan_finalize", "plan_merge",
@@ -79,18 +79,10 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
     """
     state = state.as_settled()
     b = X.shape[1]
-    aside = _aside(opts, b)
-    width = slice_width(b, state.basis.width) if aside != (0.0, 0.0) else None
-    if width is None:
-        ext = extend_basis(
-            state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-            basis_gram=state.gram, aside=aside, name=name,
-        )
-    else:  # a wide block with a budget to set aside: its Grams by slices
-        ext = extend_in_slices(
-            state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-            basis_gram=state.gram, aside=aside, width=width, name=name,
-        )
+    ext = extend_block(
+        state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
+        basis_gram=state.gram, aside=_aside(opts, b), name=name,
+    )
     k, p = state.R.shape
     K = np.zeros((k + b, p + ext.rank))
     K[:k, :p] = state.R

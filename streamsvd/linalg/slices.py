@@ -29,7 +29,7 @@ from streamsvd.linalg.blocks import ONE_PASS_COND, right_solve
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
 
-__all__ = ["SLICE", "extend_in_slices", "slice_width"]
+__all__ = ["SLICE", "extend_block", "extend_in_slices", "slice_width"]
 
 # the width of a slice (pyMOR's heat example, updates of 668 snapshots at 1e-4 .. 1e-6:
 # 64 and 96 alike, 128 and 192 5 to 15% slower)
@@ -46,6 +46,31 @@ def slice_width(b: int, w: int) -> int | None:
     20 to 40: 0.55 s against 0.95 s).
     """
     return SLICE if b >= 2 * SLICE and w < SLICE else None
+
+
+def extend_block(
+    basis: BasisProducts,
+    G: np.ndarray | None,
+    X: np.ndarray,
+    *,
+    inner: InnerProduct,
+    reject_tol: float,
+    basis_gram: np.ndarray | None,
+    aside: tuple[float, float],
+    name: str | None = None,
+) -> BasisExtension:
+    """Extend the basis by a block of snapshots: whole, or in slices when it pays.
+
+    The parameters are :func:`~streamsvd.linalg.extend.extend_basis`'s. A block is taken
+    in slices (:func:`extend_in_slices`) when something may be set aside (``aside``) and
+    :func:`slice_width` says so.
+    """
+    width = slice_width(X.shape[1], basis.width) if aside != (0.0, 0.0) else None
+    if width is None:
+        return extend_basis(basis, G, X, inner=inner, reject_tol=reject_tol,
+                            basis_gram=basis_gram, aside=aside, name=name)
+    return extend_in_slices(basis, G, X, inner=inner, reject_tol=reject_tol,
+                            basis_gram=basis_gram, aside=aside, width=width, name=name)
 
 
 class _Beside:

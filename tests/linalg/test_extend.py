@@ -236,21 +236,21 @@ def test_a_block_projected_once_keeps_its_decomposition_and_measures_its_skew(mo
 @pytest.mark.parametrize("measure", ["mean_l2", "relative"])
 def test_a_stream_projected_once_stays_orthonormal_and_holds_its_bound(monkeypatch, measure):
     import streamsvd as ss
-    import streamsvd.engine.update as update_module
     import streamsvd.linalg.extend as extend_module
+    import streamsvd.linalg.slices as slices_module
     import streamsvd.stream.updates as stream_module
 
     monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
     monkeypatch.setattr(extend_module, "_LOSS_MAX", 0.0)  # every block takes the new branch
     skewed = []
-    original = update_module.extend_basis
+    original = slices_module.extend_basis
 
     def spy(*args, **kwargs):
         ext = original(*args, **kwargs)
         skewed.append(ext.skewed)
         return ext
 
-    monkeypatch.setattr(update_module, "extend_basis", spy)
+    monkeypatch.setattr(slices_module, "extend_basis", spy)
     n, m, b = 300, 150, 30
     A, M = _widening_pulse(n, m), _mass(n)
     sc = ss.StreamCompressor(n, inner=M, target_error=1e-6, error_measure=measure,

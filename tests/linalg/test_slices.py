@@ -113,11 +113,11 @@ def test_a_basis_in_panels_or_in_a_store_takes_wide_blocks_in_slices(tmp_path, k
     from unittest import mock
 
     import streamsvd as ss
-    import streamsvd.engine.update as update_module
+    import streamsvd.linalg.slices as slices_module
     from streamsvd.parallel.tall import tall_compress
 
     taken = []
-    original = update_module.extend_in_slices
+    original = slices_module.extend_in_slices
 
     def spy(*args, **kwargs):
         taken.append(kwargs["width"])
@@ -126,7 +126,7 @@ def test_a_basis_in_panels_or_in_a_store_takes_wide_blocks_in_slices(tmp_path, k
     n, m = 1000, 400
     A = _pulse(n, m)
     kw = dict(target_error=1e-6, error_measure="relative", rule="jacobi", sweeps=None)
-    with mock.patch.object(update_module, "extend_in_slices", spy):
+    with mock.patch.object(slices_module, "extend_in_slices", spy):
         if kind == "panels":
             sc = tall_compress(A, block=200, chunk_rows=300, **kw)
         else:

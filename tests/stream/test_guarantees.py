@@ -403,18 +403,17 @@ def _sliced(slice_columns):
     """Patch the slice width (and count the blocks extended in slices)."""
     from unittest import mock
 
-    import streamsvd.engine.update as update_module
     import streamsvd.linalg.slices as slices_module
 
     taken = []
-    original = update_module.extend_in_slices
+    original = slices_module.extend_in_slices
 
     def spy(*args, **kwargs):
         taken.append(kwargs["width"])
         return original(*args, **kwargs)
 
     return taken, (mock.patch.object(slices_module, "SLICE", slice_columns),
-                   mock.patch.object(update_module, "extend_in_slices", spy))
+                   mock.patch.object(slices_module, "extend_in_slices", spy))
 
 
 @settings(max_examples=30, deadline=None)
