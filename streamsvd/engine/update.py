@@ -42,7 +42,7 @@ from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
 from streamsvd.linalg.blocks import skew_factor
-from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.extend import extend_basis, term_reference, top_energy
 from streamsvd.linalg.extension import BasisExtension
 from streamsvd.linalg.slices import extend_block
 
@@ -112,7 +112,7 @@ def plan_add(
     """
     state = state.as_settled()
     assert state.rows is not None
-    ref = _energy_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
+    ref = term_reference(safe_m_norms(U_k, opts.inner), safe_column_norms(V_k))
     ext = extend_basis(
         state.basis, state.coords, U_k, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, basis_gram=state.gram,
@@ -159,8 +159,8 @@ def plan_merge(
     """
     state = state.as_settled()
     u_norms, v_norms = safe_m_norms(U_o, opts.inner), safe_column_norms(R_o)
-    ref = _energy_reference(u_norms, v_norms)
-    tops = [_top_energy(u_norms, v_norms)]
+    ref = term_reference(u_norms, v_norms)
+    tops = [top_energy(u_norms, v_norms)]
     if state.rank:
         tops.append(float(np.max(safe_column_norms(state.R))))
     floor = opts.reject_tol * min(tops)
@@ -383,21 +383,3 @@ def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndar
         return None, r_factor(K)
     Q, R = np.linalg.qr(K)
     return Q, R
-
-
-def _top_energy(u_norms: np.ndarray, v_norms: np.ndarray) -> float:
-    """Return ``max_i ||u_i|| ||v_i||``, the largest term's energy (0 without a term)."""
-    return float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
-
-
-def _energy_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
-    """Return reference norms: a term's rejection relative to the largest term's energy.
-
-    The residual ``r_j`` of ``u_j`` is rejected when ``||r_j|| <= tol * ref_j`` with
-    ``ref_j = max_i(||u_i|| ||v_i||) / ||v_j||``; a term with ``v_j = 0`` carries nothing
-    (reference 0: rejected).
-    """
-    top = _top_energy(u_norms, v_norms)
-    with np.errstate(divide="ignore"):
-        ref = np.where(v_norms > 0, top / np.where(v_norms > 0, v_norms, 1.0), 0.0)
-    return ref
