@@ -131,8 +131,17 @@ def first_non_finite(block: np.ndarray) -> tuple[int, int, int] | None:
 
 
 def check_finite(arr: np.ndarray, name: str) -> None:
-    """Raise :class:`NonFiniteError` if ``arr`` holds NaN or infinite entries."""
-    if arr.size and not np.isfinite(arr).all():
+    """Raise :class:`NonFiniteError` if ``arr`` holds NaN or infinite entries.
+
+    The sum decides first (one pass, nothing allocated): NaN and infinities propagate
+    through it, so a finite sum proves every entry finite; a sum that is not (a bad
+    entry, or an overflow of finite ones) sends to the entry-by-entry check.
+    """
+    if not arr.size:
+        return
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = np.sum(arr)
+    if not np.isfinite(total) and not np.isfinite(arr).all():
         bad = np.argwhere(~np.isfinite(arr))
         first = tuple(int(i) for i in bad[0])
         raise NonFiniteError(

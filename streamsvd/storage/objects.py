@@ -245,9 +245,10 @@ class ObjectStorage:
                 "URL or a local directory; other URLs can be read."
             )
         bucket, name = self._bucket_key(key)
+        body = data if isinstance(data, bytes) else bytes(data)  # a pack's chunk: a view
         try:
             out = self.fs.call_s3(
-                "put_object", Bucket=bucket, Key=name, Body=data, **condition
+                "put_object", Bucket=bucket, Key=name, Body=body, **condition
             )
         except OSError as exc:
             refused = _precondition_failed(exc) or (
