@@ -221,10 +221,13 @@ def orthonormalize_in_rounds(
         big[0] = True
         if big.any():
             Qb = _mm(Zc, W[:, big] / np.sqrt(lam[big]))
-            L2 = np.linalg.cholesky(gram(Qb, inner))
+            MQb = _image(Qb, inner)  # M applied once: the solve below maps the image too
+            L2 = np.linalg.cholesky(gram(Qb, inner, None if inner.is_euclidean else MQb))
             right_solve(Qb, L2)
+            if MQb is not Qb:
+                right_solve(MQb, L2)
             parts.append(Qb)
-            mparts.append(_image(Qb, inner))
+            mparts.append(MQb)
             rows.append(L2.T @ (np.sqrt(lam[big])[:, np.newaxis] * WF[big]))
         rest = ~big
         if not rest.any():

@@ -13,8 +13,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.linalg
-import scipy.linalg.lapack
 
 from streamsvd._util.scaling import scale_into, scaled_norm, top_exponent
 from streamsvd.algebra.blas import apply_into as m_apply_into
@@ -201,7 +199,8 @@ def extend_basis(
         spectrum = eigh_desc(S) if budget > 0 else None
         split = set_aside(S, budget, n, _ROUNDING_LAMBDA, spectrum=spectrum)
         if split is not None:
-            Zk = np.asfortranarray(Z @ split[0])
+            Zk = np.empty((n, split[0].shape[1]), order="F")
+            np.matmul(Z, split[0], out=Zk)
             skewed = kept_clean(basis.project(Zk, G), split[1], _KEPT_LOSS_MAX)
             passes += 1
         if skewed:
@@ -336,7 +335,7 @@ def extend_basis(
         coeffs=np.ldexp(C, exps[np.newaxis, :]),
         R_new=np.ldexp(R_new, exps[np.newaxis, :]),
         accepted=accepted,
-        rejected_gram=scipy.linalg.block_diag(*grams) if grams else np.zeros((0, 0)),
+        rejected_gram=_block_diagonal(grams),
         rejected_map=rejected_map,
         exponents=exps,
         block_norm=scaled_norm(nu, exps),
@@ -345,6 +344,17 @@ def extend_basis(
         passes=passes,
         skewed=skewed,
     )
+
+
+def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:
+    """Return the block-diagonal matrix of square ``blocks`` (scipy's costs 0.2 ms here)."""
+    out = np.zeros((sum(B.shape[0] for B in blocks),) * 2)
+    start = 0
+    for B in blocks:
+        stop = start + B.shape[0]
+        out[start:stop, start:stop] = B
+        start = stop
+    return out
 
 
 def _norms(C: np.ndarray, S: np.ndarray) -> np.ndarray:
