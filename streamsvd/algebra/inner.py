@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -75,6 +76,7 @@ class Euclidean:
 
     n: int | None = None
     is_euclidean = True
+    diagonal = None
     fingerprint = hashlib.sha256(b"euclidean").hexdigest()
 
     def apply(self, X: np.ndarray) -> np.ndarray:
@@ -93,6 +95,29 @@ class Euclidean:
 
     def __hash__(self) -> int:
         return hash(self.fingerprint)
+
+
+@dataclass(frozen=True)
+class Diagonal:
+    """A diagonal ``M``: its weights, their square roots, and the weight if all are equal.
+
+    ``X^T M X`` is then ``(W^1/2 X)^T (W^1/2 X)``, a rank-k update with half the flops of
+    ``X^T (M X)`` (:func:`streamsvd.algebra.blas.gram`), without the scaled copy when
+    every weight is the same (pyMOR's ``l2_product`` of a uniform grid, ``h I``).
+    """
+
+    weights: np.ndarray
+    roots: np.ndarray
+    uniform: float | None
+
+    @classmethod
+    def of(cls, weights: np.ndarray) -> Diagonal:
+        """Return the description of ``diag(weights)`` (positive weights)."""
+        w = np.asarray(weights, dtype=np.float64).reshape(-1)
+        roots = np.sqrt(w).reshape(-1, 1)
+        roots.setflags(write=False)
+        same = bool(w.size) and float(w.min()) == float(w.max())
+        return cls(weights=w, roots=roots, uniform=float(w[0]) if same else None)
 
 
 class DiagonalInner:
@@ -118,6 +143,7 @@ class DiagonalInner:
         self.weights = w
         self.n = w.shape[0]
         self.fingerprint = _digest(b"diagonal", w)
+        self.diagonal = Diagonal.of(w)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Return ``diag(w) @ X``."""
@@ -209,6 +235,7 @@ class MatrixInner:
         self.matrix = mat
         self.n = mat.shape[0]
         self._weights = diag.reshape(-1, 1) if diagonal else None
+        self.diagonal = Diagonal.of(diag) if diagonal else None
         # the CSR arrays of a sparse M, for the compiled product with a column-major block
         self._csr = ((mat.indptr.astype(np.int64), mat.indices.astype(np.int64), mat.data)
                      if sp.issparse(mat) and not diagonal else None)
@@ -222,7 +249,10 @@ class MatrixInner:
         with the same digits.
         """
         if self._weights is not None:
-            MX = X * (self._weights if X.ndim == 2 else self._weights[:, 0])
+            weights = self._weights if X.ndim == 2 else self._weights[:, 0]
+            if out is not None and not np.shares_memory(out, X):
+                return np.multiply(X, weights, out=out)
+            MX = X * weights
         elif (self._csr is not None and X.ndim == 2 and X.shape[1] >= 4
               and X.dtype == np.float64 and X.flags.f_contiguous):
             from streamsvd.algebra.sparse_kernels import csr_times_columns

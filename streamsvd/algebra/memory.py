@@ -162,7 +162,9 @@ class MemoryBasis(BasisBuffer):
         """
         w, b = self._w, Z.shape[1]
         MQZ = self._bufs[1][:, :w + b]
-        if self.inner.is_euclidean or not np.shares_memory(MQZ[:, w:], MZ):
+        if (self.inner.is_euclidean or getattr(self.inner, "diagonal", None) is not None
+                or not np.shares_memory(MQZ[:, w:], MZ)):
+            # a diagonal M's Gram is a rank-k update as well (algebra.blas.gram)
             return self.project(Z, None), gram(Z, self.inner, MZ)
         K = MQZ.T @ Z
         return K[:w], 0.5 * (K[w:] + K[w:].T)
@@ -319,6 +321,8 @@ class MemoryBasis(BasisBuffer):
         """Return the Gram ``Q^T M Q`` of written columns, symmetric."""
         if self.inner.is_euclidean:
             return Q.T @ Q  # a rank-k update (numpy calls syrk), symmetric
+        if getattr(self.inner, "diagonal", None) is not None:
+            return gram(Q, self.inner, MQ)  # a rank-k update of the weighted columns
         H = MQ.T @ Q
         return 0.5 * (H + H.T)
 

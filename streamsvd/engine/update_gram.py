@@ -19,7 +19,7 @@ from typing import Any, cast
 import numpy as np
 from scipy.linalg.lapack import dtrtri
 
-from streamsvd._util.scaling import pow2_exponent, scale_into
+from streamsvd._util.scaling import pow2_exponent, safe_m_norms, scale_into
 from streamsvd.algebra.interface import DeferredGram
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before
@@ -43,6 +43,7 @@ from streamsvd.engine.gram_path import (
     _path_applies,
     _products,
     _refused_before_block,
+    _refused_by_norms,
     _room,
     _times,
     _times_left,
@@ -52,6 +53,12 @@ from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthog
 from streamsvd.engine.update import COMPACT_PER_COLUMN, plan_rows
 
 __all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]
+
+
+# a block at least this wide is measured by its norms before its Gram, with an M that is
+# not the identity (one product with M, a few percent of the Gram's n b^2 flops for a
+# sparse M; the identity's norms cost n b)
+_NORMS_FIRST = 256
 
 
 def plan_absorb_by_gram(
@@ -76,6 +83,9 @@ def plan_absorb_by_gram(
         return None
     if _refused_before_block(state, trunc, b, n):
         return None
+    if (isinstance(X, np.ndarray) and (opts.inner.is_euclidean or b >= _NORMS_FIRST)
+            and _refused_by_norms(state, trunc, safe_m_norms(X, opts.inner), n)):
+        return None  # refused on the block's norms, before its Gram
     # with a relative or mean-l2 target the block's Gram alone can refuse the update:
     # the projection waits for that check (a backend reading the block in one pass
     # computes both anyway)

@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg import blas
 
 from streamsvd._util.scaling import scale_into, scaled_norm
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
-from streamsvd.linalg.blocks import ONE_PASS_COND, right_solve
+from streamsvd.linalg.blocks import ONE_PASS_COND, apply_into, right_solve
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
 
@@ -145,7 +146,8 @@ def extend_in_slices(
     n, b = X.shape
     Y = np.empty((n, width), order="F")
     MY = Y if inner.is_euclidean else np.empty((n, width), order="F")
-    Xs = np.empty((n, b), order="F")
+    # the block, scaled, in the basis's workspace, where its new directions go at the end
+    Xs, MXs = basis.workspace(b)
     exps, zero = scale_into(X, Xs, name=name)
     P = np.zeros((n, 0), order="F")
     MP = P
@@ -181,15 +183,17 @@ def extend_in_slices(
         basis.subtract(Xs, G, C)
         passes += 2
     R_new = MP.T @ Xs
-    Xs -= P @ R_new
-    MZ = Xs if inner.is_euclidean else np.asfortranarray(inner.apply(Xs))
+    if r:  # Xs -= P R_new, in place
+        res = blas.dgemm(-1.0, P, R_new, beta=1.0, c=Xs, overwrite_c=1)
+        if not np.shares_memory(res, Xs):
+            Xs[...] = res
+    MZ = apply_into(Xs, MXs, inner)
     energies = np.maximum(np.einsum("ij,ij->j", Xs, MZ), 0.0)
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.einsum("ij,ij->j", R_new, R_new)
                  + energies)
-    Yw, MYw = basis.workspace(b)
-    Yw[:, :r] = P
+    Xs[:, :r] = P
     if not inner.is_euclidean:
-        MYw[:, :r] = MP
+        MXs[:, :r] = MP
     cross = basis.project(P, None) if w and r else np.zeros((w, r))
     passes += 1 if w and r else 0
     C[:, zero] = 0.0

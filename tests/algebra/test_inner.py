@@ -202,3 +202,34 @@ def test_a_sparse_matrix_is_factorised_once_per_process(monkeypatch):
     bad.setdiag(np.full(n, 0.1))
     with pytest.raises(ss.InputError):
         ss.MatrixInner(bad)
+
+
+@pytest.mark.parametrize("kind", ["weights", "uniform sparse", "varying sparse"])
+@pytest.mark.parametrize("b", [3, 40])
+def test_a_diagonal_gram_is_the_weighted_product(kind, b, rng):
+    """With a diagonal M the Gram is a rank-k update of the weighted columns (wide
+    blocks): X^T M X to the rounding of a product of n terms, symmetric exactly."""
+    from streamsvd.algebra.blas import gram
+
+    n = 3000
+    w = np.full(n, 1 / 3600) if kind == "uniform sparse" else rng.uniform(0.1, 2.0, n)
+    inner = (ss.DiagonalInner(w) if kind == "weights"
+             else ss.StreamCompressor(n, inner=sp.diags_array(w).tocsr()).inner)
+    assert inner.diagonal is not None
+    assert (inner.diagonal.uniform is not None) == (kind == "uniform sparse")
+    X = np.asfortranarray(rng.standard_normal((n, b)))
+    G = gram(X, inner)
+    want = X.T @ (w[:, None] * X)
+    np.testing.assert_array_equal(G, G.T)
+    scale = np.sqrt(np.outer(np.diag(want), np.diag(want)))
+    assert np.max(np.abs(G - want) / scale) <= 4 * n * np.finfo(float).eps
+
+
+def test_a_diagonal_matrix_writes_its_product_where_asked(rng):
+    n = 500
+    w = rng.uniform(0.5, 1.5, n)
+    inner = ss.StreamCompressor(n, inner=sp.diags_array(w).tocsr()).inner
+    X = np.asfortranarray(rng.standard_normal((n, 6)))
+    out = np.empty_like(X, order="F")
+    assert inner.apply(X, out=out) is out
+    np.testing.assert_array_equal(out, w[:, None] * X)

@@ -4,6 +4,7 @@ digits the target needs."""
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 import streamsvd as ss
 import streamsvd.engine.update as update_module
@@ -129,12 +130,8 @@ def test_a_cut_by_rank_threshold_or_absolute_target_takes_the_gram_path(
     np.testing.assert_allclose(fast.amplitudes[:k], exact.amplitudes[:k], rtol=1e-6)
 
 
-@pytest.mark.parametrize("measure, target", [("absolute", 1e-5), ("relative", 1e-9)])
-def test_a_target_the_rounding_cannot_meet_skips_the_blocks_products(measure, target,
-                                                                      monkeypatch):
-    """Below what the Gram's rounding can certify the update is refused before the
-    block's M product and Gram (what the energy absorbed before, or a unit of it,
-    already allows), with the digits of the exact path alone."""
+def _count_products(monkeypatch):
+    """Count the block products of the Gram path (a list, one entry per product)."""
     import streamsvd.engine.update_gram as update_gram
 
     made = []
@@ -145,6 +142,16 @@ def test_a_target_the_rounding_cannot_meet_skips_the_blocks_products(measure, ta
         return products(*args, **kwargs)
 
     monkeypatch.setattr(update_gram, "_products", counted)
+    return made
+
+
+@pytest.mark.parametrize("measure, target", [("absolute", 1e-5), ("relative", 1e-9)])
+def test_a_target_the_rounding_cannot_meet_skips_the_blocks_products(measure, target,
+                                                                      monkeypatch):
+    """Below what the Gram's rounding can certify the update is refused before the
+    block's M product and Gram (what the energy absorbed before, or a unit of it,
+    already allows), with the digits of the exact path alone."""
+    made = _count_products(monkeypatch)
     A = _pulses()
     kw = {"target_error": target, "error_measure": measure}
     fast = _stream(A, **kw)
@@ -745,3 +752,27 @@ def test_a_zero_first_snapshot_keeps_the_block_on_the_gram_path(right_vectors):
             assert np.sqrt(w @ (E.U @ E.V[j]) ** 2) <= 100 * A.shape[0] * EPS * top
     sc.finalize()
     assert sc.error_in_measure <= 1e-3
+
+
+@pytest.mark.parametrize("weights", [None, "uniform", "varying"])
+def test_a_wide_block_the_rounding_cannot_meet_is_refused_on_its_norms(weights, monkeypatch):
+    """A block whose energy alone takes the Gram's rounding past the budget's growth is
+    refused on its columns' norms, before its Gram, with the same result."""
+    made = _count_products(monkeypatch)
+    A = _pulses(n=600, m=800)
+    kw = {"target_error": 1e-9, "error_measure": "mean_l2"}
+    if weights is not None:  # a diagonal M: weights, or a sparse diagonal matrix
+        w = np.full(600, 0.25) if weights == "uniform" else _weights(600)
+        kw["inner"] = sp.diags_array(w).tocsr() if weights == "uniform" else w
+    fast = _stream(A, block=400, **kw)
+    assert not any(_by_gram(r) for r in fast.history)
+    assert made == []
+    # without the check, the Gram is measured and the update refused after it
+    import streamsvd.engine.update_gram as update_gram
+
+    monkeypatch.setattr(update_gram, "_refused_by_norms", lambda *a, **k: False)
+    slow = _stream(A, block=400, **kw)
+    assert made and not any(_by_gram(r) for r in slow.history)
+    np.testing.assert_array_equal(fast.amplitudes, slow.amplitudes)
+    assert fast.error_bound == slow.error_bound
+
