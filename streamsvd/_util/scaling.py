@@ -101,8 +101,10 @@ def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
     """
     if Y.shape[0] == 0:
         return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
-    if isinstance(X, np.ndarray) and X.dtype == np.float64 and X.flags.f_contiguous:
+    if (isinstance(X, np.ndarray) and X.dtype in (np.float64, np.float32)
+            and X.flags.f_contiguous):
         # already column-major: the peaks taken on X, the scaled copy written in one pass
+        # (float32 widened exactly on the way)
         exps, peak = column_exponents(X)
         _check_peaks(X, peak, name)
         if np.all(np.abs(exps) < 1000):
