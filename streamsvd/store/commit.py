@@ -57,9 +57,9 @@ logger = logging.getLogger(__name__)
 #: metadata, so packs written compressed before stay readable.
 PACK_COMPRESSORS: tuple[Any, ...] = ()
 
-#: The threads that write a pack's chunks: 16 chunk files of 7 MB, each written and
-#: ``fsync``-ed, took 0.20-0.22 s on two threads against 0.33-0.37 s on one (three: no
-#: better), on the 2-core benchmark machine's local disk.
+#: The threads that write a pack's chunks, each written and ``fsync``-ed: the writes wait
+#: outside the GIL (a 107 MiB commit in 0.28 s against 0.60 s with one thread and the
+#: copies before, ``bench/studies/commit-benchmark.md``).
 WRITE_THREADS = 2
 
 
