@@ -16,8 +16,8 @@ from streamsvd._util.slabs import copy_by_row_slabs, row_slabs
 from streamsvd._util.validation import check_finite
 
 __all__ = [
-    "column_exponents", "pow2_exponent", "safe_column_norms", "safe_m_norms", "safe_norm",
-    "scale_into", "scaled_norm", "top_exponent",
+    "block_exponents", "column_exponents", "pow2_exponent", "safe_column_norms",
+    "safe_m_norms", "safe_norm", "scale_by", "scale_into", "scaled_norm", "top_exponent",
 ]
 
 
@@ -107,9 +107,8 @@ def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
         # (float32 widened exactly on the way)
         exps, peak = column_exponents(X)
         _check_peaks(X, peak, name)
-        if np.all(np.abs(exps) < 1000):
-            np.multiply(X, np.ldexp(1.0, -exps), out=Y)
-            return exps, peak == 0
+        scale_by(X, exps, Y)
+        return exps, peak == 0
     copy_by_row_slabs(Y, X)
     exps, peak = column_exponents(Y)
     _check_peaks(X, peak, name)
@@ -118,6 +117,28 @@ def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
     else:
         np.ldexp(Y, -exps[np.newaxis, :], out=Y)
     return exps, peak == 0
+
+
+def block_exponents(X: np.ndarray, *, name: str | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the exponents :func:`scale_into` scales ``X``'s columns by, and its zero columns.
+
+    ``name`` given, a NaN or infinite entry raises
+    :class:`~streamsvd.errors.NonFiniteError` naming it. For a block scaled later in
+    parts (:func:`scale_by`).
+    """
+    exps, peak = column_exponents(X)
+    _check_peaks(X, peak, name)
+    return exps, peak == 0
+
+
+def scale_by(X: np.ndarray, exps: np.ndarray, Y: np.ndarray) -> None:
+    """Write ``X 2^-e`` into ``Y`` (exact), ``e = exps`` per column."""
+    if np.all(np.abs(exps) < 1000):  # the factors 2^-e are representable: one multiply
+        np.multiply(X, np.ldexp(1.0, -exps), out=Y)
+    else:
+        copy_by_row_slabs(Y, X)
+        np.ldexp(Y, -exps[np.newaxis, :], out=Y)
 
 
 def _check_peaks(X: np.ndarray, peak: np.ndarray, name: str | None) -> None:

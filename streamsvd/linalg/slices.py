@@ -9,9 +9,11 @@ what the round before left. A block of ``b`` columns taken in slices of ``s`` co
 standing beside the basis (:class:`_Beside`, so that its projections, their second pass
 and the rounds' re-projections cover them), each slice with its share of the budget that
 may be set aside. Then it decomposes the whole block once on the basis and on the
-directions found: what is left is the rejected part, orthogonal to every kept direction
-and measured on the vectors, column by column (``BasisExtension.column_energies``), so
-that its norm is exact whatever the slices set aside. A compressor with a target (a
+directions found, a slice at a time (the block is never held whole; the basis's
+workspace receives the new directions alone): what is left is the rejected part,
+orthogonal to every kept direction and measured on the vectors, column by column
+(``BasisExtension.column_energies``), so that its norm is exact whatever the slices set
+aside. A compressor with a target (a
 budget to set aside) takes blocks of at least two slices this way while its basis is
 narrower than a slice (:func:`slice_width`).
 """
@@ -22,11 +24,11 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg import blas
 
-from streamsvd._util.scaling import scale_into, scaled_norm
+from streamsvd._util.scaling import block_exponents, scale_by, scaled_norm
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
-from streamsvd.linalg.blocks import ONE_PASS_COND, apply_into, right_solve
+from streamsvd.linalg.blocks import ONE_PASS_COND, apply_into, place_directions, right_solve
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
 
@@ -146,9 +148,7 @@ def extend_in_slices(
     n, b = X.shape
     Y = np.empty((n, width), order="F")
     MY = Y if inner.is_euclidean else np.empty((n, width), order="F")
-    # the block, scaled, in the basis's workspace, where its new directions go at the end
-    Xs, MXs = basis.workspace(b)
-    exps, zero = scale_into(X, Xs, name=name)
+    exps, zero = block_exponents(X, name=name)
     P = np.zeros((n, 0), order="F")
     MP = P
     accepted: list[np.ndarray] = []
@@ -176,24 +176,31 @@ def extend_in_slices(
             P = np.hstack([P, Qi])
             MP = P if inner.is_euclidean else np.hstack([MP, MQi])
     r = P.shape[1]
-    # the whole block on the basis, then on the new directions: what is left is rejected
+    # the whole block on the basis, then on the new directions, a slice at a time in the
+    # slices' workspace: what is left is rejected, measured (the basis's workspace holds
+    # the new directions alone, not the block)
     w = basis.width
-    C = basis.project(Xs, G) if w else np.zeros((0 if G is None else G.shape[1], b))
-    if w:
-        basis.subtract(Xs, G, C)
-        passes += 2
-    R_new = MP.T @ Xs
-    if r:  # Xs -= P R_new, in place
-        res = blas.dgemm(-1.0, P, R_new, beta=1.0, c=Xs, overwrite_c=1)
-        if not np.shares_memory(res, Xs):
-            Xs[...] = res
-    MZ = apply_into(Xs, MXs, inner)
-    energies = np.maximum(np.einsum("ij,ij->j", Xs, MZ), 0.0)
+    C = np.zeros((w if G is None else G.shape[1], b))
+    R_new = np.zeros((r, b))
+    energies = np.zeros(b)
+    for start in range(0, b, width):
+        cols = slice(start, min(start + width, b))
+        Z = Y[:, :cols.stop - start]
+        scale_by(X[:, cols], exps[cols], Z)
+        if w:
+            C[:, cols] = basis.project(Z, G)
+            basis.subtract(Z, G, C[:, cols])
+            passes += 2
+        R_new[:, cols] = MP.T @ Z
+        if r:  # Z -= P R_new, in place
+            res = blas.dgemm(-1.0, P, R_new[:, cols], beta=1.0, c=Z, overwrite_c=1)
+            if not np.shares_memory(res, Z):
+                Z[...] = res
+        MZ = apply_into(Z, MY[:, :Z.shape[1]], inner)
+        energies[cols] = np.maximum(np.einsum("ij,ij->j", Z, MZ), 0.0)
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.einsum("ij,ij->j", R_new, R_new)
                  + energies)
-    Xs[:, :r] = P
-    if not inner.is_euclidean:
-        MXs[:, :r] = MP
+    place_directions(P, *basis.workspace(r), inner, MP)
     cross = basis.project(P, None) if w and r else np.zeros((w, r))
     passes += 1 if w and r else 0
     C[:, zero] = 0.0
