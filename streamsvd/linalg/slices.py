@@ -183,6 +183,8 @@ def extend_in_slices(
     C = np.zeros((w if G is None else G.shape[1], b))
     R_new = np.zeros((r, b))
     energies = np.zeros(b)
+    P = np.asfortranarray(P)  # for the in-place products below, once
+    passes += 2 if w else 0  # the block's projection on the basis and its subtraction
     for start in range(0, b, width):
         cols = slice(start, min(start + width, b))
         Z = Y[:, :cols.stop - start]
@@ -190,7 +192,6 @@ def extend_in_slices(
         if w:
             C[:, cols] = basis.project(Z, G)
             basis.subtract(Z, G, C[:, cols])
-            passes += 2
         R_new[:, cols] = MP.T @ Z
         if r:  # Z -= P R_new, in place
             res = blas.dgemm(-1.0, P, R_new[:, cols], beta=1.0, c=Z, overwrite_c=1)
