@@ -31,7 +31,7 @@ import zarr.codecs
 from _common import Run, machine_info, out_dir, print_table, pyplot
 
 from streamsvd.store import BasisStore
-from streamsvd.store import commit as commit_module
+from streamsvd.store import pack as pack_module
 
 FP = "commit-benchmark"
 
@@ -70,16 +70,16 @@ def run(n: int, k: int, repeat: int, directory: str | None) -> dict[str, Any]:
     """Time both layouts; return the report."""
     Q = np.asfortranarray(np.random.default_rng(0).standard_normal((n, k)))
     rows = []
-    default = commit_module.PACK_COMPRESSORS
+    default = pack_module.PACK_COMPRESSORS
     with tempfile.TemporaryDirectory(dir=directory) as tmp:
         for layout in ("stored as is", "zstd level 3"):
-            commit_module.PACK_COMPRESSORS = (
+            pack_module.PACK_COMPRESSORS = (
                 default if layout == "stored as is"
                 else (zarr.codecs.ZstdCodec(level=3, checksum=False),))
             try:
                 rows.append(measure(Q, Path(tmp), layout, repeat))
             finally:
-                commit_module.PACK_COMPRESSORS = default
+                pack_module.PACK_COMPRESSORS = default
     return {"n": n, "k": k, "megabytes": Q.nbytes / 2**20, "rows": rows,
             "machine": machine_info()}
 

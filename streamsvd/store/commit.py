@@ -23,9 +23,6 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
 
 import numpy as np
-import zarr
-import zarr.codecs
-from zarr.storage import MemoryStore
 
 from streamsvd.errors import InputError, StoreError, StoreLockedError
 from streamsvd.storage import Storage, remote_errors
@@ -46,72 +43,16 @@ from streamsvd.store.format import (
     root_record,
     unreadable,
 )
-from streamsvd.store.segments import Appended, Packed, Piece, pack, plan_appended, plan_whole
+from streamsvd.store.pack import Packed, encode_pack, pack
+from streamsvd.store.segments import Appended, Piece, plan_appended, plan_whole
 
 logger = logging.getLogger(__name__)
 
-
-#: The codecs a pack's chunks are compressed with: none. A pack is mostly the basis, whose
-#: floating-point digits zstd (level 3) shrank by 4 % for a third of a commit's processor
-#: time and 43 % of a read's (``bench/commit_benchmark.py``). Readers follow each pack's own
-#: metadata, so packs written compressed before stay readable.
-PACK_COMPRESSORS: tuple[Any, ...] = ()
 
 #: The threads that write a pack's chunks, each written and ``fsync``-ed: the writes wait
 #: outside the GIL (a 107 MiB commit in 0.28 s against 0.60 s with one thread and the
 #: copies before, ``bench/studies/commit-benchmark.md``).
 WRITE_THREADS = 2
-
-
-def encode_pack(data: np.ndarray | Packed, doc: dict[str, Any], chunk_bytes: int
-                ) -> dict[str, Any]:
-    """Encode the pack ``data`` (a flat array with attributes ``doc``) as zarr objects.
-
-    Without compressors a chunk is the little-endian bytes of its elements (the last one
-    padded with the fill value 0 to a whole chunk), taken from ``data`` directly: a
-    ``memoryview`` of the data where a chunk lies in one piece (:meth:`Packed.chunks`),
-    where zarr would copy each chunk twice on the way (into its buffers, then into
-    bytes), 0.2 s of a 100 MB commit. The objects are the same bytes as zarr writes
-    (tested).
-    """
-    packed = data if isinstance(data, Packed) else Packed(
-        (np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<")).reshape(-1),),
-        data.dtype)
-    size = packed.size
-    # equal chunks of at most chunk_bytes: the last one is not padded by a chunk's worth
-    most = max(1, chunk_bytes // packed.dtype.itemsize)
-    chunk = max(1, -(-size // -(-size // most))) if size else 1
-    memory: dict[str, Any] = {}
-    arr = zarr.create_array(
-        store=MemoryStore(memory),
-        name="pack",
-        shape=(size,),
-        chunks=(chunk,),
-        dtype=packed.dtype,
-        compressors=PACK_COMPRESSORS,
-        fill_value=0.0,
-        attributes=doc,
-        chunk_key_encoding={"name": "default", "separator": "."},
-        config={"write_empty_chunks": True},
-    )
-    if size and _raw_chunks(arr, packed.dtype):
-        objects: dict[str, Any] = {f"c.{i}": blob for i, blob in enumerate(packed.chunks(chunk))}
-        objects["zarr.json"] = memory["pack/zarr.json"].to_bytes()
-    else:
-        if size:
-            arr[...] = np.asarray(packed)
-        objects = {k[len("pack/"):]: v.to_bytes() for k, v in memory.items()
-                   if k.startswith("pack/")}
-    # the metadata first: it claims the generation; then the chunks in order
-    return {"zarr.json": objects.pop("zarr.json"), **dict(sorted(objects.items()))}
-
-
-def _raw_chunks(arr: Any, dtype: np.dtype) -> bool:
-    """Whether ``arr``'s chunks are the raw little-endian bytes of its ``dtype`` elements."""
-    codecs = arr.metadata.codecs
-    return (dtype.kind == "f" and len(codecs) == 1
-            and isinstance(codecs[0], zarr.codecs.BytesCodec)
-            and str(getattr(codecs[0].endian, "value", codecs[0].endian)) in ("little", "None"))
 
 
 def _write_pack(

@@ -38,7 +38,7 @@ import numpy as np
 from streamsvd._util.validation import check_finite
 from streamsvd.errors import InputError
 
-__all__ = ["Appended", "Packed", "Piece", "assemble", "pack", "plan_appended", "plan_whole"]
+__all__ = ["Appended", "Piece", "assemble", "digest", "plan_appended", "plan_whole"]
 
 
 @dataclass(frozen=True)
@@ -201,79 +201,6 @@ def plan_appended(
     piece = _segment(generation, _convert(part, dtype, label))
     record["segments"].append(piece.segment)
     return record, [piece]
-
-
-@dataclass(frozen=True)
-class Packed:
-    """The flat data of a pack: its pieces' elements in order, never concatenated.
-
-    Attributes
-    ----------
-    parts : tuple of ndarray
-        One flat, C-contiguous, little-endian array per piece, in pack order (views of
-        the pieces' data where their layout allows).
-    dtype : numpy.dtype
-        The pack's element type.
-    """
-
-    parts: tuple[np.ndarray, ...]
-    dtype: np.dtype
-
-    @property
-    def size(self) -> int:
-        """Number of elements."""
-        return sum(int(p.size) for p in self.parts)
-
-    def chunks(self, chunk: int) -> list[Any]:
-        """Return the bytes of each chunk of ``chunk`` elements, the last one padded with zeros.
-
-        A chunk inside one part is a read-only ``memoryview`` of it (no copy); a chunk
-        across parts, or the padded last one, is ``bytes``.
-        """
-        out: list[Any] = []
-        pending: list[np.ndarray] = []  # the start of a chunk that crosses parts
-        filled = 0
-        for part in self.parts:
-            a = 0
-            while a < part.size:
-                take = min(chunk - filled, part.size - a)
-                piece = part[a : a + take]
-                a += take
-                if not pending and take == chunk:
-                    out.append(piece.view(np.uint8).data.toreadonly())
-                    continue
-                pending.append(piece)
-                filled += take
-                if filled == chunk:
-                    out.append(np.concatenate(pending).tobytes())
-                    pending, filled = [], 0
-        if pending:
-            pending.append(np.zeros(chunk - filled, self.dtype.newbyteorder("<")))
-            out.append(np.concatenate(pending).tobytes())
-        return out
-
-    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
-        flat = (np.concatenate(self.parts) if self.parts
-                else np.zeros(0, self.dtype.newbyteorder("<")))
-        return flat if dtype is None else flat.astype(dtype, copy=False)
-
-
-def pack(pieces: list[Piece], dtype: np.dtype) -> Packed:
-    """Return the pack of ``pieces``; fill their offsets and SHA-256.
-
-    Nothing is copied when a piece is already C-contiguous, little-endian and of
-    ``dtype``.
-    """
-    offset = 0
-    parts = []
-    le = np.dtype(dtype).newbyteorder("<")
-    for piece in pieces:
-        piece.segment["offset"] = offset
-        flat = np.ascontiguousarray(piece.data, dtype=le).reshape(-1)
-        piece.segment["sha256"] = digest(flat)
-        parts.append(flat)
-        offset += flat.size
-    return Packed(tuple(parts), np.dtype(dtype))
 
 
 def assemble(

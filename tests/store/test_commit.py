@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-import streamsvd.store.commit as commit
-from streamsvd.store.segments import Packed
+import streamsvd.store.pack as pack_mod
+from streamsvd.store.pack import Packed
 
 
 @pytest.mark.parametrize("size", [0, 1, 7, 1000, 4097, 12345])
@@ -16,9 +16,9 @@ def test_raw_chunks_are_zarrs_bytes(rng, monkeypatch, size, dtype, chunk_bytes):
     data = rng.standard_normal(size).astype(dtype)
     data[: min(3, size)] = 0.0
     doc = {"streamsvd": {"generation": 3}, "attrs": {"a": [1, 2]}}
-    fast = commit.encode_pack(data, doc, chunk_bytes)
-    monkeypatch.setattr(commit, "_raw_chunks", lambda arr, data: False)
-    assert list(fast) == list(want := commit.encode_pack(data, doc, chunk_bytes))
+    fast = pack_mod.encode_pack(data, doc, chunk_bytes)
+    monkeypatch.setattr(pack_mod, "_raw_chunks", lambda arr, data: False)
+    assert list(fast) == list(want := pack_mod.encode_pack(data, doc, chunk_bytes))
     assert list(fast)[0] == "zarr.json"
     assert all(fast[k] == want[k] for k in want)
 
@@ -30,8 +30,8 @@ def test_a_pack_of_pieces_is_the_concatenation(rng, sizes, chunk_bytes):
     of a piece's memory where they lie inside it."""
     parts = tuple(rng.standard_normal(s) for s in sizes)
     doc = {"streamsvd": {"generation": 1}, "attrs": {}}
-    fast = commit.encode_pack(Packed(parts, np.dtype(np.float64)), doc, chunk_bytes)
-    want = commit.encode_pack(np.concatenate(parts), doc, chunk_bytes)
+    fast = pack_mod.encode_pack(Packed(parts, np.dtype(np.float64)), doc, chunk_bytes)
+    want = pack_mod.encode_pack(np.concatenate(parts), doc, chunk_bytes)
     assert list(fast) == list(want)
     assert all(bytes(fast[k]) == want[k] for k in want)
     views = [blob for blob in fast.values() if isinstance(blob, memoryview)]

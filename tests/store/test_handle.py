@@ -13,6 +13,7 @@ import pytest
 
 import streamsvd.storage.local as storage_mod
 import streamsvd.store.commit as store_mod
+import streamsvd.store.pack as pack_mod
 from streamsvd.errors import (
     InputError,
     NonFiniteError,
@@ -223,7 +224,7 @@ def test_packs_compressed_by_an_earlier_version_are_read_and_appended_to(
 
     T = rng.standard_normal((50, 4))
     with BasisStore.create(tmp_path / "s", n=7, inner_fingerprint=FP, chunk_bytes=256) as s:
-        monkeypatch.setattr(store_mod, "PACK_COMPRESSORS",
+        monkeypatch.setattr(pack_mod, "PACK_COMPRESSORS",
                             (zarr.codecs.ZstdCodec(level=3, checksum=False),))
         s.commit({"a": np.ones(3)}, appended={"T": Appended(T[:30], axis=0)})
         meta = json.loads((s.path / "generations/g00000001/zarr.json").read_text())
