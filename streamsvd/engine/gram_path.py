@@ -109,10 +109,20 @@ def _refused_by_norms(state: State, trunc: Truncation, norms: np.ndarray, n: int
     e = max(pow2_exponent(live), pow2_exponent(state.R) if state.R.size else -_MAX_SPREAD)
     if abs(e) > _MAX_SPREAD // 2:  # left to the checks on the Gram
         return False
-    block = float(np.sum(np.ldexp(live, -e) ** 2))
-    old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2 if state.R.size else 0.0
-    return (_allowance(old + block, state.R.shape[0] + norms.size, n)
-            > _ALLOWANCE_SHARE * _room(trunc, np.zeros(0), block, norms.size, e))
+    return _block_refused(state, trunc, float(np.sum(np.ldexp(live, -e) ** 2)), norms.size,
+                          n, e)
+
+
+def _block_refused(state: State, trunc: Truncation, block_energy: float, b: int, n: int,
+                   top: int) -> bool:
+    """Whether the rounding of ``||F||^2 = ||R||^2 + ||X||^2`` exceeds its share of the room.
+
+    ``block_energy`` is ``||X||^2`` scaled by ``4^-top`` (as :func:`_room` takes it), ``b``
+    the block's columns.
+    """
+    old = float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2 if state.R.size else 0.0
+    return (_allowance(old + block_energy, state.R.shape[0] + b, n)
+            > _ALLOWANCE_SHARE * _room(trunc, np.zeros(0), block_energy, b, top))
 
 
 def _refused_absolute(state: State, trunc: Truncation, cols: int, n: int) -> bool:

@@ -34,6 +34,7 @@ from streamsvd.engine.gram_path import (
     _SMALLEST_KEPT,
     GRAM_MEASURES,
     _allowance,
+    _block_refused,
     _cancellation_energy,
     _compaction_pays,
     _declined,
@@ -79,7 +80,6 @@ def plan_absorb_by_gram(
     if not _path_applies(opts, n):
         return None
     basis = state.basis
-    k = state.R.shape[0]
     if not (_compaction_pays(basis.width, b, state.rank)
             or basis.defers_gram and _keeps_block(basis.width, b, state.rank)):
         return None
@@ -127,9 +127,7 @@ def plan_absorb_by_gram(
     if measured_first:
         # the budget's growth is known before the projection: with ||F||^2 = ||R||^2 +
         # ||X||^2 (U orthonormal), a target the rounding cannot meet skips it
-        energy = float(np.linalg.norm(np.ldexp(state.R, -top))) ** 2 + block_energy
-        if _allowance(energy, k + b, n) > _ALLOWANCE_SHARE * _room(
-                trunc, np.zeros(0), block_energy, b, top):
+        if _block_refused(state, trunc, block_energy, b, n, top):
             return _declined(basis)
     if C is None:
         C = basis.project(Y, None) if basis.width else np.zeros((0, b))
