@@ -1,7 +1,5 @@
 """``python -m streamsvd.cli`` runs the command line."""
 
-import sys
+from streamsvd.cli import console
 
-from streamsvd.cli import main
-
-sys.exit(main())
+console()
