@@ -7,10 +7,11 @@ block Gram-Schmidt (:mod:`streamsvd.linalg.blocks`) both measure blocks with the
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import blas
 
 from streamsvd.algebra.inner import InnerProduct, MatrixInner
 
-__all__ = ["apply_into", "gram", "m_norms"]
+__all__ = ["apply_into", "gram", "m_norms", "subtract_product"]
 
 # with a diagonal M, blocks at least this wide take the rank-k update (half the flops of
 # X^T (M X)); a narrower block's weighted copy would cost about what the update saves
@@ -23,6 +24,20 @@ def apply_into(inner: InnerProduct, X: np.ndarray, out: np.ndarray) -> np.ndarra
         return inner.apply(X, out=out)
     out[...] = inner.apply(X)
     return out
+
+
+def subtract_product(X: np.ndarray, A: np.ndarray, K: np.ndarray) -> None:
+    """``X -= A K`` in place: one gemm into ``X`` when it is column-major float64.
+
+    Otherwise (another layout or dtype) the product is formed, then subtracted.
+    """
+    if X.size == 0 or A.shape[1] == 0:
+        return
+    if X.flags.f_contiguous and X.dtype == np.float64:
+        out = blas.dgemm(-1.0, A, K, beta=1.0, c=X, overwrite_c=1)
+        if np.shares_memory(out, X):
+            return
+    X -= A @ K
 
 
 def m_norms(X: np.ndarray, inner: InnerProduct, MX: np.ndarray | None = None) -> np.ndarray:

@@ -31,7 +31,7 @@ import scipy.linalg.blas as blas
 from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
 from streamsvd.algebra.blas import apply_into as m_apply_into
-from streamsvd.algebra.blas import gram
+from streamsvd.algebra.blas import gram, subtract_product
 from streamsvd.algebra.buffer import BasisBuffer
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisBackend
@@ -144,14 +144,8 @@ class MemoryBasis(BasisBuffer):
 
     def subtract(self, X: np.ndarray, G: np.ndarray | None, C: np.ndarray) -> None:
         """``X -= Q (G C)`` in place (``G = None``: the identity), one gemm when possible."""
-        K = C if G is None else G @ C
-        if X.size == 0 or self._w == 0:
-            return
-        if X.flags.f_contiguous:
-            out = blas.dgemm(-1.0, self.Q, K, beta=1.0, c=X, overwrite_c=1)
-            if np.shares_memory(out, X):
-                return
-        X -= self.Q @ K
+        if self._w:
+            subtract_product(X, self.Q, C if G is None else G @ C)
 
     def residual_products(self, Z: np.ndarray, MZ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return ``MQ^T Z`` and ``Z^T M Z`` for the workspace ``Z`` (``MZ`` its image).

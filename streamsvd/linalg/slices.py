@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg import blas
 
 from streamsvd._util.scaling import block_exponents, scale_by, scaled_norm
-from streamsvd.algebra.blas import gram
+from streamsvd.algebra.blas import gram, subtract_product
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
 from streamsvd.linalg.blocks import ONE_PASS_COND, apply_into, place_directions, right_solve
@@ -101,7 +100,7 @@ class _Beside:
         K = C if G is None else G @ C
         w = self.basis.width
         self.basis.subtract(X, None, K[:w])
-        X -= self.P @ K[w:]
+        subtract_product(X, self.P, K[w:])
 
     def residual_products(self, Z: np.ndarray, MZ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cross, S = self.basis.residual_products(Z, MZ)
@@ -109,6 +108,49 @@ class _Beside:
 
     def workspace(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         return self.Y[:, :b], self.MY[:, :b]
+
+
+class _Directions:
+    """The directions the slices found and their images, in buffers that double when full.
+
+    ``P`` and ``MP`` are column-major views of the first columns (``MP`` is ``P`` with
+    the Euclidean product); appending copies only the new columns, where stacking copied
+    every column found before at each slice.
+    """
+
+    def __init__(self, n: int, capacity: int, euclidean: bool) -> None:
+        self._euclidean = euclidean
+        self._P = np.empty((n, capacity), order="F")
+        self._MP = self._P if euclidean else np.empty((n, capacity), order="F")
+        self._r = 0
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._P[:, :self._r]
+
+    @property
+    def MP(self) -> np.ndarray:
+        return self._MP[:, :self._r]
+
+    def append(self, Q: np.ndarray, MQ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Append the directions ``Q`` (images ``MQ``); return the new ``(P, MP)``."""
+        r, k = self._r, Q.shape[1]
+        if r + k > self._P.shape[1]:
+            size = max(2 * self._P.shape[1], r + k)
+            self._P = _widened(self._P, r, size)
+            self._MP = self._P if self._euclidean else _widened(self._MP, r, size)
+        self._P[:, r:r + k] = Q
+        if not self._euclidean:
+            self._MP[:, r:r + k] = MQ
+        self._r = r + k
+        return self.P, self.MP
+
+
+def _widened(A: np.ndarray, used: int, size: int) -> np.ndarray:
+    """Return a column-major buffer of ``size`` columns holding ``A``'s first ``used``."""
+    out = np.empty((A.shape[0], size), order="F")
+    out[:, :used] = A[:, :used]
+    return out
 
 
 def _coordinates(G: np.ndarray | None, r: int) -> np.ndarray | None:
@@ -149,8 +191,8 @@ def extend_in_slices(
     Y = np.empty((n, width), order="F")
     MY = Y if inner.is_euclidean else np.empty((n, width), order="F")
     exps, zero = block_exponents(X, name=name)
-    P = np.zeros((n, 0), order="F")
-    MP = P
+    found = _Directions(n, width, inner.is_euclidean)
+    P, MP = found.P, found.MP
     accepted: list[np.ndarray] = []
     passes = 0
     for start in range(0, b, width):
@@ -173,8 +215,7 @@ def extend_in_slices(
             Qi = np.array(Y[:, :ext.rank], order="F")
             Qi, MQi, more = _orthonormal_beside(beside, G_beside, Qi, inner)
             passes += more
-            P = np.hstack([P, Qi])
-            MP = P if inner.is_euclidean else np.hstack([MP, MQi])
+            P, MP = found.append(Qi, MQi)
     r = P.shape[1]
     # the whole block on the basis, then on the new directions, a slice at a time in the
     # slices' workspace: what is left is rejected, measured (the basis's workspace holds
@@ -183,7 +224,6 @@ def extend_in_slices(
     C = np.zeros((w if G is None else G.shape[1], b))
     R_new = np.zeros((r, b))
     energies = np.zeros(b)
-    P = np.asfortranarray(P)  # for the in-place products below, once
     passes += 2 if w else 0  # the block's projection on the basis and its subtraction
     for start in range(0, b, width):
         cols = slice(start, min(start + width, b))
@@ -193,10 +233,7 @@ def extend_in_slices(
             C[:, cols] = basis.project(Z, G)
             basis.subtract(Z, G, C[:, cols])
         R_new[:, cols] = MP.T @ Z
-        if r:  # Z -= P R_new, in place
-            res = blas.dgemm(-1.0, P, R_new[:, cols], beta=1.0, c=Z, overwrite_c=1)
-            if not np.shares_memory(res, Z):
-                Z[...] = res
+        subtract_product(Z, P, R_new[:, cols])
         MZ = apply_into(Z, MY[:, :Z.shape[1]], inner)
         energies[cols] = np.maximum(np.einsum("ij,ij->j", Z, MZ), 0.0)
     nu = np.sqrt(np.einsum("ij,ij->j", C, C) + np.einsum("ij,ij->j", R_new, R_new)

@@ -12,6 +12,7 @@ import scipy.sparse as sp
 
 import streamsvd as ss
 import streamsvd.algebra.spd as inner_module
+from streamsvd.algebra.blas import subtract_product
 from streamsvd.cli import main
 
 EPS = np.finfo(np.float64).eps
@@ -233,3 +234,20 @@ def test_a_diagonal_matrix_writes_its_product_where_asked(rng):
     out = np.empty_like(X, order="F")
     assert inner.apply(X, out=out) is out
     np.testing.assert_array_equal(out, w[:, None] * X)
+
+
+@pytest.mark.parametrize("order", ["F", "C"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_subtract_product_subtracts_in_place(order, dtype):
+    rng = np.random.default_rng(3)
+    X = np.array(rng.standard_normal((50, 7)), dtype=dtype, order=order)
+    A, K = rng.standard_normal((50, 4)), rng.standard_normal((4, 7))
+    expected = X - A @ K
+    before = X
+    subtract_product(X, A, K)
+    assert X is before
+    np.testing.assert_allclose(X, expected, rtol=0,
+                               atol=8 * 4 * np.finfo(dtype).eps * np.abs(expected).max())
+    subtract_product(X, A[:, :0], K[:0])  # nothing to subtract
+    np.testing.assert_allclose(X, expected, rtol=0,
+                               atol=8 * 4 * np.finfo(dtype).eps * np.abs(expected).max())

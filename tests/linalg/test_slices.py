@@ -81,6 +81,24 @@ def test_a_wide_block_in_slices_is_decomposed_exactly(euclidean, first, scale):
         ext.rejected_norm(np.ones((2, b)))
 
 
+@pytest.mark.parametrize("euclidean", [True, False])
+def test_slices_that_keep_every_column_grow_their_directions_past_a_slice(euclidean):
+    # independent columns: every slice keeps all its own, so the directions found
+    # outgrow the first buffer (one slice) twice
+    n, b, width = 300, 200, 50
+    X = np.random.default_rng(5).standard_normal((n, b))
+    ip = as_inner(None if euclidean else _mass(n), n)
+    basis = MemoryBasis(n, ip, capacity=2 * b)
+    ext = extend_in_slices(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
+                           basis_gram=None, aside=(1e-30, 0.0), width=width)
+    assert ext.rank == b
+    Qn = basis.workspace(b)[0][:, :b].copy()
+    assert np.linalg.norm(Qn.T @ ip.apply(Qn) - np.eye(b), 2) <= 100 * n * EPS
+    scale = np.linalg.norm(X, 2)
+    np.testing.assert_allclose(Qn @ ext.R_new, X, rtol=0, atol=100 * n * EPS * scale)
+    assert ext.rejected_norm() <= 100 * n * EPS * scale
+
+
 def test_slices_find_the_span_the_whole_block_finds():
     n, b = 400, 240
     X = _pulse(n, b)
