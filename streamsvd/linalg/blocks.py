@@ -17,7 +17,7 @@ import numpy as np
 import scipy.linalg.blas as blas
 
 from streamsvd.algebra.blas import apply_into as m_apply_into
-from streamsvd.algebra.blas import gram, m_norms
+from streamsvd.algebra.blas import gram, m_norms, subtract_product
 from streamsvd.algebra.inner import InnerProduct
 
 if TYPE_CHECKING:
@@ -190,7 +190,7 @@ def orthonormalize_in_rounds(
                     passes += 2
                 for i, (Qp, MQp) in enumerate(zip(parts, mparts, strict=True)):
                     c = MQp.T @ Zc
-                    Zc -= Qp @ c
+                    subtract_product(Zc, Qp, c)
                     rows[i] += _mapped(c, Fc)
                 MZc = _image(Zc, inner)
                 after = m_norms(Zc, inner, MZc)
