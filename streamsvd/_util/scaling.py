@@ -103,8 +103,12 @@ def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
         return np.zeros(Y.shape[1], dtype=np.int64), np.ones(Y.shape[1], dtype=bool)
     if (isinstance(X, np.ndarray) and X.dtype in (np.float64, np.float32)
             and X.flags.f_contiguous):
-        # already column-major: the peaks taken on X, the scaled copy written in one pass
-        # (float32 widened exactly on the way)
+        # already column-major: each column's peak taken where it lies and the column
+        # written scaled while it is in the cache (float32 widened exactly on the way);
+        # a block with a NaN, an infinity or an extreme exponent takes the numpy form
+        scaled = _scale_columns(X, Y)
+        if scaled is not None:
+            return scaled
         exps, peak = column_exponents(X)
         _check_peaks(X, peak, name)
         scale_by(X, exps, Y)
@@ -117,6 +121,30 @@ def scale_into(X: np.ndarray, Y: np.ndarray, *, name: str | None = None
     else:
         np.ldexp(Y, -exps[np.newaxis, :], out=Y)
     return exps, peak == 0
+
+
+# the integer image of each float format: (integer type, mask of the sign bit, mantissa
+# bits, exponent bias)
+_FORMATS: dict[np.dtype[Any], tuple[type[np.signedinteger[Any]], int, int, int]] = {
+    np.dtype(np.float64): (np.int64, 0x7FFF_FFFF_FFFF_FFFF, 52, 1023),
+    np.dtype(np.float32): (np.int32, 0x7FFF_FFFF, 23, 127),
+}
+
+
+def _scale_columns(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Scale ``X`` into ``Y`` by the compiled kernel; None when it declines the block.
+
+    It declines a block holding a NaN or an infinity, or with a column whose exponent
+    lies beyond +-1000 (:func:`streamsvd._util.scaling_kernels.scale_columns`).
+    """
+    from streamsvd._util.scaling_kernels import scale_columns
+
+    ints, mask, mantissa, bias = _FORMATS[X.dtype]
+    exps = np.zeros(X.shape[1], dtype=np.int64)
+    zero = np.zeros(X.shape[1], dtype=np.bool_)
+    if scale_columns(X, X.view(ints), ints(mask), mantissa, bias, Y, exps, zero):
+        return None
+    return exps, zero
 
 
 def block_exponents(X: np.ndarray, *, name: str | None = None

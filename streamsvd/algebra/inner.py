@@ -36,6 +36,10 @@ if TYPE_CHECKING:
 else:  # imported by the first sparse inner product (0.1 s that `streamsvd info` need not pay)
     sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
 
+# the dtypes of the blocks the compiled sparse product reads where they are (float32
+# widened exactly, as scipy does)
+_KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))
+
 __all__ = [
     "DiagonalInner",
     "Euclidean",
@@ -243,18 +247,18 @@ class MatrixInner:
     def apply(self, X: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Return ``M @ X`` (written into ``out``, of the shape of ``X``, when given).
 
-        A sparse ``M`` times a column-major block of float64 goes through
-        :func:`~streamsvd.algebra.sparse_kernels.csr_times_columns`, which reads the
-        columns where they are (scipy's product copies the block to row-major and back),
-        with the same digits.
+        A sparse ``M`` times a column-major block of two or more columns of float64 or
+        float32 goes through :func:`~streamsvd.algebra.sparse_kernels.csr_times_columns`,
+        which reads the columns where they are (scipy's product copies the block to
+        row-major and back; float32 widened first), with the same digits.
         """
         if self._weights is not None:
             weights = self._weights if X.ndim == 2 else self._weights[:, 0]
             if out is not None and not np.shares_memory(out, X):
                 return np.multiply(X, weights, out=out)
             MX = X * weights
-        elif (self._csr is not None and X.ndim == 2 and X.shape[1] >= 4
-              and X.dtype == np.float64 and X.flags.f_contiguous):
+        elif (self._csr is not None and X.ndim == 2 and X.shape[1] >= 2
+              and X.dtype in _KERNEL_DTYPES and X.flags.f_contiguous):
             from streamsvd.algebra.sparse_kernels import csr_times_columns
 
             if out is None or not out.flags.f_contiguous or np.shares_memory(out, X):

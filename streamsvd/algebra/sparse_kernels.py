@@ -25,10 +25,12 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
                       X: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
     """Write ``A X`` into ``out`` (``A`` in CSR arrays, ``X`` and ``out`` column-major).
 
-    Eight columns at a time, then one: each entry of ``A`` is read once per eight columns
-    (91 columns of pyMOR's heat example: 1.23 ms against 1.34 ms four at a time and
-    3.1 ms for scipy's product, one thread); every column's sums run in the stored
-    order whatever the grouping, so the digits do not depend on it.
+    Eight columns at a time, then four, two and one: each entry of ``A`` is read once
+    per group (91 columns of pyMOR's heat example: 1.23 ms against 1.34 ms four at a time
+    and 3.1 ms for scipy's product, one thread; the groups of the remainder halve the
+    time of a block of 3 to 7 columns: 0.16 ms against 0.31 ms for 7); every column's
+    sums run in the stored order whatever the grouping, so the digits do not depend on
+    it.
     """
     n, b = out.shape
     j = 0
@@ -55,10 +57,35 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             out[i, j + 6] = s6
             out[i, j + 7] = s7
         j += 8
-    while j < b:
+    if j + 4 <= b:
+        for i in range(n):
+            s0 = s1 = s2 = s3 = 0.0
+            for k in range(indptr[i], indptr[i + 1]):
+                c = indices[k]
+                d = data[k]
+                s0 += d * X[c, j]
+                s1 += d * X[c, j + 1]
+                s2 += d * X[c, j + 2]
+                s3 += d * X[c, j + 3]
+            out[i, j] = s0
+            out[i, j + 1] = s1
+            out[i, j + 2] = s2
+            out[i, j + 3] = s3
+        j += 4
+    if j + 2 <= b:
+        for i in range(n):
+            s0 = s1 = 0.0
+            for k in range(indptr[i], indptr[i + 1]):
+                c = indices[k]
+                d = data[k]
+                s0 += d * X[c, j]
+                s1 += d * X[c, j + 1]
+            out[i, j] = s0
+            out[i, j + 1] = s1
+        j += 2
+    if j < b:
         for i in range(n):
             s = 0.0
             for k in range(indptr[i], indptr[i + 1]):
                 s += data[k] * X[indices[k], j]
             out[i, j] = s
-        j += 1

@@ -167,15 +167,17 @@ def test_cli_refuses_the_matrix_in_one_line_and_leaves_no_store(tmp_path, capsys
     assert not store.exists()
 
 
-@pytest.mark.parametrize("b", [1, 3, 4, 7, 9])
-def test_a_sparse_product_with_a_column_major_block_has_scipys_digits(b):
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("b", [1, 2, 3, 4, 5, 6, 7, 9, 15, 23])
+def test_a_sparse_product_with_a_column_major_block_has_scipys_digits(b, dtype):
+    # every grouping of the columns (8, 4, 2, 1) and their combinations
     rng = np.random.default_rng(b)
     n = 200
     A = sp.random(n, n, density=0.03, random_state=rng, format="csr")
     M = (A @ A.T + sp.identity(n)).tocsr()
     ip = ss.MatrixInner(M)
-    X = np.asfortranarray(rng.standard_normal((n, b)))
-    expected = np.asarray(ip.matrix @ np.ascontiguousarray(X))
+    X = np.asfortranarray(rng.standard_normal((n, b)).astype(dtype))
+    expected = np.asarray(ip.matrix @ np.ascontiguousarray(X, dtype=np.float64))
     np.testing.assert_array_equal(ip.apply(X), expected)
     out = np.empty((n, b), order="F")
     assert ip.apply(X, out=out) is out
