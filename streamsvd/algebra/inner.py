@@ -81,6 +81,7 @@ class Euclidean:
     n: int | None = None
     is_euclidean = True
     diagonal = None
+    norm_bound = 1.0  # ||M||_2
     fingerprint = hashlib.sha256(b"euclidean").hexdigest()
 
     def apply(self, X: np.ndarray) -> np.ndarray:
@@ -148,6 +149,7 @@ class DiagonalInner:
         self.n = w.shape[0]
         self.fingerprint = _digest(b"diagonal", w)
         self.diagonal = Diagonal.of(w)
+        self.norm_bound = float(np.max(w))  # ||M||_2, exactly
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Return ``diag(w) @ X``."""
@@ -238,6 +240,7 @@ class MatrixInner:
                 _remember(digest)
         self.matrix = mat
         self.n = mat.shape[0]
+        self.norm_bound = _row_sum_bound(mat)
         self._weights = diag.reshape(-1, 1) if diagonal else None
         self.diagonal = Diagonal.of(diag) if diagonal else None
         # the CSR arrays of a sparse M, for the compiled product with a column-major block
@@ -292,6 +295,23 @@ class MatrixInner:
 
 
 # the digests of the last sparse matrices found symmetric positive definite
+def _row_sum_bound(mat: Any) -> float:
+    """Return an upper bound of ``||M||_2``: its largest absolute row sum (Gershgorin).
+
+    Each sum of ``k`` terms is rounded down by at most ``k eps`` of itself; the bound is
+    raised by twice that, so that it bounds the exact sums (about 1.37x the largest
+    eigenvalue of pyMOR's heat example's mass matrix, which its snapshots' Rayleigh
+    quotients reach to 0.74 of the bound). Every row holds its positive diagonal entry.
+    """
+    if sp.issparse(mat):
+        sums = np.add.reduceat(np.abs(mat.data), mat.indptr[:-1])
+        width = int(np.max(np.diff(mat.indptr)))
+    else:
+        sums = np.sum(np.abs(mat), axis=1)
+        width = mat.shape[1]
+    return float(np.max(sums)) * (1.0 + 2.0 * width * float(np.finfo(np.float64).eps))
+
+
 _CHECKED: dict[str, None] = {}
 _CHECKED_MAX = 8
 

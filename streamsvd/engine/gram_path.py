@@ -14,6 +14,7 @@ import math
 from typing import Any, cast
 
 import numpy as np
+from scipy.linalg.blas import dnrm2
 from scipy.linalg.lapack import dtrtri
 
 from streamsvd._util.scaling import pow2_exponent
@@ -27,7 +28,8 @@ __all__ = [
     "_KEEP_MAX_SHARE", "_KEEP_MAX_WIDTH", "_MAX_DRIFT", "_MAX_SPREAD", "_ROUNDING_LAMBDA",
     "_SAFE_HIGH", "_SAFE_LOW", "_SMALLEST_KEPT", "_allowance", "_cancellation_energy",
     "_compaction_pays", "_declined", "_drift", "_keeps_block", "_kept_factors",
-    "_path_applies", "_products", "_refused_before_block", "_room", "_times", "_times_left",
+    "_path_applies", "_products", "_refused_before_block", "_refused_by_frobenius",
+    "_room", "_times", "_times_left",
 ]
 
 _EPS = float(np.finfo(np.float64).eps)
@@ -93,6 +95,40 @@ def _refused_before_block(state: State, trunc: Truncation, b: int, n: int,
     old = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2
     room = _scaled_square(trunc.share * trunc.target, e) * b
     return _allowance(old, state.R.shape[0] + b, n) > _ALLOWANCE_SHARE * room
+
+
+def _refused_by_frobenius(state: State, trunc: Truncation, X: np.ndarray, inner: Any,
+                          n: int) -> bool:
+    """Whether a relative target refuses ``X`` on an upper bound of its energy.
+
+    ``||X||_M^2 <= ||M||_2 ||X||_F^2``, with ``||M||_2`` bounded by the inner product's
+    ``norm_bound`` (:class:`~streamsvd.algebra.inner.MatrixInner`: its largest absolute
+    row sum). With a ``relative`` target, :func:`_block_refused` refuses a block when
+    ``c (||R||^2 + E) > s (share target)^2 E``, that is, when its energy ``E`` is small
+    beside the energy absorbed before: a block refused at an upper bound of ``E`` is
+    refused at ``E``, so the block's ``M`` product and Gram, which the check would
+    otherwise measure first, are not made (``n b`` flops where they take a sparse
+    product and ``n b^2``). False when the bound is unknown or does not refuse.
+    """
+    bound = getattr(inner, "norm_bound", None)
+    if (trunc.target is None or trunc.measure != "relative" or bound is None
+            or state.R.size == 0 or X.size == 0):
+        return False
+    x = np.ravel(X, order="K").astype(np.float64, copy=False)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        squares = float(x @ x)
+    if _SAFE_LOW < squares < _SAFE_HIGH:
+        norm = math.sqrt(squares)
+    else:  # squares that under- or overflow: LAPACK's scaled norm
+        norm = float(dnrm2(x))
+    # every sum rounds down by at most N eps of itself (N = n b terms)
+    upper = math.sqrt(bound) * norm * (1.0 + x.size * _EPS)
+    if not math.isfinite(upper) or upper == 0.0:
+        return False
+    top = max(math.frexp(upper)[1], pow2_exponent(state.R))
+    if abs(top) > _MAX_SPREAD // 2:
+        return False
+    return _block_refused(state, trunc, math.ldexp(upper, -top) ** 2, X.shape[1], n, top)
 
 
 def _refused_by_norms(state: State, trunc: Truncation, norms: np.ndarray, n: int) -> bool:

@@ -44,6 +44,7 @@ from streamsvd.engine.gram_path import (
     _path_applies,
     _products,
     _refused_before_block,
+    _refused_by_frobenius,
     _refused_by_norms,
     _room,
     _times,
@@ -85,6 +86,8 @@ def plan_absorb_by_gram(
         return None
     if _refused_before_block(state, trunc, b, n):
         return None
+    if isinstance(X, np.ndarray) and _refused_by_frobenius(state, trunc, X, opts.inner, n):
+        return None  # refused on an upper bound of the block's energy, before its products
     if (isinstance(X, np.ndarray) and b >= _NORMS_FIRST
             and (opts.inner.is_euclidean or getattr(opts.inner, "diagonal", None) is not None)
             and _refused_by_norms(state, trunc, safe_m_norms(X, opts.inner), n)):

@@ -253,3 +253,22 @@ def test_subtract_product_subtracts_in_place(order, dtype):
     subtract_product(X, A[:, :0], K[:0])  # nothing to subtract
     np.testing.assert_allclose(X, expected, rtol=0,
                                atol=8 * 4 * np.finfo(dtype).eps * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("kind", ["sparse", "dense", "diagonal", "weights", "euclidean"])
+def test_the_norm_bound_bounds_the_largest_eigenvalue(kind):
+    # Gershgorin's row sums (raised by their rounding) for a matrix, the largest weight
+    # for a diagonal one: never below ||M||_2, which the Gram path's early refusal needs
+    rng = np.random.default_rng(3)
+    n = 300
+    A = sp.random(n, n, density=0.02, random_state=rng, format="csr")
+    S = (A @ A.T + 1e-3 * sp.identity(n)).tocsr()
+    w = rng.uniform(0.1, 2.0, n)
+    M = {"sparse": S, "dense": S.toarray(), "diagonal": sp.diags_array(w).tocsr(),
+         "weights": w, "euclidean": None}[kind]
+    ip = ss.as_inner(M, n) if M is not None else ss.as_inner(None, n)
+    dense = np.eye(n) if M is None else (np.diag(w) if kind in ("diagonal", "weights")
+                                        else S.toarray())
+    top = float(np.linalg.eigvalsh(dense)[-1])
+    assert ip.norm_bound >= top
+    assert ip.norm_bound <= np.max(np.sum(np.abs(dense), axis=1)) * (1 + 1e-12)

@@ -776,3 +776,31 @@ def test_a_wide_block_the_rounding_cannot_meet_is_refused_on_its_norms(weights, 
     np.testing.assert_array_equal(fast.amplitudes, slow.amplitudes)
     assert fast.error_bound == slow.error_bound
 
+
+
+@pytest.mark.parametrize("block", [10, 40])
+def test_a_block_refused_on_a_bound_of_its_energy_gives_the_same_result(block, monkeypatch):
+    """With a relative target, a block small beside the energy absorbed is refused
+    on ||M||_2 ||X||_F^2 (an upper bound of its energy, refused before its products):
+    every block so refused is one the measured check refuses, so the stream is the same
+    to the last bit, with fewer products."""
+    import streamsvd.engine.update_gram as update_gram
+
+    n = 600
+    h = 1.0 / n  # a P1 mass matrix: its rows sum to h, its largest eigenvalue below
+    M = sp.diags_array([np.full(n - 1, h / 6), np.full(n, 4 * h / 6), np.full(n - 1, h / 6)],
+                       offsets=[-1, 0, 1]).tocsr()
+    A = _pulses(n=n, m=400) * np.exp(-np.linspace(0.0, 12.0, 400))  # a decaying pulse
+    kw = {"target_error": 1e-4, "error_measure": "relative", "inner": M}
+    made = _count_products(monkeypatch)
+    fast = _stream(A, block=block, **kw)
+    early = len(fast.history) - len(made)
+    assert early > 0  # some blocks were refused before their products
+    made.clear()
+    monkeypatch.setattr(update_gram, "_refused_by_frobenius", lambda *a, **k: False)
+    slow = _stream(A, block=block, **kw)
+    assert len(made) == len(slow.history) > len(fast.history) - early
+    assert [_by_gram(r) for r in fast.history] == [_by_gram(r) for r in slow.history]
+    np.testing.assert_array_equal(fast.amplitudes, slow.amplitudes)
+    np.testing.assert_array_equal(fast.left_vectors, slow.left_vectors)
+    assert fast.error_bound == slow.error_bound
