@@ -11,7 +11,7 @@ from scipy.linalg import blas
 
 from streamsvd.algebra.inner import InnerProduct, MatrixInner
 
-__all__ = ["apply_into", "gram", "m_norms", "subtract_product"]
+__all__ = ["apply_into", "apply_with_energies", "gram", "m_norms", "subtract_product"]
 
 # with a diagonal M, blocks at least this wide take the rank-k update (half the flops of
 # X^T (M X)); a narrower block's weighted copy would cost about what the update saves
@@ -24,6 +24,21 @@ def apply_into(inner: InnerProduct, X: np.ndarray, out: np.ndarray) -> np.ndarra
         return inner.apply(X, out=out)
     out[...] = inner.apply(X)
     return out
+
+
+def apply_with_energies(inner: InnerProduct, X: np.ndarray, out: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``M X`` (in ``out``; ``X`` itself for the Euclidean product) and ``x_c^T M x_c``.
+
+    A sparse ``M`` measures the columns' energies within its product
+    (:meth:`~streamsvd.algebra.inner.MatrixInner.apply_with_energies`).
+    """
+    if inner.is_euclidean:
+        return X, np.einsum("ij,ij->j", X, X)
+    if isinstance(inner, MatrixInner):
+        return inner.apply_with_energies(X, out=out)
+    MX = apply_into(inner, X, out)
+    return MX, np.einsum("ij,ij->j", X, MX)
 
 
 def subtract_product(X: np.ndarray, A: np.ndarray, K: np.ndarray) -> None:

@@ -20,10 +20,41 @@ import numpy as np
 __all__ = ["csr_times_columns"]
 
 
+@numba.njit(cache=True, inline="always")
+def _dots(X: np.ndarray, out: np.ndarray, j: int, width: int,
+          dots: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Add ``x_c^T (A x_c)`` of the columns ``j .. j + width`` to ``dots`` (none if empty).
+
+    Read right after the group was written, while both are in the cache; four partial
+    sums over the rows (rows ``i mod 4``) run side by side, so that the additions do not
+    wait on one another, and are added pairwise.
+    """
+    if dots.size == 0:
+        return
+    n = X.shape[0]
+    for c in range(j, j + width):
+        t0 = t1 = t2 = t3 = 0.0
+        i = 0
+        while i + 4 <= n:
+            t0 += X[i, c] * out[i, c]
+            t1 += X[i + 1, c] * out[i + 1, c]
+            t2 += X[i + 2, c] * out[i + 2, c]
+            t3 += X[i + 3, c] * out[i + 3, c]
+            i += 4
+        while i < n:
+            t0 += X[i, c] * out[i, c]
+            i += 1
+        dots[c] = (t0 + t1) + (t2 + t3)
+
+
 @numba.njit(cache=True)
 def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
-                      X: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+                      X: np.ndarray, out: np.ndarray,
+                      dots: np.ndarray) -> None:  # pragma: no cover - compiled
     """Write ``A X`` into ``out`` (``A`` in CSR arrays, ``X`` and ``out`` column-major).
+
+    ``dots`` (one entry per column, or empty) receives each column's ``x_c^T A x_c``,
+    measured on each group right after it is written (the block is not read again).
 
     Eight columns at a time, then four, two and one: each entry of ``A`` is read once
     per group (91 columns of pyMOR's heat example: 1.23 ms against 1.34 ms four at a time
@@ -56,6 +87,7 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             out[i, j + 5] = s5
             out[i, j + 6] = s6
             out[i, j + 7] = s7
+        _dots(X, out, j, 8, dots)
         j += 8
     if j + 4 <= b:
         for i in range(n):
@@ -71,6 +103,7 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             out[i, j + 1] = s1
             out[i, j + 2] = s2
             out[i, j + 3] = s3
+        _dots(X, out, j, 4, dots)
         j += 4
     if j + 2 <= b:
         for i in range(n):
@@ -82,6 +115,7 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
                 s1 += d * X[c, j + 1]
             out[i, j] = s0
             out[i, j + 1] = s1
+        _dots(X, out, j, 2, dots)
         j += 2
     if j < b:
         for i in range(n):
@@ -89,3 +123,4 @@ def csr_times_columns(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
             for k in range(indptr[i], indptr[i + 1]):
                 s += data[k] * X[indices[k], j]
             out[i, j] = s
+        _dots(X, out, j, 1, dots)

@@ -44,6 +44,7 @@ from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthog
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis, term_reference, top_energy
 from streamsvd.linalg.extension import BasisExtension
+from streamsvd.linalg.sketch import sketch_width
 from streamsvd.linalg.slices import extend_block
 
 __all__ = [
@@ -66,12 +67,15 @@ _ASIDE_SHARE = 0.003
 
 # ---------------------------------------------------------------------------- planning
 def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
-                name: str | None = None) -> Plan:
+                name: str | None = None, previous: UpdateRecord | None = None) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``).
 
     ``name``: ``X``'s name in the caller's words; given, ``X`` is checked finite by
     :func:`~streamsvd.linalg.extend.extend_basis` (a NaN or infinite entry raises
     :class:`~streamsvd.errors.NonFiniteError` naming it), else it must be finite.
+    ``previous``: the record of the update before (a stream's history, stored with it):
+    when it was an absorb that kept few directions, a block with something to set aside
+    finds its own from a sketch (:func:`~streamsvd.linalg.sketch.sketch_width`).
 
     The right factor grows to ``blockdiag(Y, I_b) K`` with the core
     ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
@@ -79,9 +83,12 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
     """
     state = state.as_settled()
     b = X.shape[1]
+    before = (previous.new_directions
+              if previous is not None and previous.kind == "absorb" else None)
     ext = extend_block(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-        basis_gram=state.gram, aside=_aside(opts, b), name=name,
+        basis_gram=state.gram, aside=_aside(opts, b), sketch=sketch_width(before, b),
+        name=name,
     )
     k, p = state.R.shape
     K = np.zeros((k + b, p + ext.rank))

@@ -16,7 +16,7 @@ import numpy as np
 
 from streamsvd._util.scaling import scale_into, scaled_norm, top_exponent
 from streamsvd.algebra.blas import apply_into as m_apply_into
-from streamsvd.algebra.blas import gram
+from streamsvd.algebra.blas import apply_with_energies, gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
 from streamsvd.linalg.blocks import (
@@ -34,6 +34,7 @@ from streamsvd.linalg.blocks import (
     set_aside,
 )
 from streamsvd.linalg.extension import BasisExtension
+from streamsvd.linalg.sketch import extend_by_sketch
 
 __all__ = ["default_reject_tol", "extend_basis", "term_reference", "top_energy"]
 
@@ -86,6 +87,7 @@ def extend_basis(
     reference: np.ndarray | None = None,
     basis_gram: np.ndarray | None = None,
     aside: tuple[float, float] = (0.0, 0.0),
+    sketch: int = 0,
     name: str | None = None,
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
@@ -158,6 +160,11 @@ def extend_basis(
         basis) the rounds of step 2 set aside on the Gram of a later round's unresolved
         part, whose trace is that part's energy alone
         (:func:`~streamsvd.linalg.blocks.orthonormalize_in_rounds`).
+    sketch : int
+        With a budget (``aside``), the width of a sketch that finds the directions to
+        keep without the residual's Gram
+        (:func:`~streamsvd.linalg.sketch.extend_by_sketch`; the rejected part is then
+        known by its columns' energies); 0 (the default): the Gram.
     name : str, optional
         ``X``'s name in the caller's words: ``X`` is then checked finite from its
         columns' peaks, which the scaling takes anyway (a NaN or infinite entry raises
@@ -175,10 +182,25 @@ def extend_basis(
         basis.subtract(Y, G, C)
         passes += 2
     Z = Y
-    MZ = apply_into(Z, MY, inner)
     # with a budget, the directions kept after setting the weakest aside decide first
     # whether what the projection left along the basis is measured (below)
     lazy = bool(w and b and basis_gram is not None and (aside[0] > 0 or aside[1] > 0))
+    if not (lazy and sketch):
+        MZ = apply_into(Z, MY, inner)
+    else:
+        # the directions to keep found from a sketch of the columns, the rest measured
+        # and rejected, without the residual's Gram (streamsvd.linalg.sketch)
+        MZ, energies = apply_with_energies(inner, Z, MY)
+        energies = np.maximum(energies, 0.0)
+        nu = np.sqrt(np.einsum("ij,ij->j", C, C) + energies)
+        ext = extend_by_sketch(
+            basis, G, Z, MZ, C, energies=energies, nu=nu,
+            ref=nu if reference is None else np.ldexp(np.asarray(reference, float), -exps),
+            exps=exps, zero=zero, budget=_aside_budget(nu, exps, aside),
+            reject_tol=reject_tol, inner=inner, width=sketch, passes=passes,
+            kept_loss=_KEPT_LOSS_MAX)
+        if ext is not None:
+            return ext
     if w and not lazy:
         cross0, S = basis.residual_products(Z, MZ)
         passes += 1

@@ -59,18 +59,19 @@ def extend_block(
     reject_tol: float,
     basis_gram: np.ndarray | None,
     aside: tuple[float, float],
+    sketch: int = 0,
     name: str | None = None,
 ) -> BasisExtension:
     """Extend the basis by a block of snapshots: whole, or in slices when it pays.
 
     The parameters are :func:`~streamsvd.linalg.extend.extend_basis`'s. A block is taken
     in slices (:func:`extend_in_slices`) when something may be set aside (``aside``) and
-    :func:`slice_width` says so.
+    :func:`slice_width` says so; ``sketch`` serves a whole block.
     """
     width = slice_width(X.shape[1], basis.width) if aside != (0.0, 0.0) else None
     if width is None:
         return extend_basis(basis, G, X, inner=inner, reject_tol=reject_tol,
-                            basis_gram=basis_gram, aside=aside, name=name)
+                            basis_gram=basis_gram, aside=aside, sketch=sketch, name=name)
     return extend_in_slices(basis, G, X, inner=inner, reject_tol=reject_tol,
                             basis_gram=basis_gram, aside=aside, width=width, name=name)
 

@@ -87,7 +87,8 @@ class Updates:
             return life.run(
                 lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
                 or plan_absorb(state, life.backend.in_memory(B, check=False), life.opts,
-                               t0=t0, name="columns"),
+                               t0=t0, name="columns",
+                               previous=life.history[-1] if life.history else None),
                 offset, ledger=ledger, removed=removed,
             )
         except BaseException:

@@ -182,6 +182,11 @@ def test_a_sparse_product_with_a_column_major_block_has_scipys_digits(b, dtype):
     out = np.empty((n, b), order="F")
     assert ip.apply(X, out=out) is out
     np.testing.assert_array_equal(out, expected)
+    # the columns' energies measured within the product, the product unchanged
+    MX, energies = ip.apply_with_energies(X, out=np.empty((n, b), order="F"))
+    np.testing.assert_array_equal(MX, expected)
+    X64 = X.astype(np.float64)
+    np.testing.assert_allclose(energies, np.einsum("ij,ij->j", X64, expected), rtol=1e-13)
     # a row-major block and a vector go through scipy
     np.testing.assert_array_equal(ip.apply(np.ascontiguousarray(X)), expected)
     np.testing.assert_array_equal(ip.apply(X[:, 0]), expected[:, 0])
