@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.linalg.blocks import set_aside
 from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from tests.linalg._snapshots import mass as _mass
 
 EPS = np.finfo(np.float64).eps
 
@@ -21,11 +21,6 @@ def _collinear(n=400, b=30, seed=0):
     rng = np.random.default_rng(seed)
     return np.exp(-((x - 0.3 - t) / 0.1) ** 2) * (1 + 1e-9 * rng.standard_normal((1, b)))
 
-
-def _mass(n):
-    h = 1.0 / n
-    return sp.diags([np.full(n - 1, h / 6), np.full(n, 2 * h / 3), np.full(n - 1, h / 6)],
-                    [-1, 0, 1], format="csr")
 
 
 def test_set_aside_takes_the_tail_within_the_budget():

@@ -4,28 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 import streamsvd as ss
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.linalg.extend import default_reject_tol, extend_basis
 from streamsvd.linalg.sketch import SKETCH_OVERSAMPLING, sketch_width
+from tests.linalg._snapshots import mass as _mass
+from tests.linalg._snapshots import pulse as _pulse
 
 EPS = np.finfo(np.float64).eps
 
 
-def _pulse(n, m):
-    """Snapshots of a pulse that drifts and widens: nearly collinear columns."""
-    x = np.linspace(0.0, 1.0, n)[:, np.newaxis]
-    t = np.linspace(0.0, 1.0, m)[np.newaxis, :]
-    return np.exp(-((x - 0.2 - 0.6 * t) / (0.05 + 0.05 * t)) ** 2)
-
-
-def _mass(n):
-    h = 1.0 / n
-    return sp.diags([np.full(n - 1, h / 6), np.full(n, 2 * h / 3), np.full(n - 1, h / 6)],
-                    [-1, 0, 1], format="csr")
 
 
 def _energies(X, ip):
