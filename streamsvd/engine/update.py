@@ -44,7 +44,7 @@ from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthog
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis, term_reference, top_energy
 from streamsvd.linalg.extension import BasisExtension
-from streamsvd.linalg.sketch import sketch_width
+from streamsvd.linalg.sketch import plan_sketch
 from streamsvd.linalg.slices import extend_block
 
 __all__ = [
@@ -63,11 +63,13 @@ COMPACT_PER_COLUMN = 2.0
 # the share of the budget's growth in an update that a block may spend on directions set
 # aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut
 _ASIDE_SHARE = 0.003
+_UNIT_FLOAT64 = float(np.finfo(np.float64).eps) / 2
 
 
 # ---------------------------------------------------------------------------- planning
 def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
-                name: str | None = None, previous: UpdateRecord | None = None) -> Plan:
+                name: str | None = None, previous: UpdateRecord | None = None,
+                unit: float = _UNIT_FLOAT64) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``).
 
     ``name``: ``X``'s name in the caller's words; given, ``X`` is checked finite by
@@ -75,7 +77,9 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
     :class:`~streamsvd.errors.NonFiniteError` naming it), else it must be finite.
     ``previous``: the record of the update before (a stream's history, stored with it):
     when it was an absorb that kept few directions, a block with something to set aside
-    finds its own from a sketch (:func:`~streamsvd.linalg.sketch.sketch_width`).
+    finds its own from a sketch (:func:`~streamsvd.linalg.sketch.plan_sketch`). ``unit``:
+    the unit roundoff of the block's source (``X`` itself is float64), which a sketch
+    cannot set aside below.
 
     The right factor grows to ``blockdiag(Y, I_b) K`` with the core
     ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
@@ -87,7 +91,7 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
               if previous is not None and previous.kind == "absorb" else None)
     ext = extend_block(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-        basis_gram=state.gram, aside=_aside(opts, b), sketch=sketch_width(before, b),
+        basis_gram=state.gram, aside=_aside(opts, b), sketch=plan_sketch(before, b, unit),
         name=name,
     )
     k, p = state.R.shape

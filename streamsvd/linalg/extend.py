@@ -34,7 +34,7 @@ from streamsvd.linalg.blocks import (
     set_aside,
 )
 from streamsvd.linalg.extension import BasisExtension
-from streamsvd.linalg.sketch import extend_by_sketch
+from streamsvd.linalg.sketch import Sketch, extend_by_sketch
 
 __all__ = ["default_reject_tol", "extend_basis", "term_reference", "top_energy"]
 
@@ -87,7 +87,7 @@ def extend_basis(
     reference: np.ndarray | None = None,
     basis_gram: np.ndarray | None = None,
     aside: tuple[float, float] = (0.0, 0.0),
-    sketch: int = 0,
+    sketch: Sketch | None = None,
     name: str | None = None,
 ) -> BasisExtension:
     """Decompose a block on the basis ``Q G`` and orthonormalise its residual, BLAS-3.
@@ -160,11 +160,11 @@ def extend_basis(
         basis) the rounds of step 2 set aside on the Gram of a later round's unresolved
         part, whose trace is that part's energy alone
         (:func:`~streamsvd.linalg.blocks.orthonormalize_in_rounds`).
-    sketch : int
-        With a budget (``aside``), the width of a sketch that finds the directions to
-        keep without the residual's Gram
-        (:func:`~streamsvd.linalg.sketch.extend_by_sketch`; the rejected part is then
-        known by its columns' energies); 0 (the default): the Gram.
+    sketch : Sketch, optional
+        With a budget (``aside``), a sketch that finds the directions to keep without
+        the residual's Gram (:func:`~streamsvd.linalg.sketch.extend_by_sketch`; the
+        rejected part is then known by its columns' energies); None (the default): the
+        Gram.
     name : str, optional
         ``X``'s name in the caller's words: ``X`` is then checked finite from its
         columns' peaks, which the scaling takes anyway (a NaN or infinite entry raises
@@ -185,7 +185,7 @@ def extend_basis(
     # with a budget, the directions kept after setting the weakest aside decide first
     # whether what the projection left along the basis is measured (below)
     lazy = bool(w and b and basis_gram is not None and (aside[0] > 0 or aside[1] > 0))
-    if not (lazy and sketch):
+    if not (lazy and sketch is not None):
         MZ = apply_into(Z, MY, inner)
     else:
         # the directions to keep found from a sketch of the columns, the rest measured
@@ -197,7 +197,7 @@ def extend_basis(
             basis, G, Z, MZ, C, energies=energies, nu=nu,
             ref=nu if reference is None else np.ldexp(np.asarray(reference, float), -exps),
             exps=exps, zero=zero, budget=_aside_budget(nu, exps, aside),
-            reject_tol=reject_tol, inner=inner, width=sketch, passes=passes,
+            reject_tol=reject_tol, inner=inner, sketch=sketch, passes=passes,
             kept_loss=_KEPT_LOSS_MAX)
         if ext is not None:
             return ext

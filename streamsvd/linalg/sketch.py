@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg.blas import dgemm
@@ -44,7 +45,7 @@ from streamsvd.linalg.blocks import (
 )
 from streamsvd.linalg.extension import BasisExtension
 
-__all__ = ["SKETCH_OVERSAMPLING", "extend_by_sketch", "sketch_width"]
+__all__ = ["SKETCH_OVERSAMPLING", "Sketch", "extend_by_sketch", "plan_sketch"]
 
 _EPS = np.finfo(np.float64).eps
 # Higham and Mary's constant of the probabilistic rounding model (as set_aside's)
@@ -61,16 +62,35 @@ _SEED = 20261207  # the test matrices are the same in every process (a resumed s
 # repeats the digits of an uninterrupted one)
 
 
-def sketch_width(previous_directions: int | None, b: int) -> int:
-    """Return the width of the sketch for a block of ``b`` columns, or 0 (the Gram).
+@dataclass(frozen=True)
+class Sketch:
+    """How a block's directions may be found from a sketch (:func:`extend_by_sketch`).
+
+    Attributes
+    ----------
+    width : int
+        The sketch's columns.
+    unit : float
+        The unit roundoff of the block's source (``2^-24`` for float32 snapshots): its
+        rounding, about ``unit^2 ||X||_M^2 / 12`` spread over every direction of the
+        block, is a tail that a sketch of a few columns captures less of than the Gram
+        does, so a budget within ``unit^2 ||X||_M^2`` is left to the Gram.
+    """
+
+    width: int
+    unit: float
+
+
+def plan_sketch(previous_directions: int | None, b: int, unit: float) -> Sketch | None:
+    """Return the sketch for a block of ``b`` columns, or None (the Gram).
 
     ``previous_directions`` is the number of new directions the update before kept (None
     for the first update): when that is at most an eighth of the block, the sketch takes
-    as many and :data:`SKETCH_OVERSAMPLING` more.
+    as many and :data:`SKETCH_OVERSAMPLING` more. ``unit`` is :attr:`Sketch.unit`.
     """
     if previous_directions is None or previous_directions > _SKETCH_SHARE * b:
-        return 0
-    return previous_directions + SKETCH_OVERSAMPLING
+        return None
+    return Sketch(previous_directions + SKETCH_OVERSAMPLING, unit)
 
 
 @functools.lru_cache(maxsize=8)
@@ -119,7 +139,7 @@ def extend_by_sketch(
     budget: float,
     reject_tol: float,
     inner: InnerProduct,
-    width: int,
+    sketch: Sketch,
     passes: int,
     kept_loss: float,
 ) -> BasisExtension | None:
@@ -129,9 +149,10 @@ def extend_by_sketch(
     basis's workspace, ``MZ`` its image) has the coefficients ``C`` on the basis, the
     energies ``energies`` (``||z_j||_M^2``) and the norms ``nu``; ``ref`` are the norms
     its columns' residuals are compared with (the rejection rule, ``reject_tol``),
-    ``budget`` the energy it may set aside (scaled), ``width`` the sketch's columns,
-    ``passes`` the products with the basis made so far and ``kept_loss`` the share of
-    their norm the kept directions may hold along the basis (they are measured, as
+    ``budget`` the energy it may set aside (scaled by ``4^-max(exps)``), ``sketch`` the
+    sketch's width and the unit roundoff of the block's source, ``passes`` the products
+    with the basis made so far and ``kept_loss`` the share of their norm the kept
+    directions may hold along the basis (they are measured, as
     :func:`~streamsvd.linalg.extend.extend_basis` measures its own). ``Z`` and the
     workspace are left as they were when it returns None.
     """
@@ -140,7 +161,12 @@ def extend_by_sketch(
     allowance = _ROUNDING_LAMBDA * (math.sqrt(b * n) + b) * _EPS * trace
     if not budget > allowance or not 0.0 < trace < math.inf:
         return None  # nothing can be set aside: the Gram's rounds resolve the block
-    found = _orthonormal_range(_mm(Z, _test_matrix(b, width)), inner)
+    live = nu > 0
+    top = int(np.max(exps[live]))  # the budget's scale (extend_basis's _aside_budget)
+    block = float(np.sum((nu * np.ldexp(1.0, exps - top))[live] ** 2))
+    if budget <= sketch.unit * sketch.unit * block:
+        return None  # the source's own rounding fills the budget
+    found = _orthonormal_range(_mm(Z, _test_matrix(b, sketch.width)), inner)
     if found is None:
         return None
     Q, MQ = found

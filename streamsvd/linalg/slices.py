@@ -30,6 +30,7 @@ from streamsvd.algebra.interface import BasisProducts
 from streamsvd.linalg.blocks import ONE_PASS_COND, apply_into, place_directions, right_solve
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
+from streamsvd.linalg.sketch import Sketch
 
 __all__ = ["SLICE", "extend_block", "extend_in_slices", "slice_width"]
 
@@ -59,7 +60,7 @@ def extend_block(
     reject_tol: float,
     basis_gram: np.ndarray | None,
     aside: tuple[float, float],
-    sketch: int = 0,
+    sketch: Sketch | None = None,
     name: str | None = None,
 ) -> BasisExtension:
     """Extend the basis by a block of snapshots: whole, or in slices when it pays.

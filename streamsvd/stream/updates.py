@@ -88,7 +88,8 @@ class Updates:
                 lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
                 or plan_absorb(state, life.backend.in_memory(B, check=False), life.opts,
                                t0=t0, name="columns",
-                               previous=life.history[-1] if life.history else None),
+                               previous=life.history[-1] if life.history else None,
+                               unit=_unit_roundoff(columns)),
                 offset, ledger=ledger, removed=removed,
             )
         except BaseException:
@@ -207,3 +208,17 @@ class Updates:
         expect = getattr(self._life.state.basis, "expect", None)
         if expect is not None:
             expect(columns)
+
+
+def _unit_roundoff(columns: Any) -> float:
+    """Return the unit roundoff of the snapshots' own dtype (float64's unless coarser).
+
+    The block is converted to float64; float32 snapshots keep their rounding, which
+    decides whether a sketch can set their weakest directions aside
+    (:class:`~streamsvd.linalg.sketch.Sketch`).
+    """
+    dtype = getattr(columns, "dtype", None)
+    unit = float(np.finfo(np.float64).eps) / 2
+    if dtype is not None and np.issubdtype(dtype, np.floating):
+        unit = max(unit, float(np.finfo(dtype).eps) / 2)
+    return unit

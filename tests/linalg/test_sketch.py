@@ -9,11 +9,12 @@ import streamsvd as ss
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.linalg.extend import default_reject_tol, extend_basis
-from streamsvd.linalg.sketch import SKETCH_OVERSAMPLING, sketch_width
+from streamsvd.linalg.sketch import SKETCH_OVERSAMPLING, Sketch, plan_sketch
 from tests.linalg._snapshots import mass as _mass
 from tests.linalg._snapshots import pulse as _pulse
 
 EPS = np.finfo(np.float64).eps
+U64 = EPS / 2
 
 
 
@@ -22,7 +23,7 @@ def _energies(X, ip):
     return np.maximum(np.einsum("ij,ij->j", X, ip.apply(X)), 0.0)
 
 
-def _extend(n, w0, X, ip, *, share, sketch):
+def _extend(n, w0, X, ip, *, share, sketch, unit=U64):
     """A basis of the pulse's first w0 columns, extended by X with a budget of share."""
     basis = MemoryBasis(n, ip, capacity=2 * (w0 + X.shape[1]))
     A0 = _pulse(n, w0 + X.shape[1])[:, :w0]
@@ -31,17 +32,19 @@ def _extend(n, w0, X, ip, *, share, sketch):
     gram = basis.measure_gram()
     budget = share * float(np.sum(_energies(X, ip)))
     ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n),
-                       basis_gram=gram, aside=(budget, 0.0), sketch=sketch)
+                       basis_gram=gram, aside=(budget, 0.0),
+                       sketch=Sketch(sketch, unit) if sketch else None)
     return basis, ext, budget
 
 
+
 def test_the_sketch_follows_an_update_that_kept_an_eighth_of_the_block_at_most():
-    assert sketch_width(None, 91) == 0
-    assert sketch_width(8, 91) == 8 + SKETCH_OVERSAMPLING
-    assert sketch_width(0, 32) == SKETCH_OVERSAMPLING
-    assert sketch_width(11, 91) == 11 + SKETCH_OVERSAMPLING
-    assert sketch_width(12, 91) == 0  # 12 > 91 / 8
-    assert sketch_width(2, 10) == 0
+    assert plan_sketch(None, 91, U64) is None
+    assert plan_sketch(8, 91, U64) == Sketch(8 + SKETCH_OVERSAMPLING, U64)
+    assert plan_sketch(0, 32, 2.0**-24) == Sketch(SKETCH_OVERSAMPLING, 2.0**-24)
+    assert plan_sketch(11, 91, U64) == Sketch(11 + SKETCH_OVERSAMPLING, U64)
+    assert plan_sketch(12, 91, U64) is None  # 12 > 91 / 8
+    assert plan_sketch(2, 10, U64) is None
 
 
 @pytest.mark.parametrize("scale", [0, 300, -300])
@@ -92,14 +95,18 @@ def test_the_sketch_keeps_as_many_directions_as_the_residuals_gram(euclidean):
     assert ranks[0] < ranks[2]  # a larger budget sets more aside
 
 
-@pytest.mark.parametrize("share, sketch", [(1e-40, 16), (1e-10, 2)])
-def test_a_sketch_that_cannot_set_aside_enough_leaves_the_block_to_the_gram(share, sketch):
-    # a budget below the rounding allowance, or a sketch narrower than the directions
-    # the budget needs: the residual's Gram decides, on the block as it was
+@pytest.mark.parametrize("share, sketch, unit", [(1e-40, 16, U64), (1e-10, 2, U64),
+                                                 (1e-10, 16, 2.0**-11)])
+def test_a_sketch_that_cannot_set_aside_enough_leaves_the_block_to_the_gram(share, sketch,
+                                                                           unit):
+    # a budget below the rounding allowance, a sketch narrower than the directions the
+    # budget needs, or a budget within the rounding of the snapshots' own dtype (float16
+    # here; at 1e-10 with float64 snapshots the sketch is taken, above): the residual's
+    # Gram decides, on the block as it was
     n, w0, b = 500, 60, 90
     ip = as_inner(_mass(n), n)
     X = _pulse(n, w0 + b)[:, w0:]
-    basis_s, ext_s, _ = _extend(n, w0, X, ip, share=share, sketch=sketch)
+    basis_s, ext_s, _ = _extend(n, w0, X, ip, share=share, sketch=sketch, unit=unit)
     basis_g, ext_g, _ = _extend(n, w0, X, ip, share=share, sketch=0)
     assert ext_s.column_energies is None
     for name in ("coeffs", "R_new", "rejected_map", "rejected_gram", "cross_gram", "gram_new"):
