@@ -28,7 +28,14 @@ import numpy as np
 
 from streamsvd._util.lazy import lazy_module
 from streamsvd._util.validation import as_float_array, check_finite
-from streamsvd.algebra.spd import EXACT_MAX_N, check_sparse_definite, check_symmetric
+from streamsvd.algebra.spd import (
+    EXACT_MAX_N,
+    check_sparse_definite,
+    check_symmetric,
+    proven_definite,
+    remember_definite,
+    row_sum_bound,
+)
 from streamsvd.errors import InnerProductMismatchError, InputError, ShapeMismatchError
 
 if TYPE_CHECKING:
@@ -208,7 +215,7 @@ class MatrixInner:
                           mat.data) if sp.issparse(mat) else None)
         # a sparse matrix proven definite before (the same entries, by their digest) is
         # not factorised again: a compressor made per trajectory or per target reuses it
-        checked = digest is not None and digest in _CHECKED
+        checked = digest is not None and proven_definite(digest)
         if not checked:
             check_symmetric(mat)
         diag = mat.diagonal()
@@ -238,10 +245,10 @@ class MatrixInner:
             assert digest is not None
             self.fingerprint = digest
             if mat.shape[0] <= EXACT_MAX_N:  # proven definite (above: estimated, logged)
-                _remember(digest)
+                remember_definite(digest)
         self.matrix = mat
         self.n = mat.shape[0]
-        self.norm_bound = _row_sum_bound(mat)
+        self.norm_bound = row_sum_bound(mat)
         self._weights = diag.reshape(-1, 1) if diagonal else None
         self.diagonal = Diagonal.of(diag) if diagonal else None
         # the CSR arrays of a sparse M, for the compiled product with a column-major block
@@ -317,36 +324,6 @@ class MatrixInner:
 
     def __hash__(self) -> int:
         return hash(self.fingerprint)
-
-
-# the digests of the last sparse matrices found symmetric positive definite
-def _row_sum_bound(mat: Any) -> float:
-    """Return an upper bound of ``||M||_2``: its largest absolute row sum (Gershgorin).
-
-    Each sum of ``k`` terms is rounded down by at most ``k eps`` of itself; the bound is
-    raised by twice that, so that it bounds the exact sums (about 1.37x the largest
-    eigenvalue of pyMOR's heat example's mass matrix, which its snapshots' Rayleigh
-    quotients reach to 0.74 of the bound). Every row holds its positive diagonal entry.
-    """
-    if sp.issparse(mat):
-        sums = np.add.reduceat(np.abs(mat.data), mat.indptr[:-1])
-        width = int(np.max(np.diff(mat.indptr)))
-    else:
-        sums = np.sum(np.abs(mat), axis=1)
-        width = mat.shape[1]
-    return float(np.max(sums)) * (1.0 + 2.0 * width * float(np.finfo(np.float64).eps))
-
-
-_CHECKED: dict[str, None] = {}
-_CHECKED_MAX = 8
-
-
-def _remember(digest: str) -> None:
-    """Record a sparse matrix found symmetric positive definite (the last few are kept)."""
-    _CHECKED.pop(digest, None)
-    _CHECKED[digest] = None
-    while len(_CHECKED) > _CHECKED_MAX:
-        del _CHECKED[next(iter(_CHECKED))]
 
 
 def _digest(kind: bytes, *arrays: np.ndarray) -> str:
