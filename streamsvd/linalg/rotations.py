@@ -223,12 +223,13 @@ _loading: threading.Thread | None = None
 def load_kernels_in_background() -> threading.Thread | None:
     """Start loading the compiled sweep kernels in a daemon thread (once per process).
 
-    A process's first sweep loads them from numba's cache, about half a second, and on a
-    stream whose updates all take the Gram path that first sweep is the final one
-    (:meth:`~streamsvd.StreamCompressor.finalize`): a driver calls this while its first
-    blocks are read, so that the load overlaps the reads. A sweep that starts before the
-    load ends waits for it (numba's compiler lock); nothing else changes. Returns the
-    loading thread (started now or before), or None when a sweep loaded them.
+    A process's first sweep loads them from numba's cache (0.2-0.4 s: numba's typing
+    registries and the cached code), and on a stream whose updates all take the Gram
+    path that first sweep is the final one (:meth:`~streamsvd.StreamCompressor.finalize`):
+    a driver calls this when a core is free, so that the load overlaps an update. A
+    sweep that starts before the load ends waits for it (numba's compiler lock); nothing
+    else changes. Returns the loading thread (started now or before), or None when a
+    sweep loaded them.
     """
     global _loading
     kernels = sys.modules.get("streamsvd.linalg.sweep_kernels")

@@ -66,9 +66,13 @@ def ingest(
 ) -> IngestResult:
     """Absorb columns ``start:stop`` of ``source`` into ``compressor``, block by block.
 
-    While the first block is read, the compiled kernels of the final sweeps are loaded in
-    the background (:func:`streamsvd.linalg.rotations.load_kernels_in_background`), unless
-    ``preload_sweeps`` is False.
+    The compiled kernels of the final sweeps load in the background
+    (:func:`streamsvd.linalg.rotations.load_kernels_in_background`) while the last block is
+    absorbed, once every read is done and the reader's core is free, unless
+    ``preload_sweeps`` is False (with ``rows``, where the updates read their blocks, from
+    the start). Beside the first reads, the load delayed them: ``streamsvd ingest`` of a
+    200000 x 500 array in blocks of 100 started its updates later and waited longer for
+    its second block (``bench/README.md``, "Ingest").
 
     Parameters
     ----------
@@ -104,7 +108,7 @@ def ingest(
     desc : str
         The progress bar's label.
     preload_sweeps : bool
-        Load the sweep kernels while the first block is read (about 0.5 s once per
+        Load the sweep kernels while the last block is absorbed (0.2-0.4 s once per
         process, and 46 MB): for a caller that finalises in this process.
 
     Returns
@@ -130,7 +134,7 @@ def ingest(
                    file=sys.stderr)
     blocks = source.blocks(block, start=first, stop=last, depth=depth, min_last=min_last,
                            rows=rows, prefetch=prefetch)
-    if preload_sweeps:  # the final sweeps' kernels, while the first block is read
+    if preload_sweeps and rows is not None:  # lazy blocks are read inside their updates
         load_kernels_in_background()
     # unread blocks are named one update ahead to a compressor that reads them sooner
     expect = getattr(compressor, "expect", None) if rows is not None else None
@@ -147,6 +151,8 @@ def ingest(
             if item is None:
                 break
             offset, X = item
+            if preload_sweeps and offset + X.shape[1] >= last:
+                load_kernels_in_background()  # the reads are over: their core loads them
             rec = compressor.absorb(X, source_offset=offset + X.shape[1])
             count += 1
             if bar is not None:  # the postfix first: the redraw shows this update

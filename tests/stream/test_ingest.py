@@ -117,6 +117,34 @@ def test_driver_resumes_at_the_compressor_offset_and_stops_at_stop(A):
     assert [h.columns for h in sc.history] == [4, 4, 2, 4, 4, 4, 1]
 
 
+@pytest.mark.parametrize("mode", ["prefetch", "serial", "lazy", "off"])
+def test_driver_loads_the_sweep_kernels_when_the_last_block_is_absorbed(A, monkeypatch, mode):
+    """Once every read is done (the last block handed over), not beside the reads; lazy
+    blocks, read inside their updates, load them from the start; never when told not to."""
+    import streamsvd.stream.ingest as driver
+
+    sc = StreamCompressor(N)
+    at = []
+    monkeypatch.setattr(driver, "load_kernels_in_background",
+                        lambda: at.append(sc.source_offset))
+    if mode == "lazy":
+        class Lazy:  # a compressor that reads its lazy blocks itself
+            source_offset = 0
+
+            def absorb(self, X, *, source_offset):
+                Lazy.source_offset = source_offset
+                sc.absorb(X.data.compute(), source_offset=source_offset)
+                return sc.history[-1]
+
+        ingest(Source(A, "array"), Lazy(), block=5, rows=8)
+        assert at[0] == 0 and set(at) == {0, 20}
+    else:
+        ingest(Source(A, "array"), sc, block=5, prefetch=mode == "prefetch",
+               preload_sweeps=mode != "off")
+        assert at == ([] if mode == "off" else [20])  # blocks 0, 5, 10, 15 absorbed before
+    assert sc.source_offset == M
+
+
 def test_driver_stops_the_reader_on_a_failed_update(A):
     bad = A.copy()
     bad[3, 12] = np.inf
