@@ -10,17 +10,15 @@ usually wants its mass matrix. Three kinds are offered, all behind one small int
 
 Each carries a :attr:`fingerprint` (a SHA-256 of its kind and data) so that a stored basis
 can refuse to be continued with another inner product. A compressor's store also keeps
-the data of these three kinds (:func:`inner_arrays`, :func:`inner_from_arrays`), so that
-it reopens without being given the inner product;
-:func:`~streamsvd.io.inner_file.load_inner` reads one from a file (the command line's
-``--inner FILE``). A matrix is checked symmetric positive definite by
+the data of these three kinds, so that it reopens without being given the inner product,
+and the command line reads one from a file (``--inner FILE``): both in
+:mod:`streamsvd.io.inner_file`. A matrix is checked symmetric positive definite by
 :mod:`streamsvd.algebra.spd`.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -55,8 +53,6 @@ __all__ = [
     "MatrixInner",
     "as_inner",
     "check_same_inner",
-    "inner_arrays",
-    "inner_from_arrays",
 ]
 
 
@@ -379,45 +375,3 @@ def check_same_inner(a: InnerProduct, b: InnerProduct, what: str) -> None:
             f"`{what}` uses the inner product {b!r}; expected {a!r}, the one of the "
             "current basis. Express both in the same inner product."
         )
-
-
-def inner_arrays(inner: InnerProduct) -> dict[str, np.ndarray] | None:
-    """Return the arrays that rebuild ``inner`` with :func:`inner_from_arrays`.
-
-    Weights are one array, a dense matrix one ``n x n`` array, a sparse matrix its CSR
-    ``indptr``, ``indices`` and ``data`` (the indices as float64, exact below 2**53).
-
-    Returns
-    -------
-    dict of str to numpy.ndarray or None
-        Empty for the Euclidean inner product; None for an inner product of another
-        class, whose data cannot be stored.
-    """
-    if isinstance(inner, Euclidean):
-        return {}
-    if isinstance(inner, DiagonalInner):
-        return {"inner_weights": inner.weights}
-    if isinstance(inner, MatrixInner):
-        mat = inner.matrix
-        if not sp.issparse(mat):
-            return {"inner_matrix": mat}
-        return {
-            "inner_indptr": mat.indptr.astype(np.float64),
-            "inner_indices": mat.indices.astype(np.float64),
-            "inner_data": mat.data,
-        }
-    return None
-
-
-def inner_from_arrays(arrays: Mapping[str, np.ndarray]) -> InnerProduct | None:
-    """Rebuild the inner product stored by :func:`inner_arrays` (None if none is stored)."""
-    if "inner_weights" in arrays:
-        return DiagonalInner(arrays["inner_weights"])
-    if "inner_matrix" in arrays:
-        return MatrixInner(arrays["inner_matrix"])
-    if "inner_indptr" in arrays:
-        indptr = np.asarray(arrays["inner_indptr"]).astype(np.int64)
-        indices = np.asarray(arrays["inner_indices"]).astype(np.int64)
-        n = indptr.size - 1
-        return MatrixInner(sp.csr_array((arrays["inner_data"], indices, indptr), shape=(n, n)))
-    return None

@@ -1,18 +1,36 @@
-"""An inner product read from a file: the command line's ``--inner FILE``."""
+"""An inner product in files and in stores.
+
+:func:`load_inner` reads one from a file (the command line's ``--inner FILE``);
+:func:`inner_arrays` and :func:`inner_from_arrays` turn the three kinds of
+:mod:`streamsvd.algebra.inner` into the arrays a compressor's store keeps and back, so
+that a store reopens without being given its inner product.
+"""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.sparse as sp
 
-from streamsvd.algebra.inner import InnerProduct, as_inner
+from streamsvd._util.lazy import lazy_module
+from streamsvd.algebra.inner import (
+    DiagonalInner,
+    Euclidean,
+    InnerProduct,
+    MatrixInner,
+    as_inner,
+)
 from streamsvd.errors import InputError
 
-__all__ = ["load_inner"]
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+else:  # a store without a sparse inner product never imports it (0.1 s)
+    sp = lazy_module("scipy.sparse", absent={"issparse": lambda x: False})
+
+__all__ = ["inner_arrays", "inner_from_arrays", "load_inner"]
 
 
 def load_inner(path: str | os.PathLike[str]) -> InnerProduct:
@@ -54,3 +72,45 @@ def load_inner(path: str | os.PathLike[str]) -> InnerProduct:
             "hold a sparse matrix written by scipy.sparse.save_npz."
         ) from None
     return as_inner(data)
+
+
+def inner_arrays(inner: InnerProduct) -> dict[str, np.ndarray] | None:
+    """Return the arrays that rebuild ``inner`` with :func:`inner_from_arrays`.
+
+    Weights are one array, a dense matrix one ``n x n`` array, a sparse matrix its CSR
+    ``indptr``, ``indices`` and ``data`` (the indices as float64, exact below 2**53).
+
+    Returns
+    -------
+    dict of str to numpy.ndarray or None
+        Empty for the Euclidean inner product; None for an inner product of another
+        class, whose data cannot be stored.
+    """
+    if isinstance(inner, Euclidean):
+        return {}
+    if isinstance(inner, DiagonalInner):
+        return {"inner_weights": inner.weights}
+    if isinstance(inner, MatrixInner):
+        mat = inner.matrix
+        if not sp.issparse(mat):
+            return {"inner_matrix": mat}
+        return {
+            "inner_indptr": mat.indptr.astype(np.float64),
+            "inner_indices": mat.indices.astype(np.float64),
+            "inner_data": mat.data,
+        }
+    return None
+
+
+def inner_from_arrays(arrays: Mapping[str, np.ndarray]) -> InnerProduct | None:
+    """Rebuild the inner product stored by :func:`inner_arrays` (None if none is stored)."""
+    if "inner_weights" in arrays:
+        return DiagonalInner(arrays["inner_weights"])
+    if "inner_matrix" in arrays:
+        return MatrixInner(arrays["inner_matrix"])
+    if "inner_indptr" in arrays:
+        indptr = np.asarray(arrays["inner_indptr"]).astype(np.int64)
+        indices = np.asarray(arrays["inner_indices"]).astype(np.int64)
+        n = indptr.size - 1
+        return MatrixInner(sp.csr_array((arrays["inner_data"], indices, indptr), shape=(n, n)))
+    return None

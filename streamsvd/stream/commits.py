@@ -15,7 +15,7 @@ commit that are unchanged:
 * ``history``, one row per update, only appended;
 * the inner product's data (``inner_weights``, ``inner_matrix`` or the CSR arrays
   ``inner_indptr``, ``inner_indices``, ``inner_data``;
-  :func:`streamsvd.algebra.inner.inner_arrays`),
+  :func:`streamsvd.io.inner_file.inner_arrays`),
   written by the first commit and kept unchanged by every later one.
 
 The small state (``coords``, ``H``, ``R``, ``Vp``, the scalars) is written whole by the

@@ -22,13 +22,14 @@ import numpy as np
 
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
-from streamsvd.algebra.inner import InnerProduct, inner_arrays
+from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import Backend
 from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.state import Plan, State, apply_plan
 from streamsvd.errors import StoreError
+from streamsvd.io.inner_file import inner_arrays
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.storage import open_storage
 from streamsvd.stream.options import CompressorOptions

@@ -26,12 +26,13 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from streamsvd.algebra.inner import InnerProduct, as_inner, inner_from_arrays
+from streamsvd.algebra.inner import InnerProduct, as_inner
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.downdate import intervals_add
 from streamsvd.engine.record import UpdateRecord, record_from_row
 from streamsvd.engine.state import Plan, State, stage_plan
 from streamsvd.errors import StoreError, StoreFormatError, StoreMismatchError
+from streamsvd.io.inner_file import inner_from_arrays
 from streamsvd.store import BasisStore, open_store
 from streamsvd.store.format import StoreState
 from streamsvd.stream.commits import CommitSchedule, CommitTracker
