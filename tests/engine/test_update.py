@@ -437,3 +437,69 @@ def test_safe_column_norms_match_lapack_at_any_scale_and_layout(rng, layout):
     exps, peak = column_exponents(X)
     np.testing.assert_array_equal(peak, np.max(np.abs(X), axis=0))
     assert np.all((peak[:5] * np.ldexp(1.0, -exps[:5]) >= 0.5) & (peak[:5] * np.ldexp(1.0, -exps[:5]) < 1))
+
+
+@pytest.mark.parametrize("measure", ["mean_l2", "relative"])
+def test_float32_snapshots_set_their_rounding_aside_and_meet_the_target(measure):
+    """float32 snapshots carry their rounding in every direction of a block: at a target
+    near it, the blocks set it aside (fewer directions orthonormalised than the same
+    values given as float64, whose share is smaller), and the bound, the target and the
+    orthogonality hold as for any stream."""
+    from tests.linalg._snapshots import mass, pulse
+
+    n, b, blocks = 500, 60, 8
+    A32 = (pulse(n, b * blocks) * (1.0 + 0.3 * np.sin(np.arange(b * blocks) / 7.0))
+           ).astype(np.float32)
+    A = A32.astype(np.float64)  # the same values: only the source's dtype differs
+    M = mass(n)
+    energies = np.einsum("ij,ij->j", A, M @ A)
+    u = float(np.finfo(np.float32).eps) / 2
+    # the target near float32's precision: the rounding's energy, up to u^2 ||x||_M^2 per
+    # column, is a fifth of the budget's growth (the engine's share of the target: 0.44)
+    target = (5 * u * math.sqrt(float(np.mean(energies))) if measure == "mean_l2"
+              else 5 * u)
+    runs = {}
+    for name, X in (("float32", A32), ("float64", A)):
+        sc = ss.StreamCompressor(n, inner=M, target_error=target, error_measure=measure,
+                                 rule="jacobi", sweeps=None)
+        for j in range(0, X.shape[1], b):
+            sc.absorb(X[:, j:j + b])
+        sc.finalize()
+        E = sc.expansion
+        R = A - E.U @ E.V.T
+        err = math.sqrt(float(np.sum(R * (M @ R))))
+        assert err <= sc.error_bound * (1 + 1e-9) + 50 * n * EPS * math.sqrt(energies.sum())
+        budget = target * (math.sqrt(A.shape[1]) if measure == "mean_l2"
+                           else math.sqrt(energies.sum()))
+        assert sc.error_bound <= budget * (1 + 1e-12)
+        U = sc.left_vectors
+        assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+        runs[name] = (sum(h.new_directions for h in sc.history), sc.rank)
+    (new32, rank32), (new64, rank64) = runs["float32"], runs["float64"]
+    assert new32 < new64 / 2  # the rounding is set aside, not orthonormalised then cut
+    assert rank32 <= rank64 + 1
+
+
+@pytest.mark.parametrize("measure", ["mean_l2", "relative"])
+def test_float32_snapshots_far_from_their_precision_update_as_float64(measure):
+    """At a target 20 times looser than the test before, the rounding is far below the
+    budget (1/2000 of its growth): a float32 source is absorbed digit for digit as the
+    same values in float64 (with the larger share these digits differ)."""
+    from tests.linalg._snapshots import mass, pulse
+
+    n, b = 500, 60
+    A32 = pulse(n, 4 * b).astype(np.float32)
+    M = mass(n)
+    u = float(np.finfo(np.float32).eps) / 2
+    rms = math.sqrt(float(np.mean(np.einsum("ij,ij->j", A32, M @ A32.astype(float)))))
+    target = 100 * u * (rms if measure == "mean_l2" else 1.0)
+    got = []
+    for X in (A32, A32.astype(np.float64)):
+        sc = ss.StreamCompressor(n, inner=M, target_error=target, error_measure=measure,
+                                 rule="jacobi", sweeps=None)
+        for j in range(0, X.shape[1], b):
+            sc.absorb(X[:, j:j + b])
+        got.append((sc.expansion.U, sc.expansion.V, sc.error_bound))
+    np.testing.assert_array_equal(got[0][0], got[1][0])
+    np.testing.assert_array_equal(got[0][1], got[1][1])
+    assert got[0][2] == got[1][2]
