@@ -67,7 +67,7 @@ COMPACT_PER_COLUMN = 2.0
 # _NEAR_PRECISION of that growth, _ROUNDED_ASIDE_SHARE (heat in float32 at mean_l2 1e-6,
 # where the rounding is 0.24-0.4 of it: HAPOD's modes at 0.05 with updates of 10, 91 or
 # 668 columns, one more with updates of 10 at 0.1; Burgers at relative 1e-6, where it is
-# 0.019, took one more mode than HAPOD's at a share of 0.0036)
+# 0.019, took one more mode than HAPOD's at that share)
 _ASIDE_SHARE = 0.003
 _ROUNDED_ASIDE_SHARE = 0.05
 _NEAR_PRECISION = 0.1
