@@ -31,12 +31,12 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import scipy.linalg
 
-from streamsvd._util.scaling import pow2_exponent, safe_column_norms, safe_m_norms, safe_norm
+from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
+from streamsvd.engine.aside import UNIT_FLOAT64, set_aside_budget
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import Before, core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
@@ -61,23 +61,12 @@ logger = logging.getLogger(__name__)
 # block beside the basis records that cost as already wasted).
 _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
-# the share of the budget's growth in an update that a block may spend on directions set
-# aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut; for
-# snapshots stored coarser than float64 whose rounding (u^2 of their energy) reaches
-# _NEAR_PRECISION of that growth, _ROUNDED_ASIDE_SHARE (heat in float32 at mean_l2 1e-6,
-# where the rounding is 0.24-0.4 of it: HAPOD's modes at 0.05 with updates of 10, 91 or
-# 668 columns, one more with updates of 10 at 0.1; Burgers at relative 1e-6, where it is
-# 0.019, took one more mode than HAPOD's at that share)
-_ASIDE_SHARE = 0.003
-_ROUNDED_ASIDE_SHARE = 0.05
-_NEAR_PRECISION = 0.1
-_UNIT_FLOAT64 = float(np.finfo(np.float64).eps) / 2
 
 
 # ---------------------------------------------------------------------------- planning
 def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
                 name: str | None = None, previous: UpdateRecord | None = None,
-                unit: float = _UNIT_FLOAT64) -> Plan:
+                unit: float = UNIT_FLOAT64) -> Plan:
     """Plan the absorption of a block of snapshots ``X`` (``n x b``).
 
     ``name``: ``X``'s name in the caller's words; given, ``X`` is checked finite by
@@ -88,7 +77,7 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
     finds its own from a sketch (:func:`~streamsvd.linalg.sketch.plan_sketch`). ``unit``:
     the unit roundoff of the block's source (``X`` itself is float64), which a sketch
     cannot set aside below, and above float64's lets the block set more aside
-    (:func:`_aside`).
+    (:func:`~streamsvd.engine.aside.set_aside_budget`).
 
     The right factor grows to ``blockdiag(Y, I_b) K`` with the core
     ``K = [[R, 0], [C^T, R_new^T]]`` (``C`` the block's coefficients on the basis,
@@ -100,9 +89,8 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
               if previous is not None and previous.kind == "absorb" else None)
     ext = extend_block(
         state.basis, state.coords, X, inner=opts.inner, reject_tol=opts.reject_tol,
-        basis_gram=state.gram, aside=_aside(opts, b, unit, state, X),
-        sketch=plan_sketch(before, b, unit),
-        name=name,
+        basis_gram=state.gram, aside=set_aside_budget(opts, b, unit=unit, state=state, X=X),
+        sketch=plan_sketch(before, b, unit), name=name,
     )
     k, p = state.R.shape
     K = np.zeros((k + b, p + ext.rank))
@@ -360,65 +348,6 @@ def plan_rows(
 
 
 # ---------------------------------------------------------------------------- helpers
-def _aside(opts: StepOptions, b: int, unit: float = _UNIT_FLOAT64,
-           state: State | None = None, X: np.ndarray | None = None
-           ) -> tuple[float, float]:
-    """Return the energy ``(e0, e1)`` a block of ``b`` snapshots may set aside.
-
-    With a ``mean_l2`` or ``relative`` target the squared budget grows in this update by
-    ``(share target)^2 b`` or ``(share target)^2 ||X||^2``; ``_ASIDE_SHARE`` of it may be
-    rejected on the residual's Gram (:func:`streamsvd.linalg.extend.extend_basis`), its
-    rounding counted, so that directions far below the target are never orthonormalised.
-    What is set aside is discarded like any rejected residual (its norm enters ``d_t``)
-    and the cut that follows is sized after it. The share is small because what is set
-    aside is paid again in later bounds (the cross term ``d_t rho`` of
-    :mod:`streamsvd.engine.bound`).
-
-    Snapshots whose source has a unit roundoff ``u = unit`` above float64's (float32)
-    carry their rounding in every direction of the block, of energy up to about
-    ``u^2 ||X||_M^2``, which the cut would discard after orthonormalising it. When that
-    energy reaches ``_NEAR_PRECISION`` of the growth (the target is near the data's own
-    precision; ``u^2 / (share target)^2`` for a relative target, and for ``mean_l2``
-    with ``||X||_M^2 / b`` taken as the mean energy of the snapshots absorbed before,
-    ``||R||^2 / m`` of ``state``, or of the block ``X`` in the first update), the share
-    is ``_ROUNDED_ASIDE_SHARE``. An absolute target, a rank cap alone and no cut set
-    nothing aside.
-    """
-    trunc = opts.truncation
-    if trunc.target is None or trunc.measure not in ("relative", "mean_l2"):
-        return (0.0, 0.0)
-    se = trunc.share * trunc.target
-    if not 0.0 < se < 2.0**400:  # its square past the range: nothing set aside
-        return (0.0, 0.0)
-    near = (unit > _UNIT_FLOAT64
-            and _rounding_share(trunc.measure, unit, se, state, X, opts.inner)
-            >= _NEAR_PRECISION)
-    rate = (_ROUNDED_ASIDE_SHARE if near else _ASIDE_SHARE) * se * se
-    return (rate * b, 0.0) if trunc.measure == "mean_l2" else (0.0, rate)
-
-
-def _rounding_share(measure: str, unit: float, se: float, state: State | None,
-                    X: np.ndarray | None, inner: Any) -> float:
-    """Return ``u^2 ||X||_M^2`` over the budget's growth (:func:`_aside`), 0 when unknown.
-
-    With ``mean_l2`` the snapshots' mean energy is the state's, ``||R||^2 / m``; before
-    the first update, the block's (its ``M``-norms: one product with ``M``, once).
-    """
-    if measure == "relative":
-        return (unit / se) ** 2
-    if state is not None and state.m > 0 and state.R.size:
-        e = pow2_exponent(state.R)  # ||R||^2 / m against se^2, scaled: any amplitude
-        mean = float(np.linalg.norm(np.ldexp(state.R, -e))) ** 2 / state.m
-        scaled = math.ldexp(se, -e)
-        ratio = mean * (unit / scaled) ** 2 if scaled > 0 else math.inf
-    elif X is not None and X.size:
-        with np.errstate(over="ignore", invalid="ignore"):
-            ratio = float(np.mean((safe_m_norms(X, inner) * (unit / se)) ** 2))
-    else:
-        return 0.0
-    return ratio if math.isfinite(ratio) else math.inf
-
-
 def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     """``H`` of ``[Q, Q_new]`` from the blocks Gram-Schmidt measured (:class:`BasisExtension`)."""
     w, r = state.basis.width, ext.rank

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from streamsvd.algebra.panels.basis import PanelBasis
+from streamsvd.engine.aside import UNIT_FLOAT64
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import (
     plan_absorb,
@@ -218,7 +219,7 @@ def _unit_roundoff(columns: Any) -> float:
     (:class:`~streamsvd.linalg.sketch.Sketch`).
     """
     dtype = getattr(columns, "dtype", None)
-    unit = float(np.finfo(np.float64).eps) / 2
+    unit = UNIT_FLOAT64
     if dtype is not None and np.issubdtype(dtype, np.floating):
         unit = max(unit, float(np.finfo(dtype).eps) / 2)
     return unit

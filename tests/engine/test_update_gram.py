@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 import streamsvd as ss
-import streamsvd.engine.update as update_module
+import streamsvd.engine.aside as aside_module
 import streamsvd.stream.updates as stream_module
 from streamsvd.parallel.cluster import tall_compress
 from streamsvd.testing import with_spectrum
@@ -85,7 +85,7 @@ def test_the_gram_path_keeps_the_exact_paths_modes_and_bound(monkeypatch):
     monkeypatch.setattr(stream_module, "plan_absorb_by_gram", lambda *a, **k: None)
     # the exact path as the Gram path's reference: nothing set aside before the cut
     # (what setting aside changes is tested in tests/linalg/test_extend.py)
-    monkeypatch.setattr(update_module, "_ASIDE_SHARE", 0.0)
+    monkeypatch.setattr(aside_module, "_ASIDE_SHARE", 0.0)
     exact = _stream(A, **kw)
     assert not any(_by_gram(r) for r in exact.history)
     exact.finalize()
