@@ -105,7 +105,7 @@ _MOVED: dict[str, str | tuple[str, ...]] = {
     "basis": ("algebra.memory", "algebra.interface", "algebra.buffer"),
     "bound": "engine.bound", "estimator": "sklearn.estimator",
     "expansion": "linalg.expansion",
-    "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
+    "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend", "linalg.rejection"),
     "inner": ("algebra.inner", "io.inner_file", "algebra.spd"),
     "locks": ("storage.lockfile", "storage.lease"),
     "panels": "algebra.panels.basis",

@@ -17,7 +17,7 @@ OLD_PATHS = {"basis": ("algebra.memory", "algebra.interface", "algebra.buffer"),
              "sources": ("io.sources", "io.open", "algebra.panels.lazy", "io.formats"),
              "parallel_tree": ("parallel.tree", "parallel.spec"),
              "parallel_tall": ("parallel.tall", "algebra.panels.backend"),
-             "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend"),
+             "gram_schmidt": ("linalg.gram_schmidt", "linalg.extend", "linalg.rejection"),
              "inner": ("algebra.inner", "io.inner_file", "algebra.spd"),
              "locks": ("storage.lockfile", "storage.lease")}
 # the public names of the flat modules split in the move: their aliases still read them

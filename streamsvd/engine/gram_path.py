@@ -21,7 +21,7 @@ from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.interface import BasisBackend, DeferredGram
 from streamsvd.engine.core import Truncation
 from streamsvd.engine.state import Plan, State, StepOptions
-from streamsvd.linalg.extend import default_reject_tol
+from streamsvd.linalg.rejection import default_reject_tol
 
 __all__ = [
     "GRAM_MEASURES", "_ALLOWANCE_SHARE", "_COMPACTION_RATIO", "_EPS", "_JOINT_MAX_SHARE",

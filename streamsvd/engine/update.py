@@ -43,8 +43,9 @@ from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
 from streamsvd.linalg.blocks import skew_factor
-from streamsvd.linalg.extend import extend_basis, term_reference, top_energy
+from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
+from streamsvd.linalg.rejection import term_reference, top_energy
 from streamsvd.linalg.sketch import plan_sketch
 from streamsvd.linalg.slices import extend_block
 

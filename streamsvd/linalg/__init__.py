@@ -10,7 +10,7 @@ from streamsvd._util.lazy import lazy_exports
 _EXPORTS = {
     "Expansion": "expansion",
     "BasisExtension": "extend",
-    "default_reject_tol": "extend",
+    "default_reject_tol": "rejection",
     "extend_basis": "extend",
     "GramSchmidtResult": "gram_schmidt",
     "orthonormalize": "gram_schmidt",

@@ -2,10 +2,10 @@
 
 :func:`extend_basis` projects a block of columns onto the basis twice (or more, DGKS),
 orthonormalises the residual (CholeskyQR, or rounds of SVQB for a nearly collinear one)
-and rejects the columns whose residual is negligible (:func:`default_reject_tol`); the
-new directions and their measurements are returned as a
-:class:`~streamsvd.linalg.extension.BasisExtension`. The
-rejection rule is the one of :mod:`streamsvd.linalg.gram_schmidt`.
+and rejects the columns whose residual is negligible
+(:mod:`streamsvd.linalg.rejection`); the new directions and their measurements are
+returned as a :class:`~streamsvd.linalg.extension.BasisExtension`. The rejection rule is
+the one of :mod:`streamsvd.linalg.gram_schmidt`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from streamsvd.linalg.blocks import (
 from streamsvd.linalg.extension import BasisExtension
 from streamsvd.linalg.sketch import Sketch, extend_by_sketch
 
-__all__ = ["default_reject_tol", "extend_basis", "term_reference", "top_energy"]
+__all__ = ["extend_basis"]
 
 _EPS = np.finfo(np.float64).eps
 # a residual that kept more than this of its component along the basis (relative to its
@@ -49,32 +49,6 @@ _LOSS_MAX = 2.0**-26
 _KEPT_LOSS_MAX = 2.0**-10
 # Higham and Mary's constant of the probabilistic rounding model (as the Gram path's)
 _ROUNDING_LAMBDA = 4.0
-
-
-def default_reject_tol(n: int) -> float:
-    """Return the default rejection threshold ``n * eps`` (relative to a column's norm)."""
-    return max(n, 1) * _EPS
-
-
-def top_energy(u_norms: np.ndarray, v_norms: np.ndarray) -> float:
-    """Return ``max_i ||u_i|| ||v_i||``, the largest term's energy (0 without a term)."""
-    return float(np.max(u_norms * v_norms)) if u_norms.size else 0.0
-
-
-def term_reference(u_norms: np.ndarray, v_norms: np.ndarray) -> np.ndarray:
-    """Return reference norms: a term's rejection relative to the largest term's energy.
-
-    For the terms ``u_j v_j^T`` of an increment or of an expansion merged (the
-    ``reference`` of :func:`extend_basis`).
-
-    The residual ``r_j`` of ``u_j`` is rejected when ``||r_j|| <= tol * ref_j`` with
-    ``ref_j = max_i(||u_i|| ||v_i||) / ||v_j||``; a term with ``v_j = 0`` carries nothing
-    (reference 0: rejected).
-    """
-    top = top_energy(u_norms, v_norms)
-    with np.errstate(divide="ignore"):
-        ref = np.where(v_norms > 0, top / np.where(v_norms > 0, v_norms, 1.0), 0.0)
-    return ref
 
 
 def extend_basis(

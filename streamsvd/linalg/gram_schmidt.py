@@ -42,7 +42,8 @@ from streamsvd.algebra.inner import InnerProduct, as_inner
 from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.errors import ShapeMismatchError
 from streamsvd.linalg.expansion import Expansion
-from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.rejection import default_reject_tol
 
 __all__ = [
     "GramSchmidtResult",

@@ -91,7 +91,7 @@ class CompressorOptions:
             check_target,
         )
         from streamsvd.errors import InputError
-        from streamsvd.linalg.extend import default_reject_tol
+        from streamsvd.linalg.rejection import default_reject_tol
         from streamsvd.linalg.rotations import RULES
 
         unknown = sorted(set(values) - set(cls.names()))

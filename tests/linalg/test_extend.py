@@ -8,7 +8,8 @@ import pytest
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
 from streamsvd.linalg.blocks import set_aside
-from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.rejection import default_reject_tol
 from tests.linalg._snapshots import mass as _mass
 
 EPS = np.finfo(np.float64).eps

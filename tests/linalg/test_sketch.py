@@ -8,7 +8,8 @@ import pytest
 import streamsvd as ss
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
-from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.rejection import default_reject_tol
 from streamsvd.linalg.sketch import SKETCH_OVERSAMPLING, Sketch, plan_sketch
 from tests.linalg._snapshots import mass as _mass
 from tests.linalg._snapshots import pulse as _pulse

@@ -7,7 +7,8 @@ import pytest
 
 from streamsvd.algebra.inner import as_inner
 from streamsvd.algebra.memory import MemoryBasis
-from streamsvd.linalg.extend import default_reject_tol, extend_basis
+from streamsvd.linalg.extend import extend_basis
+from streamsvd.linalg.rejection import default_reject_tol
 from streamsvd.linalg.slices import extend_in_slices, slice_width
 from tests.linalg._snapshots import mass as _mass
 from tests.linalg._snapshots import pulse as _pulse
