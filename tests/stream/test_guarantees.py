@@ -449,6 +449,40 @@ def test_property_wide_blocks_in_slices_meet_the_target(seed, measure, scale, ma
     assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(["relative", "mean_l2"]),
+       scale=st.sampled_from([2.0**-60, 1.0, 2.0**60]), mass=st.booleans(),
+       block=st.sampled_from([7, 20, 40]), near=st.floats(1.0, 30.0))
+def test_property_float32_snapshots_near_their_precision_meet_the_target(
+        seed, measure, scale, mass, block, near):
+    """float32 snapshots (scales within float32's range) at a target ``near`` times their
+    rounding (``u ||x||``), where a block sets aside more of the budget
+    (``engine/aside.py``): the bound holds after every
+    update against the true error of the values given, the target is met and the basis
+    is orthonormal, measured from the factors."""
+    rng = np.random.default_rng(seed)
+    n, m = 60, 80
+    A = spectrum_matrix(rng, n, m, 12, rng.uniform(2, 8), scale).astype(np.float32)
+    A64 = A.astype(np.float64)
+    d = np.linspace(0.5, 2.0, n) if mass else np.ones(n)
+    root = np.sqrt(d)[:, None]
+    u = float(np.finfo(np.float32).eps) / 2
+    rms = scaled_norm(root * A64, scale) / np.sqrt(m)
+    t = near * u if measure == "relative" else near * u * rms
+    sc = ss.StreamCompressor(n, inner=d if mass else None, target_error=t,
+                             error_measure=measure, rule="jacobi", sweeps=None)
+    for j in range(0, m, block):
+        sc.absorb(A[:, j:j + block])
+        live = A64[:, :j + block]
+        err = scaled_norm(root * (live - sc.expansion.to_dense()), scale)
+        slack = ROUNDING * max(n, m) * EPS * scaled_norm(root * live, scale)
+        assert err <= sc.error_bound + slack, (err, sc.error_bound, slack)
+    sc.finalize()
+    assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
+    U = sc.left_vectors
+    assert np.linalg.norm(U.T @ (d[:, None] * U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+
+
 def test_a_wide_block_in_slices_refuses_a_non_finite_entry_and_changes_nothing(monkeypatch):
     import streamsvd.stream.updates as stream_module
 
