@@ -100,7 +100,7 @@ def child(what: str, path: str) -> None:
         sc.finalize()
     elif what == "tall":
         # imports are not the mode's time (dask.array imports xarray and pandas when they
-        # are installed, 0.9 s here, and the modes read through it)
+        # are installed, 0.4-0.9 s here, and the modes read through it)
         import dask.array  # noqa: F401
 
         from streamsvd.parallel.cluster import tall_compress

@@ -72,7 +72,7 @@ def ingest(
     ``preload_sweeps`` is False (with ``rows``, where the updates read their blocks, from
     the start). Beside the first reads, the load delayed them: ``streamsvd ingest`` of a
     200000 x 500 array in blocks of 100 started its updates later and waited longer for
-    its second block (``bench/README.md``, "Ingest").
+    its second block (``bench/studies/tight-targets.md``, "Latest for ingest").
 
     Parameters
     ----------
