@@ -11,29 +11,29 @@ the one of :mod:`streamsvd.linalg.gram_schmidt`.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
-from streamsvd._util.scaling import scale_into, scaled_norm, top_exponent
-from streamsvd.algebra.blas import apply_into as m_apply_into
+from streamsvd._util.scaling import scale_into, top_exponent
 from streamsvd.algebra.blas import apply_with_energies, gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
 from streamsvd.linalg.blocks import (
-    COND_SPLIT,
-    ONE_PASS_COND,
     apply_into,
-    cholesky_qr_in_place,
     column_rule,
     complement,
     eigh_desc,
     kept_clean,
-    orthonormalize_in_rounds,
     place_directions,
-    right_solve,
     set_aside,
 )
 from streamsvd.linalg.extension import BasisExtension
+from streamsvd.linalg.residual import (
+    ResidualDirections,
+    orthonormalize_residual,
+    write_directions,
+)
 from streamsvd.linalg.sketch import Sketch, extend_by_sketch
 
 __all__ = ["extend_basis"]
@@ -144,24 +144,20 @@ def extend_basis(
         columns' peaks, which the scaling takes anyway (a NaN or infinite entry raises
         :class:`~streamsvd.errors.NonFiniteError` naming it, before any other work).
     """
-    n, b = X.shape
+    b = X.shape[1]
     w = basis.width
-    q = w if G is None else G.shape[1]
-    Y, MY = basis.workspace(b)
-    exps, zero = scale_into(X, Y, name=name)
-    C = np.zeros((q, b))
+    Z, MY = basis.workspace(b)  # the scaled block, then its residual, in place
+    exps, zero = scale_into(X, Z, name=name)
+    C = np.zeros((w if G is None else G.shape[1], b))
     passes = 0
     if w:
-        C += basis.project(Y, G)
-        basis.subtract(Y, G, C)
+        C += basis.project(Z, G)
+        basis.subtract(Z, G, C)
         passes += 2
-    Z = Y
     # with a budget, the directions kept after setting the weakest aside decide first
-    # whether what the projection left along the basis is measured (below)
+    # whether what the projection left along the basis is measured (_split_on_kept)
     lazy = bool(w and b and basis_gram is not None and (aside[0] > 0 or aside[1] > 0))
-    if not (lazy and sketch is not None):
-        MZ = apply_into(Z, MY, inner)
-    else:
+    if lazy and sketch is not None:
         # the directions to keep found from a sketch of the columns, the rest measured
         # and rejected, without the residual's Gram (streamsvd.linalg.sketch)
         MZ, energies = apply_with_energies(inner, Z, MY)
@@ -175,171 +171,132 @@ def extend_basis(
             kept_loss=_KEPT_LOSS_MAX)
         if ext is not None:
             return ext
+    else:
+        MZ = apply_into(Z, MY, inner)
     if w and not lazy:
-        cross0, S = basis.residual_products(Z, MZ)
+        cross, S = basis.residual_products(Z, MZ)
         passes += 1
     else:
-        cross0, S = np.zeros((0, b)), gram(Z, inner, MZ)
-    split = None
-    skewed = False
+        cross, S = np.zeros((0, b)), gram(Z, inner, MZ)
+    split = kept = spectrum = None  # spectrum: eigh_desc(S), once taken
     budget = 0.0
-    Zk = None
-    spectrum = None  # eigh_desc(S), once taken (S changes only with a second projection)
     if lazy:
-        # the second projection is not made when the directions kept after setting the
-        # weakest aside lie along the basis by at most _KEPT_LOSS_MAX (nearly collinear
-        # time steps): their part along the basis is measured on them alone (a narrow
-        # product), kept in cross_gram; the directions set aside keep theirs, of the
-        # order of the projection's rounding (eps ||X||), which the bound does not count
-        budget = _aside_budget(_norms(C, S), exps, aside)
-        spectrum = eigh_desc(S) if budget > 0 else None
-        split = set_aside(S, budget, n, _ROUNDING_LAMBDA, spectrum=spectrum)
-        if split is not None:
-            Zk = np.empty((n, split[0].shape[1]), order="F")
-            np.matmul(Z, split[0], out=Zk)
-            skewed = kept_clean(basis.project(Zk, G), split[1], _KEPT_LOSS_MAX)
+        split, kept, budget, spectrum, more = _split_on_kept(basis, G, Z, C, S, exps, aside)
+        passes += more
+        if split is None:
+            cross = basis.project(Z, None)
             passes += 1
-        if skewed:
-            nu = _norms(C, S)
-        else:
-            split, Zk = None, None
-            cross0 = basis.project(Z, None)
-            passes += 1
+    skewed = split is not None
     if w and not skewed:
-        # what the projection left along the basis decides a second projection: not
-        # made when it is below _LOSS_MAX of every column's residual
-        along = cross0 if G is None else G.T @ cross0
-        loss = np.sqrt(np.einsum("ij,ij->j", along, along))
-        norms = np.sqrt(np.maximum(np.diag(S), 0.0))
-        reproject = bool(np.any(loss > _LOSS_MAX * norms))
-        if reproject:
-            basis.subtract(Z, G, along)
-            C += along
-            passes += 1
-            if basis_gram is None:
-                cross0 = basis.project(Z, None)
-                passes += 1
-            else:
-                cross0 = cross0 - basis_gram @ (along if G is None else G @ along)
-            MZ = apply_into(Z, MY, inner)
-            S = gram(Z, inner, MZ)
-            spectrum = None
+        cross, MZ, S, more = _project_again_if_lost(basis, G, Z, MY, MZ, C, cross, S,
+                                                    basis_gram, inner)
+        passes += more
+        spectrum = None if more else spectrum  # S changes only with a second projection
     # the columns' M-norms: the part along the (orthonormal) basis and the residual's
-    if not skewed:
-        nu = _norms(C, S)
+    nu = _norms(C, S)
     ref = nu if reference is None else np.ldexp(np.asarray(reference, float), -exps)
     if split is None and b:
         budget = _aside_budget(nu, exps, aside)
         if budget > 0 and spectrum is None:
             spectrum = eigh_desc(S)
-        split = set_aside(S, budget, n, _ROUNDING_LAMBDA, spectrum=spectrum)
-    if not b or split is not None:
-        lam = np.zeros(0)
-    else:  # the eigenvalues decide between CholeskyQR and the rounds
-        lam = np.linalg.eigvalsh(S)[::-1] if spectrum is None else spectrum[0]
-    well = split is None and b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]
-    floor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    pre: list[tuple[np.ndarray, np.ndarray]] = []
-    apart: list[tuple[np.ndarray, np.ndarray]] = []
-    if split is not None:
-        # the kept combinations Z W_k go through the rounds (the tail is never formed):
-        # on Z itself, whose first round forms only what it resolves, unless Z W_k was
-        # formed already (the narrow product above)
-        Wk, lam_k, Wt, Gt = split
-        pre.append((Wt.T, Gt))
-        if Zk is None:
-            kept, F0, spec = Z, None, (lam_k, Wk)
-        else:
-            kept, F0, spec = Zk, Wk.T, (lam_k, np.eye(lam_k.size))
-        parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
-            basis, G, kept, spec, C, inner, reject_tol, ref, F0=F0,
-            aside=budget - float(np.trace(Gt)))
-        passes += more
-    elif well:
-        # the common case: Z = Q_z L^T in place, Rz = L^T triangular
-        Rz, cross_z, more = cholesky_qr_in_place(basis, Z, MZ, S, lam, cross0, inner)
-        passes += more
-        parts, mparts = [Z], []
-    else:
-        parts, Rz, floor, more, mparts, apart = orthonormalize_in_rounds(
-            basis, G, Z, eigh_desc(S) if spectrum is None else spectrum, C, inner,
-            reject_tol, ref, aside=budget)
-        passes += more
-    accepted, Wacc = column_rule(Rz, ref, reject_tol)
-    s, r = Rz.shape[0], Wacc.shape[1]
+        split = set_aside(S, budget, Z.shape[0], _ROUNDING_LAMBDA, spectrum=spectrum)
+    found = orthonormalize_residual(basis, G, Z, MZ, S, cross, C, split=split, kept=kept,
+                                   spectrum=spectrum, budget=budget, inner=inner,
+                                   reject_tol=reject_tol, ref=ref)
+    accepted, R_new, rejected, cross, gram_new, more = _accept_columns(
+        basis, found, Z, MY, MZ, ref=ref, reject_tol=reject_tol, inner=inner)
+    return BasisExtension.from_scaled(
+        C, R_new, exponents=exps, zero=zero, nu=nu, accepted=accepted, cross_gram=cross,
+        gram_new=gram_new, passes=passes + found.passes + more,
+        rejected_map=np.vstack([F for F, _ in rejected]) if rejected else None,
+        rejected_gram=_block_diagonal([Gt for _, Gt in rejected]), skewed=skewed)
+
+
+def _accept_columns(
+    basis: BasisProducts, found: ResidualDirections, Z: np.ndarray, MY: np.ndarray,
+    MZ: np.ndarray, *, ref: np.ndarray, reject_tol: float, inner: InnerProduct,
+) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]], np.ndarray,
+           np.ndarray, int]:
+    """Apply the rejection rule (step 3 of :func:`extend_basis`) and place the directions kept.
+
+    Returns whether each column was accepted, the coefficients ``R_new`` on the new
+    directions (at the front of the workspace ``Z``, images in ``MY``), the ``(map,
+    Gram)`` of every rejected part in order, the cross block ``(M Q)^T Q_new``, the new
+    directions' Gram and the passes made over the basis.
+    """
+    w = basis.width
+    accepted, Wacc = column_rule(found.Rz, ref, reject_tol)
+    s, r = found.Rz.shape[0], Wacc.shape[1]
     keep = None if r == s else Wacc
-    R_new = Rz if keep is None else Wacc.T @ Rz
-    maps, grams = [], []
+    R_new = found.Rz if keep is None else Wacc.T @ found.Rz
+    rejected = found.rejected
     if r < s:
         # the rejected part in the directions' coordinates, orthogonal to the kept ones
-        maps.append(complement(Wacc, s).T @ Rz)
-        grams.append(np.eye(s - r))
-    for F, Gt in pre + apart:
-        maps.append(F)
-        grams.append(Gt)
-    for T, MT, F in floor:
-        maps.append(F)
-        Gt = T.T @ MT
-        grams.append(0.5 * (Gt + Gt.T))
-    if well:
-        cross = cross_z if keep is None else cross_z @ keep
-        gram_new = np.eye(r)
+        rejected = [(complement(Wacc, s).T @ found.Rz, np.eye(s - r)), *rejected]
+    if found.cross is not None:  # CholeskyQR: the directions are Z itself, in place
+        cross = found.cross if keep is None else found.cross @ keep
         if keep is not None:
-            place_directions(Z @ keep, Y, MY, inner, None if inner.is_euclidean else MZ @ keep)
+            place_directions(Z @ keep, Z, MY, inner, None if inner.is_euclidean else MZ @ keep)
+        return accepted, R_new, rejected, cross, np.eye(r), 0
+    # the new directions (Q_z, or Q_z Wacc) written to the front of the workspace, which
+    # the residual no longer needs
+    R_new, gram_new = write_directions(found, keep, R_new, Z, MY, inner)
+    if not (w and r):
+        return accepted, R_new, rejected, np.zeros((w, r)), gram_new, 0
+    return accepted, R_new, rejected, basis.project(Z[:, :r], None), gram_new, 1
+
+
+def _split_on_kept(
+    basis: BasisProducts, G: np.ndarray | None, Z: np.ndarray, C: np.ndarray, S: np.ndarray,
+    exps: np.ndarray, aside: tuple[float, float],
+) -> tuple[tuple[np.ndarray, ...] | None, np.ndarray | None, float, Any, int]:
+    """Set the weakest directions aside first, then measure the kept ones along the basis.
+
+    The second projection is not made when the directions kept after setting the weakest
+    aside lie along the basis by at most ``_KEPT_LOSS_MAX`` (nearly collinear time
+    steps): their part along the basis is measured on them alone (a narrow product) and
+    kept in ``cross_gram``; the directions set aside keep theirs, of the order of the
+    projection's rounding (``eps ||X||``), which the bound does not count. Returns the
+    split and ``Z W_k`` (both None when the kept directions are not clean enough, or
+    nothing is set aside), the budget, the spectrum of ``S`` (when taken) and the passes.
+    """
+    budget = _aside_budget(_norms(C, S), exps, aside)
+    spectrum = eigh_desc(S) if budget > 0 else None
+    split = set_aside(S, budget, Z.shape[0], _ROUNDING_LAMBDA, spectrum=spectrum)
+    if split is None:
+        return None, None, budget, spectrum, 0
+    kept = np.empty((Z.shape[0], split[0].shape[1]), order="F")
+    np.matmul(Z, split[0], out=kept)
+    if kept_clean(basis.project(kept, G), split[1], _KEPT_LOSS_MAX):
+        return split, kept, budget, spectrum, 1
+    return None, None, budget, spectrum, 1
+
+
+def _project_again_if_lost(
+    basis: BasisProducts, G: np.ndarray | None, Z: np.ndarray, MY: np.ndarray,
+    MZ: np.ndarray, C: np.ndarray, cross: np.ndarray, S: np.ndarray,
+    basis_gram: np.ndarray | None, inner: InnerProduct,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Project the residual a second time when the first left too much along the basis.
+
+    What the projection left along the basis (``cross = (M Q)^T Z``) decides: no second
+    projection when it is below ``_LOSS_MAX`` of every column's residual. Otherwise ``Z``
+    and ``C`` are updated in place and ``cross``, ``M Z`` and ``S`` measured again.
+    Returns them with the passes made (0: nothing changed).
+    """
+    along = cross if G is None else G.T @ cross
+    loss = np.sqrt(np.einsum("ij,ij->j", along, along))
+    norms = np.sqrt(np.maximum(np.diag(S), 0.0))
+    if not np.any(loss > _LOSS_MAX * norms):
+        return cross, MZ, S, 0
+    basis.subtract(Z, G, along)
+    C += along
+    if basis_gram is None:
+        cross, passes = basis.project(Z, None), 2
     else:
-        # the new directions (Q_z, or Q_z Wacc) written to the front of the workspace,
-        # which the residual no longer needs
-        Qn = Y[:, :r]
-        start = 0
-        for i, part in enumerate(parts):
-            width = part.shape[1]
-            if keep is None:
-                Qn[:, start : start + width] = part
-            elif i == 0:
-                np.matmul(part, keep[:width], out=Qn)
-            else:
-                Qn += part @ keep[start : start + width]
-            start += width
-        if inner.is_euclidean:
-            pass
-        elif keep is None and len(parts) == 1:
-            MY[:, :r] = mparts[0]  # the part's image, measured by the rounds
-        else:
-            m_apply_into(inner, Qn, MY[:, :r])
-        gram_new = gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
-        if r and np.max(np.abs(gram_new - np.eye(r))) > ONE_PASS_COND * r * _EPS:
-            # the rounds' directions are orthonormal to a few eps each; one CholeskyQR
-            # pass over all of them makes the block orthonormal as a whole
-            L = np.linalg.cholesky(gram_new)
-            right_solve(Qn, L)
-            R_new = L.T @ R_new
-            if not inner.is_euclidean:
-                m_apply_into(inner, Qn, MY[:, :r])
-            gram_new = np.eye(r)
-        cross = basis.project(Y[:, :r], None) if w and r else np.zeros((w, r))
-        passes += 1 if w and r else 0
-    rejected_map = np.vstack(maps) if maps else np.zeros((0, b))
-    if zero.any():
-        # a zero column carries nothing: its scale 2^0 says nothing of the rounding the
-        # mixing of the other (scaled) columns left in its coordinates, which would come
-        # back at the size of 1 (Rz, W, and the maps are exact zeros there in exact
-        # arithmetic, and the column is represented exactly by zeros)
-        C[:, zero] = 0.0
-        R_new[:, zero] = 0.0
-        rejected_map[:, zero] = 0.0
-    return BasisExtension(
-        coeffs=np.ldexp(C, exps[np.newaxis, :]),
-        R_new=np.ldexp(R_new, exps[np.newaxis, :]),
-        accepted=accepted,
-        rejected_gram=_block_diagonal(grams),
-        rejected_map=rejected_map,
-        exponents=exps,
-        block_norm=scaled_norm(nu, exps),
-        cross_gram=cross,
-        gram_new=gram_new,
-        passes=passes,
-        skewed=skewed,
-    )
+        cross, passes = cross - basis_gram @ (along if G is None else G @ along), 1
+    MZ = apply_into(Z, MY, inner)
+    return cross, MZ, gram(Z, inner, MZ), passes
 
 
 def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:

@@ -83,6 +83,59 @@ class BasisExtension:
             gram_new=np.zeros((0, 0)),
         )
 
+    @classmethod
+    def from_scaled(
+        cls,
+        C: np.ndarray,
+        R_new: np.ndarray,
+        *,
+        exponents: np.ndarray,
+        zero: np.ndarray,
+        nu: np.ndarray,
+        accepted: np.ndarray,
+        cross_gram: np.ndarray,
+        gram_new: np.ndarray,
+        passes: int,
+        rejected_map: np.ndarray | None = None,
+        rejected_gram: np.ndarray | None = None,
+        column_energies: np.ndarray | None = None,
+        skewed: bool = False,
+    ) -> BasisExtension:
+        """Return the extension of a block whose columns were scaled by ``2^-exponents``.
+
+        ``C``, ``R_new``, the columns of ``rejected_map`` and ``column_energies`` are the
+        scaled columns'; ``nu`` their ``M``-norms. The columns in ``zero`` carry nothing:
+        they are set to exact zeros in those arrays (in place), since their scale ``2^0``
+        says nothing of the rounding the mixing of the other (scaled) columns left in
+        their coordinates, which would come back at the size of 1 (in exact arithmetic
+        they are zeros, and the column is represented exactly by zeros). The scaling is
+        then undone on the coefficients; the rejected part stays in the scaled units,
+        with ``exponents`` (:meth:`rejected_norm`). Omitted, ``rejected_map`` and
+        ``rejected_gram`` are empty (nothing rejected beyond ``column_energies``).
+        """
+        b = exponents.size
+        rejected_map = np.zeros((0, b)) if rejected_map is None else rejected_map
+        if zero.any():
+            C[:, zero] = 0.0
+            R_new[:, zero] = 0.0
+            rejected_map[:, zero] = 0.0
+            if column_energies is not None:
+                column_energies[zero] = 0.0
+        return cls(
+            coeffs=np.ldexp(C, exponents[np.newaxis, :]),
+            R_new=np.ldexp(R_new, exponents[np.newaxis, :]),
+            accepted=accepted,
+            rejected_gram=np.zeros((0, 0)) if rejected_gram is None else rejected_gram,
+            rejected_map=rejected_map,
+            exponents=exponents,
+            block_norm=scaled_norm(nu, exponents),
+            cross_gram=cross_gram,
+            gram_new=gram_new,
+            passes=passes,
+            skewed=skewed,
+            column_energies=column_energies,
+        )
+
     @property
     def rank(self) -> int:
         """Number of new directions ``r``."""

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.blas import dgemm
 
-from streamsvd._util.scaling import scaled_norm
 from streamsvd.algebra.blas import gram
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
@@ -198,21 +197,7 @@ def extend_by_sketch(
     Y, MY = basis.workspace(b)
     place_directions(Qk, Y, MY, inner, None if inner.is_euclidean else MQk)
     gram_new = gram(Y[:, :r], inner, None if inner.is_euclidean else MY[:, :r])
-    C = C.copy()
-    C[:, zero] = 0.0
-    R[:, zero] = 0.0
-    rejected[zero] = 0.0
-    return BasisExtension(
-        coeffs=np.ldexp(C, exps[np.newaxis, :]),
-        R_new=np.ldexp(R, exps[np.newaxis, :]),
-        accepted=accepted,
-        rejected_gram=np.zeros((0, 0)),
-        rejected_map=np.zeros((0, b)),
-        exponents=exps,
-        block_norm=scaled_norm(nu, exps),
-        cross_gram=along,
-        gram_new=gram_new,
-        passes=passes + (1 if w else 0),
-        skewed=True,
-        column_energies=rejected,
-    )
+    return BasisExtension.from_scaled(
+        C.copy(), R, exponents=exps, zero=zero, nu=nu, accepted=accepted, cross_gram=along,
+        gram_new=gram_new, passes=passes + (1 if w else 0), column_energies=rejected,
+        skewed=True)

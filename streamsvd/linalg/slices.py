@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from streamsvd._util.scaling import block_exponents, scale_by, scaled_norm
+from streamsvd._util.scaling import block_exponents, scale_by
 from streamsvd.algebra.blas import gram, subtract_product
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisProducts
@@ -243,22 +243,9 @@ def extend_in_slices(
     place_directions(P, *basis.workspace(r), inner, MP)
     cross = basis.project(P, None) if w and r else np.zeros((w, r))
     passes += 1 if w and r else 0
-    C[:, zero] = 0.0
-    R_new[:, zero] = 0.0
-    energies[zero] = 0.0
-    return BasisExtension(
-        coeffs=np.ldexp(C, exps[np.newaxis, :]),
-        R_new=np.ldexp(R_new, exps[np.newaxis, :]),
-        accepted=np.concatenate(accepted),
-        rejected_gram=np.zeros((0, 0)),
-        rejected_map=np.zeros((0, b)),
-        exponents=exps,
-        block_norm=scaled_norm(nu, exps),
-        cross_gram=cross,
-        gram_new=np.eye(r),
-        passes=passes,
-        column_energies=energies,
-    )
+    return BasisExtension.from_scaled(
+        C, R_new, exponents=exps, zero=zero, nu=nu, accepted=np.concatenate(accepted),
+        cross_gram=cross, gram_new=np.eye(r), passes=passes, column_energies=energies)
 
 
 def _orthonormal_beside(
