@@ -25,10 +25,10 @@ def pow2_exponent(x: np.ndarray) -> int:
     """Return ``e`` such that ``max(abs(x)) * 2**-e`` lies in [0.5, 1), or 0 for a zero array."""
     if x.size == 0:
         return 0
-    peak = float(np.max(np.abs(x)))
+    peak = float(np.abs(x).max())
     if peak == 0.0:
         return 0
-    return int(np.frexp(peak)[1])
+    return math.frexp(peak)[1]
 
 
 def column_exponents(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg import LinAlgError
+from scipy.linalg.lapack import dgesdd, dgesdd_lwork
 
 from streamsvd._util.scaling import pow2_exponent, safe_column_norms
 from streamsvd.engine.bound import Bound
@@ -36,6 +37,20 @@ logger = logging.getLogger(__name__)
 
 _EPS = np.finfo(np.float64).eps
 _MAX_SWEEPS = 200  # cap of ``sweeps=None`` (to convergence)
+
+
+def _singular_values(W: np.ndarray) -> np.ndarray:
+    """Return the singular values of a small finite matrix: ``scipy.linalg.svdvals``'s call.
+
+    LAPACK's ``dgesdd`` with the workspace it asks for, as ``svdvals`` makes it (the same
+    digits), without the checks and dispatch around it (about 70 of its 80 microseconds
+    on the 20 x 10 coupling of a truncation).
+    """
+    work, info = dgesdd_lwork(W.shape[0], W.shape[1], compute_uv=0, full_matrices=1)
+    s, info = dgesdd(W, compute_uv=0, lwork=int(work.real), full_matrices=1)[1::2]
+    if info != 0:
+        raise LinAlgError(f"dgesdd failed (info {info}) on a {W.shape} matrix")
+    return s
 
 
 def r_factor(X: np.ndarray) -> np.ndarray:
@@ -283,7 +298,7 @@ def core_step(
         W_kd = Rt[kept] @ Rt[cut].T
         # the nuclear norm; of a single row or column it is the Euclidean norm
         nuclear = (float(np.linalg.norm(W_kd)) if min(W_kd.shape) == 1
-                   else float(np.sum(scipy.linalg.svdvals(W_kd))))
+                   else float(np.sum(_singular_values(W_kd))))
         coupling_root = math.ldexp(math.sqrt(nuclear), e)
     if cut.size:
         logger.info(

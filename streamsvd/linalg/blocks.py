@@ -262,7 +262,7 @@ def column_rule(
     """
     s, b = Rz.shape
     thresh = reject_tol * ref
-    if s == b and b and np.all(ref > 0) and np.allclose(Rz, np.triu(Rz), rtol=0, atol=0):
+    if s == b and b and np.all(ref > 0) and not np.any(np.tril(Rz, -1)):
         d = np.abs(np.diag(Rz))
         if np.all(d > thresh):  # triangular: the residual of column k is |R_kk|
             return np.ones(b, dtype=bool), np.eye(s)
@@ -367,7 +367,12 @@ def skew_factor(coords: np.ndarray, gram: np.ndarray, cross: np.ndarray,
     ``[Q coords, Q_new] L^(-T)`` is orthonormal, and a core ``K`` on ``[Q coords, Q_new]``
     is ``K L`` on it.
     """
+    p = coords.shape[1]
     top = coords.T @ cross
-    G = np.block([[coords.T @ gram @ coords, top], [top.T, gram_new]])
+    G = np.empty((p + top.shape[1],) * 2)  # the blocks in place (np.block's checks cost more)
+    G[:p, :p] = coords.T @ gram @ coords
+    G[:p, p:] = top
+    G[p:, :p] = top.T
+    G[p:, p:] = gram_new
     L = np.linalg.cholesky(0.5 * (G + G.T))
     return L, blas.dtrsm(1.0, L, np.eye(L.shape[0]), lower=1).T
