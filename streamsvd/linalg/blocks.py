@@ -113,19 +113,24 @@ def cholesky_qr_in_place(
     passes made over the basis. When ``cond(S) > ONE_PASS_COND`` a second pass is made
     (CholeskyQR2): the triangular solve by an ill-conditioned ``L`` errs by about
     ``eps cond(L)`` in every direction, so the cross block is measured again on the
-    result of the first pass (one product with the basis) rather than transformed.
+    result of the first pass (one product with the basis) rather than transformed, and
+    ``M Z`` applied again. A solve by a well-conditioned factor (``cond(L) <= 4``: one
+    pass, or the second) maps the image ``M Z`` and the cross block with ``Z``, within
+    the same few ``eps`` as the product itself (as the rounds map theirs,
+    :func:`orthonormalize_in_rounds`).
     """
     L = np.linalg.cholesky(S)
     right_solve(Z, L)
     R = L.T.copy()
     if lam[0] <= ONE_PASS_COND * lam[-1]:
-        apply_into(Z, MZ, inner)
+        if not inner.is_euclidean:
+            right_solve(MZ, L)
         return R, right_solve(np.array(cross, order="F"), L), 0
-    # M Z is applied again, not transformed, for the same reason
     L2 = np.linalg.cholesky(gram(Z, inner, apply_into(Z, MZ, inner)))
     measured = basis.project(Z, None) if basis.width else np.zeros((0, Z.shape[1]))
     right_solve(Z, L2)
-    apply_into(Z, MZ, inner)
+    if not inner.is_euclidean:
+        right_solve(MZ, L2)
     cross = right_solve(np.array(measured, order="F"), L2)
     return L2.T @ R, cross, 1 if basis.width else 0
 
