@@ -154,6 +154,7 @@ class DiagonalInner:
         self.fingerprint = _digest(b"diagonal", w)
         self.diagonal = Diagonal.of(w)
         self.norm_bound = float(np.max(w))  # ||M||_2, exactly
+        self.entries_per_row = 1.0  # what a product costs per entry of the result
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Return ``diag(w) @ X``."""
@@ -245,6 +246,8 @@ class MatrixInner:
         self.matrix = mat
         self.n = mat.shape[0]
         self.norm_bound = row_sum_bound(mat)
+        # what a product costs per entry of the result (multiply-adds)
+        self.entries_per_row = (mat.nnz if sp.issparse(mat) else mat.size) / max(self.n, 1)
         self._weights = diag.reshape(-1, 1) if diagonal else None
         self.diagonal = Diagonal.of(diag) if diagonal else None
         # the CSR arrays of a sparse M, for the compiled product with a column-major block

@@ -115,24 +115,40 @@ def cholesky_qr_in_place(
     ``eps cond(L)`` in every direction, so the cross block is measured again on the
     result of the first pass (one product with the basis) rather than transformed, and
     ``M Z`` applied again. A solve by a well-conditioned factor (``cond(L) <= 4``: one
-    pass, or the second) maps the image ``M Z`` and the cross block with ``Z``, within
-    the same few ``eps`` as the product itself (as the rounds map theirs,
+    pass, or the second) maps the cross block with ``Z``, and the image ``M Z`` when that
+    costs less than applying ``M`` again (:func:`_maps_image`), within the same few
+    ``eps`` as the product itself (as the rounds map theirs,
     :func:`orthonormalize_in_rounds`).
     """
     L = np.linalg.cholesky(S)
     right_solve(Z, L)
     R = L.T.copy()
+    maps = _maps_image(inner, Z.shape[1])
     if lam[0] <= ONE_PASS_COND * lam[-1]:
-        if not inner.is_euclidean:
+        if maps:
             right_solve(MZ, L)
+        else:
+            apply_into(Z, MZ, inner)
         return R, right_solve(np.array(cross, order="F"), L), 0
     L2 = np.linalg.cholesky(gram(Z, inner, apply_into(Z, MZ, inner)))
     measured = basis.project(Z, None) if basis.width else np.zeros((0, Z.shape[1]))
     right_solve(Z, L2)
-    if not inner.is_euclidean:
+    if maps:
         right_solve(MZ, L2)
+    else:
+        apply_into(Z, MZ, inner)
     cross = right_solve(np.array(measured, order="F"), L2)
     return L2.T @ R, cross, 1 if basis.width else 0
+
+
+def _maps_image(inner: InnerProduct, b: int) -> bool:
+    """Whether a triangular solve maps ``M Z`` (``n x b``) for less than ``M`` applied again.
+
+    The solve costs ``n b^2`` flops, the product ``2 n b`` per entry in a row of ``M``
+    (``entries_per_row``; an inner product that does not give it is applied again).
+    """
+    per_row = getattr(inner, "entries_per_row", None)
+    return not inner.is_euclidean and per_row is not None and b < 2.0 * per_row
 
 
 def orthonormalize_in_rounds(

@@ -282,3 +282,33 @@ def test_norms_of_tiny_columns_beside_a_zero_column_do_not_underflow():
     np.testing.assert_allclose(np.ldexp(tiny.rejected_norm(), 996), plain.rejected_norm(),
                                rtol=1e-8)
     np.testing.assert_allclose(np.ldexp(tiny.block_norm, 996), plain.block_norm, rtol=1e-14)
+
+
+# the P1 mass matrix has 3 entries per row: a block of fewer than 6 columns has its image
+# mapped by the CholeskyQR solve, a wider one has M applied again
+@pytest.mark.parametrize("b", [1, 2, 5, 6, 12])
+def test_the_new_directions_image_is_m_times_them(b):
+    n = 500
+    M = _mass(n)
+    ip = as_inner(M, n)
+    rng = np.random.default_rng(b)
+    basis = MemoryBasis(n, ip, capacity=40)
+    first = extend_basis(basis, None, rng.standard_normal((n, 10)), inner=ip,
+                         reject_tol=default_reject_tol(n))
+    basis.accept(first.rank)
+    # well-conditioned columns: one CholeskyQR pass (cond(S) <= 16)
+    X = rng.standard_normal((n, b)) * (1 + 0.1 * rng.random(b))
+    ext = extend_basis(basis, None, X, inner=ip, reject_tol=default_reject_tol(n))
+    assert ext.rank == b and ext.passes == 3  # projection, subtraction, cross block
+    basis.accept(b)
+    Q, MQ = basis.Q[:, 10:], basis.MQ[:, 10:]
+    exact = M @ Q
+    # a product with M rounds by about 3 eps |M| |Q| per entry; the solve by a factor of
+    # condition <= 4 adds a few eps of the image: within 8 b eps of ||M|| ||Q||
+    err = np.abs(MQ - exact).max()
+    assert err <= 8 * b * EPS * abs(M).max() * 3 * np.abs(Q).max()
+    if b >= 6:
+        np.testing.assert_array_equal(MQ, ip.apply(np.asfortranarray(Q)))
+    gram = Q.T @ MQ
+    assert np.abs(gram - np.eye(b)).max() <= 10 * b * EPS
+    assert np.abs(Q.T @ exact - np.eye(b)).max() <= 10 * b * EPS
