@@ -58,7 +58,14 @@ __all__ = [
 
 @runtime_checkable
 class InnerProduct(Protocol):
-    """What every inner product offers."""
+    """What every inner product offers.
+
+    The products of this module also give ``norm_bound`` (a bound on ``||M||_2``) and
+    ``entries_per_row`` (the multiply-adds of a product per entry of the result, by
+    which CholeskyQR chooses between mapping ``M Z`` through its solve and applying ``M``
+    again: :func:`streamsvd.linalg.blocks.cholesky_qr_in_place`); an implementation
+    without them gets the choices that do not need them.
+    """
 
     @property
     def n(self) -> int | None:
