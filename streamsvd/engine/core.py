@@ -43,8 +43,8 @@ def _singular_values(W: np.ndarray) -> np.ndarray:
     """Return the singular values of a small finite matrix: ``scipy.linalg.svdvals``'s call.
 
     LAPACK's ``dgesdd`` with the workspace it asks for, as ``svdvals`` makes it (the same
-    digits), without the checks and dispatch around it (about 70 of its 80 microseconds
-    on the 20 x 10 coupling of a truncation).
+    digits), without the checks and dispatch around it (11 microseconds against 21 on a
+    20 x 10 coupling of a truncation, one thread).
     """
     work, info = dgesdd_lwork(W.shape[0], W.shape[1], compute_uv=0, full_matrices=1)
     s, info = dgesdd(W, compute_uv=0, lwork=int(work.real), full_matrices=1)[1::2]
