@@ -6,9 +6,11 @@ import math
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 import streamsvd as ss
 from streamsvd.cli import main
+from streamsvd.engine.core import _singular_values
 from streamsvd.testing import with_spectrum
 
 EPS = np.finfo(float).eps
@@ -168,3 +170,11 @@ def test_tree_spends_its_leaves_budget_once_and_keeps_the_streams_modes(target):
     err = np.linalg.norm(A - tree.expansion.to_dense()) / np.sqrt(320)
     assert err <= tree.error_in_measure * (1 + 1e-9) <= target * (1 + 1e-12)
     assert tree.rank <= sc.rank + 1
+
+
+@pytest.mark.parametrize("shape", [(20, 10), (10, 20), (3, 2), (28, 5), (2, 2)])
+def test_the_couplings_singular_values_are_svdvals_digits(shape):
+    rng = np.random.default_rng(sum(shape))
+    for scale in (1e-200, 1e-8, 1.0, 1e150):
+        W = rng.standard_normal(shape) * scale
+        np.testing.assert_array_equal(_singular_values(W), scipy.linalg.svdvals(W))
