@@ -11,7 +11,6 @@ the one of :mod:`streamsvd.linalg.gram_schmidt`.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
@@ -249,7 +248,8 @@ def _accept_columns(
 def _split_on_kept(
     basis: BasisProducts, G: np.ndarray | None, Z: np.ndarray, C: np.ndarray, S: np.ndarray,
     exps: np.ndarray, aside: tuple[float, float],
-) -> tuple[tuple[np.ndarray, ...] | None, np.ndarray | None, float, Any, int]:
+) -> tuple[tuple[np.ndarray, ...] | None, np.ndarray | None, float,
+           tuple[np.ndarray, np.ndarray] | None, int]:
     """Set the weakest directions aside first, then measure the kept ones along the basis.
 
     The second projection is not made when the directions kept after setting the weakest

@@ -10,7 +10,6 @@ directions, made orthonormal as a whole, to the front of the basis's workspace.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -54,8 +53,8 @@ class ResidualDirections:
 def orthonormalize_residual(
     basis: BasisProducts, G: np.ndarray | None, Z: np.ndarray, MZ: np.ndarray,
     S: np.ndarray, cross: np.ndarray, C: np.ndarray, *, split: tuple[np.ndarray, ...] | None,
-    kept: np.ndarray | None, spectrum: Any, budget: float, inner: InnerProduct,
-    reject_tol: float, ref: np.ndarray,
+    kept: np.ndarray | None, spectrum: tuple[np.ndarray, np.ndarray] | None, budget: float,
+    inner: InnerProduct, reject_tol: float, ref: np.ndarray,
 ) -> ResidualDirections:
     """Orthonormalise the residual ``Z`` (step 2 of :func:`~streamsvd.linalg.extend.extend_basis`).
 
@@ -75,10 +74,12 @@ def orthonormalize_residual(
         parts, Rz, floor, passes, mparts, apart = orthonormalize_in_rounds(
             basis, G, target, spec, C, inner, reject_tol, ref, F0=F0,
             aside=budget - float(np.trace(Gt)))
-        return ResidualDirections(parts, mparts, Rz, [(Wt.T, Gt), *apart, *_measured(floor)], None,
-                           passes)
-    lam = (np.zeros(0) if not b else
-           np.linalg.eigvalsh(S)[::-1] if spectrum is None else spectrum[0])
+        return ResidualDirections(parts, mparts, Rz, [(Wt.T, Gt), *apart, *_measured(floor)],
+                                  None, passes)
+    if b == 0:
+        lam = np.zeros(0)
+    else:  # the eigenvalues decide between CholeskyQR and the rounds
+        lam = np.linalg.eigvalsh(S)[::-1] if spectrum is None else spectrum[0]
     if b > 0 and lam[-1] > 0 and lam[-1] >= COND_SPLIT * lam[0]:
         Rz, cross_z, passes = cholesky_qr_in_place(basis, Z, MZ, S, lam, cross, inner)
         return ResidualDirections([Z], [], Rz, [], cross_z, passes)
