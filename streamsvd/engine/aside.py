@@ -23,11 +23,13 @@ __all__ = ["UNIT_FLOAT64", "set_aside_budget"]
 # aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut; for
 # snapshots stored coarser than float64 whose rounding (u^2 of their energy) reaches
 # _NEAR_PRECISION of that growth, _ROUNDED_ASIDE_SHARE (heat in float32 at mean_l2 1e-6,
-# where the rounding is 0.24-0.4 of it: HAPOD's modes at 0.05 with updates of 10, 91 or
-# 668 columns, one more with updates of 10 at 0.1; Burgers at relative 1e-6, where it is
-# 0.019, took one more mode than HAPOD's at that share)
+# where the rounding is 0.24-0.4 of it: HAPOD's modes at 0.1 with updates of 10, 91 or
+# 668 columns since a cut's cross term with what was set aside counts only the cut's part
+# in the columns before the update (streamsvd.engine.bound), one more at 0.2 with one
+# trajectory per update, and at 0.1 with updates of 10 before that; Burgers at relative
+# 1e-6, where it is 0.019, took one more mode than HAPOD's at 0.05)
 _ASIDE_SHARE = 0.003
-_ROUNDED_ASIDE_SHARE = 0.05
+_ROUNDED_ASIDE_SHARE = 0.1
 _NEAR_PRECISION = 0.1
 #: The unit roundoff of float64, the compressor's working precision
 UNIT_FLOAT64 = float(np.finfo(np.float64).eps) / 2
@@ -44,8 +46,8 @@ def set_aside_budget(opts: StepOptions, b: int, *, unit: float = UNIT_FLOAT64,
     rounding counted, so that directions far below the target are never orthonormalised.
     What is set aside is discarded like any rejected residual (its norm enters ``d_t``)
     and the cut that follows is sized after it. The share is small because what is set
-    aside is paid again in later bounds (the cross term ``d_t rho`` of
-    :mod:`streamsvd.engine.bound`).
+    aside is paid again in later bounds (the cross term ``o_t rho`` of
+    :mod:`streamsvd.engine.bound`, ``o_t`` a later cut's norm in the columns before it).
 
     Snapshots whose source has a unit roundoff ``u = unit`` above float64's (float32)
     carry their rounding in every direction of the block, of energy up to about

@@ -73,16 +73,28 @@ class Before:
         allowance), orthogonal to every cut term.
     overlapping : bool
         Whether the update touches columns received before (``add``).
+    decided_new : bool
+        Whether ``decided`` lies in the update's own new columns (the residuals an
+        absorbed block rejects), where the error before the update is zero.
     """
 
     prior: Bound = Bound()
     decided: float = 0.0
     overlapping: bool = False
+    decided_new: bool = False
 
-    def bounds(self, cut_norms: np.ndarray) -> np.ndarray:
-        """Return the bound after the update for each candidate norm of the cut terms."""
+    def bounds(self, cut_norms: np.ndarray, cut_before: np.ndarray | None = None
+               ) -> np.ndarray:
+        """Return the bound after the update for each candidate norm of the cut terms.
+
+        ``cut_before``: each candidate cut's norm in the columns received before the
+        update (``||D_cut P_old||``, :mod:`streamsvd.engine.bound`), when known.
+        """
         discarded = np.hypot(self.decided, cut_norms)
-        return self.prior.after(discarded, overlapping=self.overlapping)
+        old = None
+        if cut_before is not None:
+            old = cut_before if self.decided_new else np.hypot(self.decided, cut_before)
+        return self.prior.after(discarded, overlapping=self.overlapping, before=old)
 
 
 NOTHING_BEFORE = Before()  # the account of a compressor that discarded nothing yet
@@ -112,12 +124,14 @@ class Truncation:
     share: float = 1.0
 
     def keep_count(
-        self, amps_sorted: np.ndarray, *, before: Before = NOTHING_BEFORE, m: int = 0
+        self, amps_sorted: np.ndarray, *, before: Before = NOTHING_BEFORE, m: int = 0,
+        olds_sorted: np.ndarray | None = None,
     ) -> int:
         """Return how many leading terms are kept (amplitudes sorted decreasingly).
 
         ``before`` is the bound account before this cut and ``m`` the number of snapshots
-        (for a ``target``).
+        (for a ``target``); ``olds_sorted``, in the same order, each term's norm in the
+        columns received before the update, when known (:meth:`Before.bounds`).
         """
         if amps_sorted.size == 0:
             return 0
@@ -127,19 +141,24 @@ class Truncation:
         keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
         keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
         if self.target is not None:
-            keep = min(keep, self._within_budget(amps_sorted, before, m))
+            keep = min(keep, self._within_budget(amps_sorted, before, m, olds_sorted))
         if self.max_rank is not None:
             keep = min(keep, self.max_rank)
         return keep
 
-    def _within_budget(self, amps_sorted: np.ndarray, before: Before, m: int) -> int:
+    def _within_budget(self, amps_sorted: np.ndarray, before: Before, m: int,
+                       olds_sorted: np.ndarray | None) -> int:
         """Return the fewest leading terms whose cut keeps the bound within the share."""
         assert self.target is not None
         e = pow2_exponent(amps_sorted)
         a = np.ldexp(amps_sorted, -e)
         # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
         tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
-        bound = before.bounds(np.ldexp(np.sqrt(tail), e))
+        cut_before = None
+        if olds_sorted is not None:
+            o = np.ldexp(olds_sorted, -e)
+            cut_before = np.ldexp(np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
+        bound = before.bounds(np.ldexp(np.sqrt(tail), e), cut_before)
         if self.measure == "relative":
             # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
             # bound <= s eps ||A||, whatever the discarded part
@@ -151,19 +170,22 @@ class Truncation:
         ok = np.flatnonzero(fits)
         return int(ok[0]) if ok.size else amps_sorted.size
 
-    def needs_convergence(self, amps: np.ndarray, *, before: Before, m: int) -> bool:
+    def needs_convergence(self, amps: np.ndarray, *, before: Before, m: int,
+                          olds: np.ndarray | None = None) -> bool:
         """Whether a cut by ``max_rank`` or by the ``target`` would drop terms.
 
         Such a cut is made on the converged core (the optimal cut of the expansion).
-        ``amps`` holds the amplitudes, in any order.
+        ``amps`` holds the amplitudes, in any order, and ``olds`` (optional, in the same
+        order) the terms' norms in the columns received before the update.
         """
         if self.max_rank is None and self.target is None:
             return False
-        amps_sorted = np.sort(amps)[::-1]
+        order = np.argsort(-amps, kind="stable")
+        amps_sorted = amps[order]
         unbounded = Truncation(self.eps, self.rtol)
-        return self.keep_count(amps_sorted, before=before, m=m) < unbounded.keep_count(
-            amps_sorted
-        )
+        kept = self.keep_count(amps_sorted, before=before, m=m,
+                               olds_sorted=None if olds is None else olds[order])
+        return kept < unbounded.keep_count(amps_sorted)
 
 
 def error_budget(target: float, measure: str, m: int, data_norm: float = 0.0) -> float:
@@ -203,6 +225,9 @@ class CoreStep:
     coupling_root : float
         Square root of the nuclear norm of ``V_kept^T V_cut`` (zero when truncating at
         convergence).
+    cut_before : float or None
+        The cut terms' norm in the columns received before the update
+        (``||D_cut P_old||``), when ``rows_before`` was given.
     """
 
     T: np.ndarray
@@ -212,6 +237,21 @@ class CoreStep:
     cut: int
     cut_norm: float
     coupling_root: float
+    cut_before: float | None = None
+
+
+def _norms_before(rows_before: np.ndarray | None, Qt: np.ndarray, amps_scaled: np.ndarray,
+                  e: int) -> np.ndarray | None:
+    """Return each term's norm in the columns received before the update (None: unknown).
+
+    The rotated term ``i`` is ``K Qt[i]^T`` in the rows of ``K`` (the rows of ``Rt`` are
+    ``Qt Rt_0``), so its part in those columns is ``rows_before Qt[i]^T``; at most its
+    amplitude. Formed at the scale ``2^-e`` of ``Rt`` and scaled back.
+    """
+    if rows_before is None:
+        return None
+    olds = safe_column_norms(np.ldexp(rows_before, -e) @ Qt.T)
+    return np.ldexp(np.minimum(olds, amps_scaled), e)
 
 
 def core_step(
@@ -224,6 +264,7 @@ def core_step(
     kind: str,
     before: Before = NOTHING_BEFORE,
     on_sweep: Callable[[int, float], None] | None = None,
+    rows_before: np.ndarray | None = None,
 ) -> CoreStep:
     """Rotate the core ``K`` (``V_new = Q K``) by ``sweeps`` sweeps, sort, truncate.
 
@@ -251,6 +292,12 @@ def core_step(
     on_sweep : callable, optional
         Called after every sweep with the number of sweeps run and the largest pair
         cosine of the last one (progress of long final sweeps).
+    rows_before : ndarray, shape (k_old, p), optional
+        The rows of ``K`` (before any reduction, in the same columns) that multiply the
+        right factor of the columns received before the update (``Y`` in
+        ``blockdiag(Y, I_b) K``, ``Y`` orthonormal): the cut is then sized, and
+        ``CoreStep.cut_before`` measured, with each term's norm in those columns
+        (:mod:`streamsvd.engine.bound`).
     """
     p = K.shape[1]
     R = r_factor(K) if K.shape[0] > p else K
@@ -277,7 +324,8 @@ def core_step(
         )
     amps_scaled = safe_column_norms(Rt.T)
     if not converged and truncation.needs_convergence(
-        np.ldexp(amps_scaled, e), before=before, m=m
+        np.ldexp(amps_scaled, e), before=before, m=m,
+        olds=_norms_before(rows_before, Qt, amps_scaled, e),
     ):
         # a cut by the rank cap is made on the converged core, so that it is the optimal
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
@@ -288,11 +336,17 @@ def core_step(
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
-    keep = truncation.keep_count(amps[order], before=before, m=m)
+    olds = _norms_before(rows_before, Qt, amps_scaled, e)
+    keep = truncation.keep_count(amps[order], before=before, m=m,
+                                 olds_sorted=None if olds is None else olds[order])
     kept, cut = order[:keep], order[keep:]
     # norms and the coupling are formed on the scaled core and scaled back as roots, so
     # that amplitudes up to 1e300 neither overflow nor lose the bound
     cut_norm = math.ldexp(float(np.linalg.norm(amps_scaled[cut])), e) if cut.size else 0.0
+    cut_before = None
+    if olds is not None:
+        cut_before = (math.ldexp(float(np.linalg.norm(np.ldexp(olds[cut], -e))), e)
+                      if cut.size else 0.0)
     coupling_root = 0.0
     if cut.size and kept.size:
         W_kd = Rt[kept] @ Rt[cut].T
@@ -312,4 +366,5 @@ def core_step(
     return CoreStep(
         T=T, R=np.ldexp(Rt[kept], e).T.copy(), sweeps=done, max_cosine=max_cos,
         cut=int(cut.size), cut_norm=cut_norm, coupling_root=coupling_root,
+        cut_before=cut_before,
     )

@@ -103,6 +103,7 @@ def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
     return _plan(
         state, ext, K, opts, kind="absorb", columns=b, m=state.m + b, t0=t0, d_rej=d_rej,
         rejection_root=math.sqrt(d_rej) * math.sqrt(block_norm), prior=state.bound,
+        old_rows=k,
     )
 
 
@@ -239,13 +240,17 @@ def _plan(
     on_sweep: Callable[[int, float], None] | None = None,
     Y_map: np.ndarray | None = None,
     dead: np.ndarray | None = None,
+    old_rows: int | None = None,
 ) -> Plan:
     """Rotate and truncate the core ``K`` and plan the new factors.
 
     The right factor is ``blockdiag(Y, Y_appended) K`` (``Y_appended`` the identity for an
     absorbed block, absent after ``finalize``), or ``Y_replace K`` after ``add``; after a
     removal (:mod:`streamsvd.engine.downdate`) ``Y`` stands for ``Y_live Y_map``, ``dead``
-    being the stored rows no longer live.
+    being the stored rows no longer live. ``old_rows``: for an absorbed block, the rows of
+    ``K`` that ``Y`` multiplies (the columns received before): the cut is then sized and
+    counted with its norm in those columns, the block's rejected residuals lying in its
+    own (:mod:`streamsvd.engine.bound`).
     """
     keep_rows = state.rows is not None
     p, r = state.rank, ext.rank
@@ -253,10 +258,12 @@ def _plan(
     if ext.skewed and state.gram is not None:  # new directions along the basis: K L cut
         L, Lt_inv = skew_factor(state.coords, state.gram, ext.cross_gram, ext.gram_new)
         K = K @ L
+    K_before = None if old_rows is None else K[:old_rows]
     Q_K, K = _core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
-        before=Before(prior, d_rej, overlapping), on_sweep=on_sweep,
+        before=Before(prior, d_rej, overlapping, decided_new=old_rows is not None),
+        on_sweep=on_sweep, rows_before=K_before,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
     w = state.basis.width
@@ -304,7 +311,7 @@ def _plan(
     discarded = math.hypot(step.cut_norm, d_rej)  # orthogonal parts (bound.py)
     bound = prior.step(
         discarded, step.coupling_root, overlapping=overlapping,
-        rejection_root=rejection_root, rejected=d_rej,
+        rejection_root=rejection_root, rejected=d_rej, discarded_before=step.cut_before,
     )
     record = UpdateRecord(
         kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,
