@@ -125,13 +125,14 @@ class Truncation:
 
     def keep_count(
         self, amps_sorted: np.ndarray, *, before: Before = NOTHING_BEFORE, m: int = 0,
-        olds_sorted: np.ndarray | None = None,
+        olds_from: Callable[[int], np.ndarray] | None = None,
     ) -> int:
         """Return how many leading terms are kept (amplitudes sorted decreasingly).
 
         ``before`` is the bound account before this cut and ``m`` the number of snapshots
-        (for a ``target``); ``olds_sorted``, in the same order, each term's norm in the
-        columns received before the update, when known (:meth:`Before.bounds`).
+        (for a ``target``); ``olds_from(j)``, when known, the norms of the terms ``j,
+        j + 1, ...`` (in this order) in the columns received before the update
+        (:meth:`Before.bounds`), asked only for the terms a cut may drop.
         """
         if amps_sorted.size == 0:
             return 0
@@ -141,42 +142,57 @@ class Truncation:
         keep = int(np.count_nonzero(amps_sorted >= thresh)) if thresh > 0 else amps_sorted.size
         keep = min(keep, int(np.count_nonzero(amps_sorted > 0)))
         if self.target is not None:
-            keep = min(keep, self._within_budget(amps_sorted, before, m, olds_sorted))
+            keep = min(keep, self._within_budget(amps_sorted, before, m, olds_from))
         if self.max_rank is not None:
             keep = min(keep, self.max_rank)
         return keep
 
     def _within_budget(self, amps_sorted: np.ndarray, before: Before, m: int,
-                       olds_sorted: np.ndarray | None) -> int:
+                       olds_from: Callable[[int], np.ndarray] | None) -> int:
         """Return the fewest leading terms whose cut keeps the bound within the share."""
         assert self.target is not None
         e = pow2_exponent(amps_sorted)
         a = np.ldexp(amps_sorted, -e)
         # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
         tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
-        cut_before = None
-        if olds_sorted is not None:
-            o = np.ldexp(olds_sorted, -e)
-            cut_before = np.ldexp(np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
-        bound = before.bounds(np.ldexp(np.sqrt(tail), e), cut_before)
+        norms = np.ldexp(np.sqrt(tail), e)
+        if olds_from is None:
+            fits = self._fits(before.bounds(norms), tail, e, m)
+        else:
+            # a cut's part in the columns before only raises its bound, from its bound
+            # with none there: the terms before the first cut that fits so are never
+            # cut and count whole; only the others are measured
+            fits = self._fits(before.bounds(norms, 0.0 * norms), tail, e, m)
+            if fits.any():
+                lo = int(np.flatnonzero(fits)[0])
+                o = a.copy()
+                o[lo:] = np.ldexp(olds_from(lo), -e)
+                cut_before = np.ldexp(
+                    np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
+                fits = self._fits(before.bounds(norms, cut_before), tail, e, m)
+        ok = np.flatnonzero(fits)
+        return int(ok[0]) if ok.size else amps_sorted.size
+
+    def _fits(self, bound: np.ndarray, tail: np.ndarray, e: int, m: int) -> np.ndarray:
+        """Whether each candidate's bound (its cut ``tail``, scaled by ``4^-e``) fits."""
+        assert self.target is not None
         if self.measure == "relative":
             # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
             # bound <= s eps ||A||, whatever the discarded part
             se = self.share * self.target
             kept = np.ldexp(np.sqrt(np.maximum(tail[0] - tail, 0.0)), e)
-            fits = bound * (1.0 + se) <= se * kept
-        else:
-            fits = bound <= self.share * error_budget(self.target, self.measure, m)
-        ok = np.flatnonzero(fits)
-        return int(ok[0]) if ok.size else amps_sorted.size
+            return bound * (1.0 + se) <= se * kept
+        return bound <= self.share * error_budget(self.target, self.measure, m)
 
-    def needs_convergence(self, amps: np.ndarray, *, before: Before, m: int,
-                          olds: np.ndarray | None = None) -> bool:
+    def needs_convergence(
+        self, amps: np.ndarray, *, before: Before, m: int,
+        olds: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> bool:
         """Whether a cut by ``max_rank`` or by the ``target`` would drop terms.
 
         Such a cut is made on the converged core (the optimal cut of the expansion).
-        ``amps`` holds the amplitudes, in any order, and ``olds`` (optional, in the same
-        order) the terms' norms in the columns received before the update.
+        ``amps`` holds the amplitudes, in any order; ``olds(idx)``, when known, the norms
+        of the terms ``idx`` in the columns received before the update.
         """
         if self.max_rank is None and self.target is None:
             return False
@@ -184,7 +200,7 @@ class Truncation:
         amps_sorted = amps[order]
         unbounded = Truncation(self.eps, self.rtol)
         kept = self.keep_count(amps_sorted, before=before, m=m,
-                               olds_sorted=None if olds is None else olds[order])
+                               olds_from=None if olds is None else lambda j: olds(order[j:]))
         return kept < unbounded.keep_count(amps_sorted)
 
 
@@ -240,18 +256,16 @@ class CoreStep:
     cut_before: float | None = None
 
 
-def _norms_before(rows_before: np.ndarray | None, Qt: np.ndarray, amps_scaled: np.ndarray,
-                  e: int) -> np.ndarray | None:
-    """Return each term's norm in the columns received before the update (None: unknown).
+def _norms_before(rows_before: np.ndarray, Qt: np.ndarray, amps_scaled: np.ndarray,
+                  e: int, idx: np.ndarray) -> np.ndarray:
+    """Return the norms of the terms ``idx`` in the columns received before the update.
 
     The rotated term ``i`` is ``K Qt[i]^T`` in the rows of ``K`` (the rows of ``Rt`` are
     ``Qt Rt_0``), so its part in those columns is ``rows_before Qt[i]^T``; at most its
     amplitude. Formed at the scale ``2^-e`` of ``Rt`` and scaled back.
     """
-    if rows_before is None:
-        return None
-    olds = safe_column_norms(np.ldexp(rows_before, -e) @ Qt.T)
-    return np.ldexp(np.minimum(olds, amps_scaled), e)
+    olds = safe_column_norms(np.ldexp(rows_before, -e) @ Qt[idx].T)
+    return np.ldexp(np.minimum(olds, amps_scaled[idx]), e)
 
 
 def core_step(
@@ -325,7 +339,8 @@ def core_step(
     amps_scaled = safe_column_norms(Rt.T)
     if not converged and truncation.needs_convergence(
         np.ldexp(amps_scaled, e), before=before, m=m,
-        olds=_norms_before(rows_before, Qt, amps_scaled, e),
+        olds=None if rows_before is None else
+        lambda idx: _norms_before(rows_before, Qt, amps_scaled, e, idx),
     ):
         # a cut by the rank cap is made on the converged core, so that it is the optimal
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
@@ -336,16 +351,20 @@ def core_step(
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
-    olds = _norms_before(rows_before, Qt, amps_scaled, e)
-    keep = truncation.keep_count(amps[order], before=before, m=m,
-                                 olds_sorted=None if olds is None else olds[order])
+    def olds(idx: np.ndarray) -> np.ndarray:
+        assert rows_before is not None
+        return _norms_before(rows_before, Qt, amps_scaled, e, idx)
+
+    keep = truncation.keep_count(
+        amps[order], before=before, m=m,
+        olds_from=None if rows_before is None else lambda j: olds(order[j:]))
     kept, cut = order[:keep], order[keep:]
     # norms and the coupling are formed on the scaled core and scaled back as roots, so
     # that amplitudes up to 1e300 neither overflow nor lose the bound
     cut_norm = math.ldexp(float(np.linalg.norm(amps_scaled[cut])), e) if cut.size else 0.0
     cut_before = None
-    if olds is not None:
-        cut_before = (math.ldexp(float(np.linalg.norm(np.ldexp(olds[cut], -e))), e)
+    if rows_before is not None:
+        cut_before = (math.ldexp(float(np.linalg.norm(np.ldexp(olds(cut), -e))), e)
                       if cut.size else 0.0)
     coupling_root = 0.0
     if cut.size and kept.size:
