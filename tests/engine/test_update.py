@@ -503,3 +503,50 @@ def test_float32_snapshots_far_from_their_precision_update_as_float64(measure):
     np.testing.assert_array_equal(got[0][0], got[1][0])
     np.testing.assert_array_equal(got[0][1], got[1][1])
     assert got[0][2] == got[1][2]
+
+
+@pytest.mark.parametrize("measure", ["mean_l2", "relative"])
+def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_growth(
+        measure):
+    """At a target where the rounding is about 1/30 of the budget's growth, blocks wide
+    enough to be taken in slices set it aside (fewer directions than the same values in
+    float64) and meet the bound and the target; narrower blocks of the same stream are
+    absorbed digit for digit as float64."""
+    from streamsvd.engine.aside import _WIDE
+    from tests.linalg._snapshots import mass, pulse
+
+    n = 500
+    A32 = (pulse(n, 4 * _WIDE) * (1.0 + 0.3 * np.sin(np.arange(4 * _WIDE) / 7.0))
+           ).astype(np.float32)
+    A = A32.astype(np.float64)
+    M = mass(n)
+    energies = np.einsum("ij,ij->j", A, M @ A)
+    u = float(np.finfo(np.float32).eps) / 2
+    # 1 / (0.44 * 13)^2 = 0.03 of the growth (the engine's share of the target: 0.44)
+    target = 13 * u * (math.sqrt(float(np.mean(energies))) if measure == "mean_l2" else 1.0)
+
+    def run(X, b):
+        sc = ss.StreamCompressor(n, inner=M, target_error=target, error_measure=measure,
+                                 rule="jacobi", sweeps=None)
+        for j in range(0, X.shape[1], b):
+            sc.absorb(X[:, j:j + b])
+        return sc
+
+    wide32, wide64 = run(A32, _WIDE), run(A, _WIDE)
+    for sc in (wide32, wide64):
+        sc.finalize()
+        R = A - sc.expansion.U @ sc.expansion.V.T
+        err = math.sqrt(float(np.sum(R * (M @ R))))
+        assert err <= sc.error_bound * (1 + 1e-9) + 50 * n * EPS * math.sqrt(energies.sum())
+        budget = target * (math.sqrt(A.shape[1]) if measure == "mean_l2"
+                           else math.sqrt(energies.sum()))
+        assert sc.error_bound <= budget * (1 + 1e-12)
+        U = sc.left_vectors
+        assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+    new32, new64 = (sum(h.new_directions for h in sc.history) for sc in (wide32, wide64))
+    assert new32 < new64 / 2
+    assert wide32.rank <= wide64.rank + 1
+    narrow = _WIDE // 2
+    n32, n64 = run(A32, narrow), run(A, narrow)
+    np.testing.assert_array_equal(n32.expansion.U, n64.expansion.U)
+    assert n32.error_bound == n64.error_bound
