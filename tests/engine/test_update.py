@@ -439,6 +439,20 @@ def test_safe_column_norms_match_lapack_at_any_scale_and_layout(rng, layout):
     assert np.all((peak[:5] * np.ldexp(1.0, -exps[:5]) >= 0.5) & (peak[:5] * np.ldexp(1.0, -exps[:5]) < 1))
 
 
+def _assert_certified(sc, A, M, target, measure):
+    """The error from the factors within the bound, the bound within the target, ``U``
+    orthonormal in ``M``."""
+    n = A.shape[0]
+    energy = float(np.sum(A * (M @ A)))
+    R = A - sc.expansion.U @ sc.expansion.V.T
+    err = math.sqrt(float(np.sum(R * (M @ R))))
+    assert err <= sc.error_bound * (1 + 1e-9) + 50 * n * EPS * math.sqrt(energy)
+    budget = target * (math.sqrt(A.shape[1]) if measure == "mean_l2" else math.sqrt(energy))
+    assert sc.error_bound <= budget * (1 + 1e-12)
+    U = sc.left_vectors
+    assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+
+
 @pytest.mark.parametrize("measure", ["mean_l2", "relative"])
 def test_float32_snapshots_set_their_rounding_aside_and_meet_the_target(measure):
     """float32 snapshots carry their rounding in every direction of a block: at a target
@@ -465,15 +479,7 @@ def test_float32_snapshots_set_their_rounding_aside_and_meet_the_target(measure)
         for j in range(0, X.shape[1], b):
             sc.absorb(X[:, j:j + b])
         sc.finalize()
-        E = sc.expansion
-        R = A - E.U @ E.V.T
-        err = math.sqrt(float(np.sum(R * (M @ R))))
-        assert err <= sc.error_bound * (1 + 1e-9) + 50 * n * EPS * math.sqrt(energies.sum())
-        budget = target * (math.sqrt(A.shape[1]) if measure == "mean_l2"
-                           else math.sqrt(energies.sum()))
-        assert sc.error_bound <= budget * (1 + 1e-12)
-        U = sc.left_vectors
-        assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+        _assert_certified(sc, A, M, target, measure)
         runs[name] = (sum(h.new_directions for h in sc.history), sc.rank)
     (new32, rank32), (new64, rank64) = runs["float32"], runs["float64"]
     assert new32 < new64 / 2  # the rounding is set aside, not orthonormalised then cut
@@ -535,14 +541,7 @@ def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_gr
     wide32, wide64 = run(A32, _WIDE), run(A, _WIDE)
     for sc in (wide32, wide64):
         sc.finalize()
-        R = A - sc.expansion.U @ sc.expansion.V.T
-        err = math.sqrt(float(np.sum(R * (M @ R))))
-        assert err <= sc.error_bound * (1 + 1e-9) + 50 * n * EPS * math.sqrt(energies.sum())
-        budget = target * (math.sqrt(A.shape[1]) if measure == "mean_l2"
-                           else math.sqrt(energies.sum()))
-        assert sc.error_bound <= budget * (1 + 1e-12)
-        U = sc.left_vectors
-        assert np.linalg.norm(U.T @ (M @ U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+        _assert_certified(sc, A, M, target, measure)
     new32, new64 = (sum(h.new_directions for h in sc.history) for sc in (wide32, wide64))
     assert new32 < new64 / 2
     assert wide32.rank <= wide64.rank + 1
