@@ -97,6 +97,8 @@ class Before:
         return self.prior.after(discarded, overlapping=self.overlapping, before=old)
 
 
+# what the squares of a term's entries below 2^-511 may lose (_norms_before)
+_UNDERFLOW = 2.0**-500
 NOTHING_BEFORE = Before()  # the account of a compressor that discarded nothing yet
 
 
@@ -159,28 +161,39 @@ class Truncation:
         if olds_from is None:
             fits = self._fits(before.bounds(norms), tail, e, m)
         else:
-            # a cut's part in the columns before only raises its bound, from its bound
-            # with none there: the terms before the first cut that fits so are never
-            # cut and count whole; only the others are measured
-            fits = self._fits(before.bounds(norms, 0.0 * norms), tail, e, m)
-            if fits.any():
-                lo = int(np.flatnonzero(fits)[0])
-                o = a.copy()
-                o[lo:] = np.ldexp(olds_from(lo), -e)
-                cut_before = np.ldexp(
-                    np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
-                fits = self._fits(before.bounds(norms, cut_before), tail, e, m)
+            # a cut's part in the columns before lies between none and the whole cut,
+            # and its bound rises with it: one evaluation of both ends brackets the first
+            # cut that fits, and only a cut between them needs the terms' parts, measured
+            # for the terms from the lower end on
+            c = norms.size
+            ends = self._fits(before.bounds(np.concatenate([norms, norms]),
+                                            np.concatenate([0.0 * norms, norms])),
+                              np.concatenate([tail, tail]), e, m)
+            low, high = np.flatnonzero(ends[:c]), np.flatnonzero(ends[c:])
+            if low.size == 0:
+                return amps_sorted.size
+            lo, hi = int(low[0]), int(high[0]) if high.size else c
+            if lo == hi:
+                return lo
+            o = np.ldexp(olds_from(lo), -e)
+            cut_before = np.ldexp(
+                np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
+            fits = np.zeros(c, dtype=bool)
+            fits[lo:hi] = self._fits(before.bounds(norms[lo:hi], cut_before[:hi - lo]),
+                                     tail, e, m, rows=slice(lo, hi))
+            fits[hi:] = True
         ok = np.flatnonzero(fits)
         return int(ok[0]) if ok.size else amps_sorted.size
 
-    def _fits(self, bound: np.ndarray, tail: np.ndarray, e: int, m: int) -> np.ndarray:
-        """Whether each candidate's bound (its cut ``tail``, scaled by ``4^-e``) fits."""
+    def _fits(self, bound: np.ndarray, tail: np.ndarray, e: int, m: int,
+              rows: slice = slice(None)) -> np.ndarray:
+        """Whether each candidate's bound (its cut ``tail[rows]``, scaled by ``4^-e``) fits."""
         assert self.target is not None
         if self.measure == "relative":
             # ||A|| >= ||U V^T|| - bound, so bound (1 + s eps) <= s eps ||U V^T|| makes
             # bound <= s eps ||A||, whatever the discarded part
             se = self.share * self.target
-            kept = np.ldexp(np.sqrt(np.maximum(tail[0] - tail, 0.0)), e)
+            kept = np.ldexp(np.sqrt(np.maximum(tail[0] - tail[rows], 0.0)), e)
             return bound * (1.0 + se) <= se * kept
         return bound <= self.share * error_budget(self.target, self.measure, m)
 
@@ -262,9 +275,12 @@ def _norms_before(rows_before: np.ndarray, Qt: np.ndarray, amps_scaled: np.ndarr
 
     The rotated term ``i`` is ``K Qt[i]^T`` in the rows of ``K`` (the rows of ``Rt`` are
     ``Qt Rt_0``), so its part in those columns is ``rows_before Qt[i]^T``; at most its
-    amplitude. Formed at the scale ``2^-e`` of ``Rt`` and scaled back.
+    amplitude. Formed at the scale ``2^-e`` of ``Rt``, where no entry exceeds the largest
+    amplitude: the squares cannot overflow, and what underflows (entries below
+    ``2^-511``) is covered by adding ``2^-500 sqrt(k)``, so each norm is an upper bound.
     """
-    olds = safe_column_norms(np.ldexp(rows_before, -e) @ Qt[idx].T)
+    P = np.ldexp(rows_before, -e) @ Qt[idx].T
+    olds = np.sqrt(np.einsum("ij,ij->j", P, P)) + _UNDERFLOW * math.sqrt(P.shape[0])
     return np.ldexp(np.minimum(olds, amps_scaled[idx]), e)
 
 
