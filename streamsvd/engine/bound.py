@@ -40,8 +40,8 @@ the cut terms come from the block itself (the rounding of ``float32`` snapshots,
 the update that brought it), so that what earlier blocks set aside (``rho``) then costs
 little in later bounds. A merge (whose account before the update also holds the merged
 expansion's error, in its new columns), ``finalize`` and the Gram path
-(:mod:`streamsvd.engine.update_gram`) take ``o_t = d_t``. An update that overlaps earlier columns
-(``add``) uses the triangle inequality, ``b_t = b_{t-1} + d_t``, and sets ``c_t = k_t =
+(:mod:`streamsvd.engine.update_gram`) take ``o_t = d_t``. An update that overlaps earlier
+columns (``add``) uses the triangle inequality, ``b_t = b_{t-1} + d_t``, and sets ``c_t = k_t =
 inf``; a removal sets them to ``inf`` too (the couplings are not known on the remaining
 columns), and keeps ``rho`` (a restriction never increases a norm). When every
 truncation happens at convergence and nothing is rejected the bound is the Pythagorean
@@ -130,7 +130,7 @@ class Bound:
             ``d_rej``, the norm of the residuals this update rejected (part of
             ``discarded``).
         discarded_before : float, optional
-            ``d_t^old = ||D_t P_old||``, the part of the discard in the columns received
+            ``o_t = ||D_t P_t||``, the part of the discard in the columns received
             before this update (at most ``d_t``); by default ``d_t``.
         """
         d = float(discarded)
@@ -161,7 +161,7 @@ class Bound:
         coupling account is ``inf``; the Pythagorean rule only where the couplings of
         the cuts before vanish). Computed on a common power-of-two scale, so that
         amplitudes up to 1e300 give a finite result. ``before`` holds each candidate's
-        ``d_t^old``, the part of the discard in the columns received before the update
+        ``o_t``, the part of the discard in the columns received before the update
         (module docstring; ``d_t`` itself when not given).
         """
         d = np.asarray(discarded, dtype=np.float64)
