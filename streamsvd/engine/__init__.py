@@ -9,12 +9,8 @@ from streamsvd._util.lazy import lazy_exports
 # public name -> the submodule that defines it (imported on first access)
 _EXPORTS = {
     "Bound": "bound",
-    "Before": "core",
     "CoreStep": "core",
-    "ERROR_MEASURES": "core",
-    "Truncation": "core",
     "core_step": "core",
-    "error_budget": "core",
     "Downdate": "downdate",
     "Ledger": "downdate",
     "plan_remove": "downdate",
@@ -33,6 +29,10 @@ _EXPORTS = {
     "plan_add": "update",
     "plan_finalize": "update",
     "plan_merge": "update",
+    "ERROR_MEASURES": "truncation",
+    "Before": "truncation",
+    "Truncation": "truncation",
+    "error_budget": "truncation",
     "plan_absorb_by_gram": "update_gram",
     "plan_merge_by_gram": "update_gram",
 }

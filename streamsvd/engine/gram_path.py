@@ -19,8 +19,8 @@ from scipy.linalg.lapack import dtrtri
 
 from streamsvd._util.scaling import pow2_exponent
 from streamsvd.algebra.interface import BasisBackend, DeferredGram
-from streamsvd.engine.core import Truncation
 from streamsvd.engine.state import Plan, State, StepOptions
+from streamsvd.engine.truncation import Truncation
 from streamsvd.linalg.rejection import default_reject_tol
 
 __all__ = [

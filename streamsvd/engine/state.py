@@ -30,9 +30,9 @@ from scipy.linalg.lapack import dtrtri
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisBackend, DeferredGram
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import Truncation
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RightFactor, RowAppend
+from streamsvd.engine.truncation import Truncation
 from streamsvd.errors import BrokenStateError
 
 __all__ = [

@@ -38,10 +38,11 @@ import scipy.linalg
 from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
 from streamsvd.engine.aside import UNIT_FLOAT64, set_aside_budget
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import Before, core_step, r_factor
+from streamsvd.engine.core import core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
+from streamsvd.engine.truncation import Before
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension

@@ -22,7 +22,6 @@ from scipy.linalg.lapack import dtrtri
 from streamsvd._util.scaling import pow2_exponent, safe_m_norms, scale_into
 from streamsvd.algebra.interface import DeferredGram
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import Before
 from streamsvd.engine.gram_path import (
     _ALLOWANCE_SHARE,
     _EPS,
@@ -52,6 +51,7 @@ from streamsvd.engine.gram_path import (
 )
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
+from streamsvd.engine.truncation import Before
 from streamsvd.engine.update import COMPACT_PER_COLUMN, plan_rows
 
 __all__ = ["plan_absorb_by_gram", "plan_merge_by_gram"]

@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the numerical modules load when options are validated, not imported
     from streamsvd.algebra.inner import InnerProduct
-    from streamsvd.engine.core import Truncation
     from streamsvd.engine.state import StepOptions
+    from streamsvd.engine.truncation import Truncation
 
 __all__ = [
     "STREAMING_SHARE",
@@ -168,7 +168,7 @@ class CompressorOptions:
     def truncation(self, *, max_rank: int | None = None, share: float | None = None
                    ) -> Truncation:
         """Return the cut of an update (``max_rank``, ``share``: the streaming ones by default)."""
-        from streamsvd.engine.core import Truncation
+        from streamsvd.engine.truncation import Truncation
 
         return Truncation(
             self.eps, self.rtol, self.streaming_rank if max_rank is None else max_rank,

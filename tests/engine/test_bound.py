@@ -124,7 +124,8 @@ def test_the_cross_term_takes_the_cut_in_the_columns_before_the_update():
 def test_a_cut_is_measured_in_the_columns_before_the_update(rng, old_rows):
     """``CoreStep.cut_before`` is ``||K_old Z_cut||_F``, ``Z_cut`` the cut right singular
     vectors of ``K`` (the terms at convergence), LAPACK's."""
-    from streamsvd.engine.core import Truncation, core_step
+    from streamsvd.engine.core import core_step
+    from streamsvd.engine.truncation import Truncation
 
     k, p = 30, 20
     K = (rng.standard_normal((k, p)) * np.logspace(0, -6, p)) @ np.linalg.qr(
