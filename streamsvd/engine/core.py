@@ -177,10 +177,11 @@ def core_step(
             limit=_MAX_SWEEPS if sweeps is None else sweeps, after=after,
         )
     amps_scaled = safe_column_norms(Rt.T)
+    # each term's norm in the columns before the update, at the current rotation
+    olds = (None if rows_before is None else
+            lambda idx, rows=rows_before: _norms_before(rows, Qt, amps_scaled, e, idx))
     if not converged and truncation.needs_convergence(
-        np.ldexp(amps_scaled, e), before=before, m=m,
-        olds=None if rows_before is None else
-        lambda idx: _norms_before(rows_before, Qt, amps_scaled, e, idx),
+        np.ldexp(amps_scaled, e), before=before, m=m, olds=olds,
     ):
         # a cut by the rank cap is made on the converged core, so that it is the optimal
         # (Eckart-Young) cut of the expansion: cutting unconverged terms by their norms
@@ -191,19 +192,15 @@ def core_step(
         amps_scaled = safe_column_norms(Rt.T)
     amps = np.ldexp(amps_scaled, e)
     order = np.argsort(-amps, kind="stable")
-    def olds(idx: np.ndarray) -> np.ndarray:
-        assert rows_before is not None
-        return _norms_before(rows_before, Qt, amps_scaled, e, idx)
-
     keep = truncation.keep_count(
         amps[order], before=before, m=m,
-        olds_from=None if rows_before is None else lambda j: olds(order[j:]))
+        olds_from=None if olds is None else lambda j: olds(order[j:]))
     kept, cut = order[:keep], order[keep:]
     # norms and the coupling are formed on the scaled core and scaled back as roots, so
     # that amplitudes up to 1e300 neither overflow nor lose the bound
     cut_norm = math.ldexp(float(np.linalg.norm(amps_scaled[cut])), e) if cut.size else 0.0
     cut_before = None
-    if rows_before is not None:
+    if olds is not None:
         cut_before = (math.ldexp(float(np.linalg.norm(np.ldexp(olds(cut), -e))), e)
                       if cut.size else 0.0)
     coupling_root = 0.0

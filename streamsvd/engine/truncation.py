@@ -115,7 +115,7 @@ class Truncation:
         e = pow2_exponent(amps_sorted)
         a = np.ldexp(amps_sorted, -e)
         # tail[k] = ||terms k, k+1, ...||^2: the energy cut when k terms are kept
-        tail = np.append(np.cumsum((a * a)[::-1])[::-1], 0.0)
+        tail = _tails(a)
         norms = np.ldexp(np.sqrt(tail), e)
         if olds_from is None:
             fits = self._fits(before.bounds(norms), tail, e, m)
@@ -135,8 +135,7 @@ class Truncation:
             if lo == hi:
                 return lo
             o = np.ldexp(olds_from(lo), -e)
-            cut_before = np.ldexp(
-                np.sqrt(np.append(np.cumsum((o * o)[::-1])[::-1], 0.0)), e)
+            cut_before = np.ldexp(np.sqrt(_tails(o)), e)
             fits = np.zeros(c, dtype=bool)
             fits[lo:hi] = self._fits(before.bounds(norms[lo:hi], cut_before[:hi - lo]),
                                      tail, e, m, rows=slice(lo, hi))
@@ -174,6 +173,11 @@ class Truncation:
         kept = self.keep_count(amps_sorted, before=before, m=m,
                                olds_from=None if olds is None else lambda j: olds(order[j:]))
         return kept < unbounded.keep_count(amps_sorted)
+
+
+def _tails(x: np.ndarray) -> np.ndarray:
+    """Return ``t[k] = sum_{i >= k} x_i^2`` for ``k = 0 .. len(x)`` (``t[len(x)] = 0``)."""
+    return np.append(np.cumsum((x * x)[::-1])[::-1], 0.0)
 
 
 def error_budget(target: float, measure: str, m: int, data_norm: float = 0.0) -> float:
