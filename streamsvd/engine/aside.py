@@ -18,7 +18,7 @@ from streamsvd._util.scaling import pow2_exponent, safe_m_norms
 from streamsvd.engine.state import State, StepOptions
 from streamsvd.linalg.slices import SLICE
 
-__all__ = ["UNIT_FLOAT64", "set_aside_budget"]
+__all__ = ["UNIT_FLOAT64", "set_aside_budget", "sets_aside"]
 
 # the share of the budget's growth in an update that a block may spend on directions set
 # aside on its residual's Gram (streamsvd.linalg.blocks.set_aside), before the cut; for
@@ -69,17 +69,26 @@ def set_aside_budget(opts: StepOptions, b: int, *, unit: float = UNIT_FLOAT64,
     share is ``_ROUNDED_ASIDE_SHARE``. An absolute target, a rank cap alone and no cut set
     nothing aside.
     """
+    if not sets_aside(opts):
+        return (0.0, 0.0)
     trunc = opts.truncation
-    if trunc.target is None or trunc.measure not in ("relative", "mean_l2"):
-        return (0.0, 0.0)
     se = trunc.share * trunc.target
-    if not 0.0 < se < 2.0**400:  # its square past the range: nothing set aside
-        return (0.0, 0.0)
     near = (unit > UNIT_FLOAT64
             and _rounding_share(trunc.measure, unit, se, state, X, opts.inner)
             >= (_NEAR_PRECISION_WIDE if b >= _WIDE else _NEAR_PRECISION))
     rate = (_ROUNDED_ASIDE_SHARE if near else _ASIDE_SHARE) * se * se
     return (rate * b, 0.0) if trunc.measure == "mean_l2" else (0.0, rate)
+
+
+def sets_aside(opts: StepOptions) -> bool:
+    """Whether a block may set anything aside under ``opts`` (:func:`set_aside_budget`).
+
+    A ``mean_l2`` or ``relative`` target whose streaming share squares within the range.
+    """
+    trunc = opts.truncation
+    if trunc.target is None or trunc.measure not in ("relative", "mean_l2"):
+        return False
+    return 0.0 < trunc.share * trunc.target < 2.0**400
 
 
 def _rounding_share(measure: str, unit: float, se: float, state: State | None,

@@ -22,12 +22,14 @@ from streamsvd.engine.update import (
     plan_add,
     plan_finalize,
     plan_merge,
+    takes_slices,
 )
 from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
 from streamsvd.stream.operands import _final_options, _increment, _merge_operand, _merge_options
 from streamsvd.stream.summary import _sweep_bar
 
 if TYPE_CHECKING:
+    from streamsvd.engine.state import Plan
     from streamsvd.stream.lifecycle import Lifecycle
     from streamsvd.stream.view import ExpansionView
     from streamsvd.stream.window import Window
@@ -84,13 +86,19 @@ class Updates:
         starts = life.trajectory_starts
         if new_trajectory and first > 0:
             life.trajectory_starts = np.append(starts, np.int64(first))
-        try:
-            return life.run(
-                lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0)
-                or plan_absorb(state, life.backend.in_memory(B, check=False), life.opts,
+
+        def exact() -> Plan:
+            return plan_absorb(state, life.backend.in_memory(B, check=False), life.opts,
                                t0=t0, name="columns",
                                previous=life.history[-1] if life.history else None,
-                               unit=_unit_roundoff(columns)),
+                               unit=_unit_roundoff(columns))
+
+        # a block in memory that the exact update takes in slices skips the Gram path
+        sliced = isinstance(B, np.ndarray) and takes_slices(state, B.shape[1], life.opts)
+        try:
+            return life.run(
+                exact if sliced
+                else lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0) or exact(),
                 offset, ledger=ledger, removed=removed,
             )
         except BaseException:

@@ -549,3 +549,64 @@ def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_gr
     n32, n64 = run(A32, narrow), run(A, narrow)
     np.testing.assert_array_equal(n32.expansion.U, n64.expansion.U)
     assert n32.error_bound == n64.error_bound
+
+
+def test_blocks_taken_in_slices_need_a_budget_two_slices_and_a_narrow_basis():
+    from streamsvd.engine.update import takes_slices
+    from streamsvd.linalg.slices import SLICE
+
+    def state(width):
+        return type("S", (), {"basis": type("B", (), {"width": width})()})()
+
+    def opts(**truncation):
+        return ss.StreamCompressor(10, rule="jacobi", **truncation)._life.opts
+
+    mean_l2 = opts(target_error=1e-3, error_measure="mean_l2")
+    assert takes_slices(state(0), 2 * SLICE, mean_l2)
+    assert takes_slices(state(SLICE - 1), 7 * SLICE, opts(target_error=1e-3))  # relative
+    assert not takes_slices(state(0), 2 * SLICE - 1, mean_l2)
+    assert not takes_slices(state(SLICE), 7 * SLICE, mean_l2)
+    for other in (opts(target_error=1e-3, error_measure="absolute"), opts(eps=1e-3),
+                  opts(max_rank=5)):
+        assert not takes_slices(state(0), 7 * SLICE, other)  # nothing to set aside
+
+
+@pytest.mark.parametrize(("measure", "target"), [("mean_l2", 1e-2), ("relative", 1e-3)])
+def test_blocks_taken_in_slices_skip_the_gram_path_and_keep_its_modes(measure, target,
+                                                                      monkeypatch):
+    """Blocks of 640 columns at targets where the Gram path (the method of snapshots)
+    would take them: every update is exact, in slices, and the stream keeps the modes of
+    the same stream through the Gram path, its bound, target and orthogonality."""
+    import streamsvd.stream.updates as updates_module
+    from tests.linalg._snapshots import mass, pulse
+
+    n, b = 800, 640
+    A = pulse(n, 4 * b) * (1.0 + 0.3 * np.sin(np.arange(4 * b) / 7.0))
+    M = mass(n)
+    grams = []
+    by_gram = updates_module.plan_absorb_by_gram
+
+    def spy(*args, **kwargs):
+        plan = by_gram(*args, **kwargs)
+        grams.append(plan is not None)
+        return plan
+
+    monkeypatch.setattr(updates_module, "plan_absorb_by_gram", spy)
+
+    def stream():
+        sc = ss.StreamCompressor(n, inner=M, target_error=target, error_measure=measure,
+                                 rule="jacobi", sweeps=None)
+        for j in range(0, A.shape[1], b):
+            sc.absorb(A[:, j:j + b])
+        sc.finalize()
+        return sc
+
+    sliced = stream()
+    assert grams == []
+    assert all(h.new_directions < b // 8 for h in sliced.history if h.kind == "absorb")
+    monkeypatch.setattr(updates_module, "takes_slices", lambda *a: False)
+    by_gram_path = stream()
+    assert grams == [True] * 4  # the Gram path takes every block when it may
+    for sc in (sliced, by_gram_path):
+        _assert_certified(sc, A, M, target, measure)
+    assert sliced.rank == by_gram_path.rank
