@@ -22,7 +22,7 @@ from streamsvd.engine.update import (
     plan_add,
     plan_finalize,
     plan_merge,
-    takes_slices,
+    skips_gram_path,
 )
 from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
 from streamsvd.stream.operands import _final_options, _increment, _merge_operand, _merge_options
@@ -93,11 +93,12 @@ class Updates:
                                previous=life.history[-1] if life.history else None,
                                unit=_unit_roundoff(columns))
 
-        # a block in memory that the exact update takes in slices skips the Gram path
-        sliced = isinstance(B, np.ndarray) and takes_slices(state, B.shape[1], life.opts)
+        # a block in memory that the exact update takes in slices, beside few terms,
+        # skips the Gram path
+        skip = isinstance(B, np.ndarray) and skips_gram_path(state, B.shape[1], life.opts)
         try:
             return life.run(
-                exact if sliced
+                exact if skip
                 else lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0) or exact(),
                 offset, ledger=ledger, removed=removed,
             )

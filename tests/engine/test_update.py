@@ -551,32 +551,35 @@ def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_gr
     assert n32.error_bound == n64.error_bound
 
 
-def test_blocks_taken_in_slices_need_a_budget_two_slices_and_a_narrow_basis():
-    from streamsvd.engine.update import takes_slices
+def test_blocks_skip_the_gram_path_in_slices_beside_a_32nd_of_their_width_in_terms():
+    from streamsvd.engine.update import skips_gram_path
     from streamsvd.linalg.slices import SLICE
 
-    def state(width):
-        return type("S", (), {"basis": type("B", (), {"width": width})()})()
+    def state(width, rank):
+        return type("S", (), {"basis": type("B", (), {"width": width})(), "rank": rank})()
 
     def opts(**truncation):
         return ss.StreamCompressor(10, rule="jacobi", **truncation)._life.opts
 
     mean_l2 = opts(target_error=1e-3, error_measure="mean_l2")
-    assert takes_slices(state(0), 2 * SLICE, mean_l2)
-    assert takes_slices(state(SLICE - 1), 7 * SLICE, opts(target_error=1e-3))  # relative
-    assert not takes_slices(state(0), 2 * SLICE - 1, mean_l2)
-    assert not takes_slices(state(SLICE), 7 * SLICE, mean_l2)
+    assert skips_gram_path(state(6, 6), 2 * SLICE, mean_l2)  # 6 = 192 / 32
+    assert skips_gram_path(state(SLICE - 1, 21), 7 * SLICE, opts(target_error=1e-3))
+    assert not skips_gram_path(state(7, 7), 2 * SLICE, mean_l2)
+    assert not skips_gram_path(state(0, 0), 7 * SLICE, mean_l2)  # the first block
+    assert not skips_gram_path(state(5, 5), 2 * SLICE - 1, mean_l2)  # one slice
+    assert not skips_gram_path(state(SLICE, 5), 7 * SLICE, mean_l2)  # a wide basis
     for other in (opts(target_error=1e-3, error_measure="absolute"), opts(eps=1e-3),
                   opts(max_rank=5)):
-        assert not takes_slices(state(0), 7 * SLICE, other)  # nothing to set aside
+        assert not skips_gram_path(state(5, 5), 7 * SLICE, other)  # nothing to set aside
 
 
 @pytest.mark.parametrize(("measure", "target"), [("mean_l2", 1e-2), ("relative", 1e-3)])
-def test_blocks_taken_in_slices_skip_the_gram_path_and_keep_its_modes(measure, target,
-                                                                      monkeypatch):
+def test_blocks_beside_few_terms_skip_the_gram_path_and_keep_its_modes(measure, target,
+                                                                       monkeypatch):
     """Blocks of 640 columns at targets where the Gram path (the method of snapshots)
-    would take them: every update is exact, in slices, and the stream keeps the modes of
-    the same stream through the Gram path, its bound, target and orthogonality."""
+    would take them: the first block takes it; each later one, beside at most 20 terms,
+    is exact, in slices. The stream keeps the modes of the same stream through the Gram
+    path, its bound, target and orthogonality."""
     import streamsvd.stream.updates as updates_module
     from tests.linalg._snapshots import mass, pulse
 
@@ -602,11 +605,11 @@ def test_blocks_taken_in_slices_skip_the_gram_path_and_keep_its_modes(measure, t
         return sc
 
     sliced = stream()
-    assert grams == []
-    assert all(h.new_directions < b // 8 for h in sliced.history if h.kind == "absorb")
-    monkeypatch.setattr(updates_module, "takes_slices", lambda *a: False)
+    assert grams == [True]
+    assert all(h.new_directions < b // 32 for h in sliced.history[1:4])
+    monkeypatch.setattr(updates_module, "skips_gram_path", lambda *a: False)
     by_gram_path = stream()
-    assert grams == [True] * 4  # the Gram path takes every block when it may
+    assert grams == [True] * 5  # the Gram path takes every block when it may
     for sc in (sliced, by_gram_path):
         _assert_certified(sc, A, M, target, measure)
     assert sliced.rank == by_gram_path.rank

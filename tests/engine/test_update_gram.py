@@ -760,7 +760,7 @@ def test_a_wide_block_the_rounding_cannot_meet_is_refused_on_its_norms(weights, 
     refused on its columns' norms, before its Gram, with the same result."""
     # beside a basis narrower than a slice the exact update takes such blocks in slices
     # without trying the Gram path; the check serves them beside a wider basis
-    monkeypatch.setattr(stream_module, "takes_slices", lambda *a: False)
+    monkeypatch.setattr(stream_module, "skips_gram_path", lambda *a: False)
     made = _count_products(monkeypatch)
     A = _pulses(n=600, m=800)
     kw = {"target_error": 1e-9, "error_measure": "mean_l2"}
