@@ -36,7 +36,9 @@ of ``--repeat``; ``os.getloadavg()`` recorded with every row.
   uncompressed), written once into ``--ingest-data``; the contenders are
   ``_ingest.py``'s (the raw read, the read as ``ingest`` does it, the in-memory API, the
   ingest driver with and without read-ahead, ``streamsvd ingest`` as a process, the tall
-  mode), each in its own process, wall and CPU time.
+  mode), each in its own process, wall and CPU time; and the command's start-up
+  (``--help``, a small file's ``ingest`` and ``info``), on compiled bytecode as an
+  installed package runs.
 
 ``--against REV`` runs the same rows on revision ``REV`` (a git worktree, a child
 process, after this version's rows) and prints its ratios beside these; for ``ingest``
@@ -409,7 +411,8 @@ def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
         print_table(["store", "contender", "wall s", "CPU s", "wall / memory", "CPU / memory",
                      "load (min-max)"],
                     [[r.get("store", ""), r["contender"], f"{r['wall']:.2f}", f"{r['cpu']:.2f}",
-                      f"{r['wall_over_memory']:.2f}", f"{r['cpu_over_memory']:.2f}",
+                      *(("", "") if r["wall_over_memory"] is None else
+                        (f"{r['wall_over_memory']:.2f}", f"{r['cpu_over_memory']:.2f}")),
                       f"{r['load']:.1f} ({r.get('load_min', r['load']):.1f}-"
                       f"{r.get('load_max', r['load']):.1f})"] for r in data["ingest"]],
                     title="\ningest 200000 x 500 (--max-rank 60 --block 100)")

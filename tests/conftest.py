@@ -81,3 +81,24 @@ def s3(s3_server, monkeypatch, request):
     bucket = "t" + hashlib.sha256(request.node.nodeid.encode()).hexdigest()[:24]
     s3fs.S3FileSystem().mkdir(bucket)
     return f"s3://{bucket}"
+
+
+@pytest.fixture
+def spy_on(monkeypatch):
+    """``spy_on(module, name)``: replace ``module.name`` by a spy; return its record.
+
+    The record is a list that receives, call by call, whether the call returned
+    something other than None (a path taken, or declined).
+    """
+    def install(module, name):
+        original, calls = getattr(module, name), []
+
+        def spy(*args, **kwargs):
+            result = original(*args, **kwargs)
+            calls.append(result is not None)
+            return result
+
+        monkeypatch.setattr(module, name, spy)
+        return calls
+
+    return install

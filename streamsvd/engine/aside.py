@@ -69,9 +69,9 @@ def set_aside_budget(opts: StepOptions, b: int, *, unit: float = UNIT_FLOAT64,
     share is ``_ROUNDED_ASIDE_SHARE``. An absolute target, a rank cap alone and no cut set
     nothing aside.
     """
-    if not sets_aside(opts):
-        return (0.0, 0.0)
     trunc = opts.truncation
+    if trunc.target is None or not sets_aside(opts):
+        return (0.0, 0.0)
     se = trunc.share * trunc.target
     near = (unit > UNIT_FLOAT64
             and _rounding_share(trunc.measure, unit, se, state, X, opts.inner)

@@ -575,7 +575,7 @@ def test_blocks_skip_the_gram_path_in_slices_beside_a_32nd_of_their_width_in_ter
 
 @pytest.mark.parametrize(("measure", "target"), [("mean_l2", 1e-2), ("relative", 1e-3)])
 def test_blocks_beside_few_terms_skip_the_gram_path_and_keep_its_modes(measure, target,
-                                                                       monkeypatch):
+                                                                       monkeypatch, spy_on):
     """Blocks of 640 columns at targets where the Gram path (the method of snapshots)
     would take them: the first block takes it; each later one, beside at most 20 terms,
     is exact, in slices. The stream keeps the modes of the same stream through the Gram
@@ -586,15 +586,7 @@ def test_blocks_beside_few_terms_skip_the_gram_path_and_keep_its_modes(measure, 
     n, b = 800, 640
     A = pulse(n, 4 * b) * (1.0 + 0.3 * np.sin(np.arange(4 * b) / 7.0))
     M = mass(n)
-    grams = []
-    by_gram = updates_module.plan_absorb_by_gram
-
-    def spy(*args, **kwargs):
-        plan = by_gram(*args, **kwargs)
-        grams.append(plan is not None)
-        return plan
-
-    monkeypatch.setattr(updates_module, "plan_absorb_by_gram", spy)
+    grams = spy_on(updates_module, "plan_absorb_by_gram")
 
     def stream():
         sc = ss.StreamCompressor(n, inner=M, target_error=target, error_measure=measure,

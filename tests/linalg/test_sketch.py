@@ -126,22 +126,13 @@ def _stream(A, b, M, target, *, store=None, upto=None, sc=None):
 
 
 @pytest.mark.parametrize("target", [1e-5, 1e-6])
-def test_a_stream_with_sketches_keeps_its_bound_and_its_modes(target, monkeypatch):
+def test_a_stream_with_sketches_keeps_its_bound_and_its_modes(target, monkeypatch, spy_on):
     import streamsvd.linalg.extend as extend_module
-    import streamsvd.linalg.sketch as sketch_module
 
     n, b = 600, 90
     A = _pulse(n, 12 * b) * (1.0 + 0.3 * np.sin(np.arange(12 * b) / 7.0))
     M = _mass(n)
-    taken = []
-    original = sketch_module.extend_by_sketch
-
-    def spy(*args, **kwargs):
-        ext = original(*args, **kwargs)
-        taken.append(ext is not None)
-        return ext
-
-    monkeypatch.setattr(extend_module, "extend_by_sketch", spy)
+    taken = spy_on(extend_module, "extend_by_sketch")
     fast = _stream(A, b, M, target)
     assert len(taken) >= 4 and all(taken)  # every update that tried a sketch took it
     monkeypatch.setattr(extend_module, "extend_by_sketch", lambda *a, **k: None)

@@ -21,8 +21,11 @@ def test_ingest_case_quick(monkeypatch, tmp_path):
     import _ingest
 
     assert {(r["store"], r["contender"]) for r in rows} == {
-        (s, c) for s in ("zstd", "raw") for c in _ingest.CONTENDERS}
+        (s, c) for s in ("zstd", "raw") for c in _ingest.CONTENDERS} | {
+        ("start-up", c) for c in _ingest.STARTUP}
     for r in rows:
         assert r["wall"] > 0 and r["cpu"] > 0 and len(r["runs"]) == 1
         if r["contender"] == "memory":
             assert r["wall_over_memory"] == r["cpu_over_memory"] == 1.0
+        if r["store"] == "start-up":  # processes of their own, beside no in-memory run
+            assert r["wall_over_memory"] is None
