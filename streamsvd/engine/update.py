@@ -36,7 +36,7 @@ import numpy as np
 import scipy.linalg
 
 from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
-from streamsvd.engine.aside import UNIT_FLOAT64, set_aside_budget, sets_aside
+from streamsvd.engine.aside import UNIT_FLOAT64, set_aside_budget
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.core import core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
@@ -48,11 +48,11 @@ from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
 from streamsvd.linalg.rejection import term_reference, top_energy
 from streamsvd.linalg.sketch import plan_sketch
-from streamsvd.linalg.slices import extend_block, slice_width
+from streamsvd.linalg.slices import extend_block
 
 __all__ = [
     "COMPACT_PER_COLUMN", "plan_absorb", "plan_add", "plan_finalize", "plan_merge",
-    "plan_rows", "skips_gram_path",
+    "plan_rows",
 ]
 
 logger = logging.getLogger(__name__)
@@ -63,32 +63,9 @@ logger = logging.getLogger(__name__)
 # block beside the basis records that cost as already wasted).
 _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
-# a block taken in slices skips the Gram path beside at most this many terms per column
-# (skips_gram_path: pyMOR's heat example, updates of 668 columns, 9 to 20 terms at 1e-2 ..
-# 1e-4)
-_SKIP_GRAM_SHARE = 1 / 32
 
 
 # ---------------------------------------------------------------------------- planning
-def skips_gram_path(state: State, b: int, opts: StepOptions) -> bool:
-    """Whether a block of ``b`` columns goes to :func:`plan_absorb` without trying the Gram path.
-
-    With a budget to set aside, a block of at least two slices beside a basis narrower
-    than one is extended slice by slice (:func:`~streamsvd.linalg.slices.slice_width`):
-    about ``n b s + 4 n (w + r) b`` flops (``s`` the slice's width, ``w`` the basis's,
-    ``r`` the directions kept), against the ``n (w + b)^2`` of the Gram of the basis and
-    the whole block that the Gram path forms, and its eigendecomposition. When the stream
-    so far holds at most ``b / 32`` terms, a block keeps few directions and the slices
-    cost well under the Gram: such a block skips the Gram path. The first block, of which
-    nothing is known, and a stream of a higher rank try it first (Burgers with updates of
-    674 columns, 24 to 78 terms: the slices took as long or longer than the Gram path,
-    their rounding's share of the bound one mode more; the theory page
-    ``docs/theory/gram-path.md``).
-    """
-    return (0 < state.rank <= _SKIP_GRAM_SHARE * b and sets_aside(opts)
-            and slice_width(b, state.basis.width) is not None)
-
-
 def plan_absorb(state: State, X: np.ndarray, opts: StepOptions, *, t0: float,
                 name: str | None = None, previous: UpdateRecord | None = None,
                 unit: float = UNIT_FLOAT64) -> Plan:

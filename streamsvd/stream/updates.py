@@ -16,13 +16,13 @@ import numpy as np
 
 from streamsvd.algebra.panels.basis import PanelBasis
 from streamsvd.engine.aside import UNIT_FLOAT64
+from streamsvd.engine.gram_path import skips_gram_path
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.update import (
     plan_absorb,
     plan_add,
     plan_finalize,
     plan_merge,
-    skips_gram_path,
 )
 from streamsvd.engine.update_gram import plan_absorb_by_gram, plan_merge_by_gram
 from streamsvd.stream.operands import _final_options, _increment, _merge_operand, _merge_options

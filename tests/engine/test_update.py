@@ -552,7 +552,7 @@ def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_gr
 
 
 def test_blocks_skip_the_gram_path_in_slices_beside_a_32nd_of_their_width_in_terms():
-    from streamsvd.engine.update import skips_gram_path
+    from streamsvd.engine.gram_path import skips_gram_path
     from streamsvd.linalg.slices import SLICE
 
     def state(width, rank):
