@@ -605,3 +605,29 @@ def test_blocks_beside_few_terms_skip_the_gram_path_and_keep_its_modes(measure, 
     for sc in (sliced, by_gram_path):
         _assert_certified(sc, A, M, target, measure)
     assert sliced.rank == by_gram_path.rank
+
+
+@pytest.mark.parametrize("cut", [1, 2, 3])
+def test_a_stream_resumed_from_its_store_repeats_its_skips_of_the_gram_path(cut, tmp_path):
+    """The rule reads the stream's rank and its basis's width, which the store restores:
+    resumed after the first block (taken by the Gram path) or after blocks taken in
+    slices, the stream repeats the uninterrupted one's digits."""
+    from tests.linalg._snapshots import mass, pulse
+
+    n, b = 800, 640
+    A = pulse(n, 5 * b) * (1.0 + 0.3 * np.sin(np.arange(5 * b) / 7.0))
+    kw = {"inner": mass(n), "target_error": 1e-2, "error_measure": "mean_l2",
+          "rule": "jacobi", "sweeps": None}
+    whole = ss.StreamCompressor(n, **kw)
+    for j in range(0, A.shape[1], b):
+        whole.absorb(A[:, j:j + b])
+    path = tmp_path / "s.zarr"
+    first = ss.StreamCompressor(n, store=path, **kw)
+    for j in range(0, cut * b, b):
+        first.absorb(A[:, j:j + b])
+    first.close(finalize=False)
+    with ss.StreamCompressor.open(path) as again:
+        for j in range(cut * b, A.shape[1], b):
+            again.absorb(A[:, j:j + b])
+        np.testing.assert_array_equal(again.left_vectors, whole.left_vectors)
+        assert again.error_bound == whole.error_bound
