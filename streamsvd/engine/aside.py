@@ -34,10 +34,14 @@ _ROUNDED_ASIDE_SHARE = 0.1
 _NEAR_PRECISION = 0.1
 # a block taken in slices (streamsvd.linalg.slices: at least two, of SLICE columns) is
 # near its precision from a hundredth of the growth on: its rounding spans up to b
-# directions, set aside or cut in the update that brought it (Burgers at 1e-6, where the
-# rounding is 0.019 of it, updates of 674 columns: HAPOD's modes at 0.1, in 0.44-0.61x
-# the time; updates of 10 or 101 columns took two more modes, so narrower blocks keep
-# the tenth)
+# directions, set aside or cut in the update that brought it. Such a block sets aside
+# the share its rounding takes (at most _ROUNDED_ASIDE_SHARE): what is set aside beyond
+# the rounding is budget the final cut no longer has (Burgers at relative 1e-6, where the
+# rounding is 0.019 of the growth, updates of 674 columns: a tenth kept 146 modes
+# against HAPOD's 145, the rounding's share 145 in 0.66x HAPOD's time; at mean_l2 1e-6,
+# 0.011, 140 against 141; heat at relative 1e-6, 26 against 27; updates of 10 or 101
+# columns took two more modes at the tenth, so narrower blocks are near only from a
+# tenth on, where the share is the tenth)
 _NEAR_PRECISION_WIDE = 0.01
 _WIDE = 2 * SLICE
 #: The unit roundoff of float64, the compressor's working precision
@@ -66,17 +70,20 @@ def set_aside_budget(opts: StepOptions, b: int, *, unit: float = UNIT_FLOAT64,
     with ``||X||_M^2 / b`` taken as the mean energy of the snapshots absorbed before,
     ``||R||^2 / m`` of ``state``, or of the block ``X`` in the first update), or
     ``_NEAR_PRECISION_WIDE`` of it for a block wide enough to be taken in slices, the
-    share is ``_ROUNDED_ASIDE_SHARE``. An absolute target, a rank cap alone and no cut set
-    nothing aside.
+    share is the rounding's own share of the growth, at most ``_ROUNDED_ASIDE_SHARE``
+    (setting aside more than the rounding spends budget that the final cut then lacks).
+    An absolute target, a rank cap alone and no cut set nothing aside.
     """
     trunc = opts.truncation
     if trunc.target is None or not sets_aside(opts):
         return (0.0, 0.0)
     se = trunc.share * trunc.target
-    near = (unit > UNIT_FLOAT64
-            and _rounding_share(trunc.measure, unit, se, state, X, opts.inner)
-            >= (_NEAR_PRECISION_WIDE if b >= _WIDE else _NEAR_PRECISION))
-    rate = (_ROUNDED_ASIDE_SHARE if near else _ASIDE_SHARE) * se * se
+    share = _ASIDE_SHARE
+    if unit > UNIT_FLOAT64:
+        rounding = _rounding_share(trunc.measure, unit, se, state, X, opts.inner)
+        if rounding >= (_NEAR_PRECISION_WIDE if b >= _WIDE else _NEAR_PRECISION):
+            share = min(_ROUNDED_ASIDE_SHARE, rounding)
+    rate = share * se * se
     return (rate * b, 0.0) if trunc.measure == "mean_l2" else (0.0, rate)
 
 

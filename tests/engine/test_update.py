@@ -551,6 +551,34 @@ def test_wide_float32_blocks_set_their_rounding_aside_from_a_hundredth_of_the_gr
     assert n32.error_bound == n64.error_bound
 
 
+@pytest.mark.parametrize("rounding, wide, narrow", [
+    (0.02, 0.02, 0.003),  # wide blocks near their precision: their rounding's share
+    (0.3, 0.1, 0.1),      # every block near its precision: at most a tenth
+    (0.005, 0.003, 0.003),  # far from it: the float64 share
+])
+def test_blocks_near_their_precision_set_aside_their_rounding_share_at_most_a_tenth(
+        rounding, wide, narrow):
+    """The share of the budget's growth a float32 block sets aside is the share its
+    rounding ``u^2 ||X||^2`` takes (near its precision: from a hundredth for a block
+    taken in slices, a tenth otherwise), at most a tenth; a float64 block's is 0.003."""
+    from types import SimpleNamespace
+
+    from streamsvd.engine.aside import _WIDE, UNIT_FLOAT64, set_aside_budget
+
+    u = float(np.finfo(np.float32).eps) / 2
+    share = 0.44
+    target = u / math.sqrt(rounding) / share  # (u / (share target))^2 = rounding
+    opts = SimpleNamespace(inner=None, truncation=SimpleNamespace(
+        target=target, share=share, measure="relative"))
+    growth = (share * target) ** 2
+    for b, expected in ((_WIDE, wide), (_WIDE - 1, narrow)):
+        e0, e1 = set_aside_budget(opts, b, unit=u)
+        assert e0 == 0.0
+        assert e1 / growth == pytest.approx(expected, rel=1e-12)
+    assert set_aside_budget(opts, _WIDE, unit=UNIT_FLOAT64)[1] / growth == pytest.approx(
+        0.003, rel=1e-12)
+
+
 def test_blocks_skip_the_gram_path_in_slices_beside_a_32nd_of_their_width_in_terms():
     from streamsvd.engine.gram_path import skips_gram_path
     from streamsvd.linalg.slices import SLICE
