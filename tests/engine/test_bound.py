@@ -97,7 +97,8 @@ def test_small_rejections_beside_converged_cuts_add_by_their_own_norm():
     # term is at most rho d, not d b
     b = Bound(1.0, 10.0, 1.0, 0.0, 1e-6)
     after = float(b.after(np.array([0.5]), overlapping=False)[0])
-    assert after == pytest.approx(np.sqrt(1.0 + 0.25 + 2 * 1e-6 * 0.5), rel=1e-15)
+    assert after == pytest.approx(np.sqrt(1.0 + 0.25 + 2 * 1e-6 * 0.5), rel=1e-15,
+                                  abs=0)
     assert b.step(0.5, 0.0, overlapping=False).bound == after
 
 
@@ -117,7 +118,7 @@ def test_the_cross_term_takes_the_cut_in_the_columns_before_the_update():
     np.testing.assert_allclose(prior.after(d, overlapping=False, before=o), expected,
                                rtol=4 * EPS)
     assert prior.step(1.0, 0.0, overlapping=False, discarded_before=0.0).bound == \
-        pytest.approx(np.sqrt(9.0 + 1.0), rel=4 * EPS)
+        pytest.approx(np.sqrt(9.0 + 1.0), rel=4 * EPS, abs=0)
 
 
 @pytest.mark.parametrize("old_rows", [3, 12, 25])

@@ -256,12 +256,12 @@ def test_a_merge_cuts_a_term_its_core_leaves_below_the_rejection_threshold(rng):
         record = sc.merge(other)
         A = np.column_stack([q1, t * qw, u])
         s = np.linalg.svd(A, compute_uv=False)
-        assert s[2] == pytest.approx(t * a, rel=1e-3)
+        assert s[2] == pytest.approx(t * a, rel=1e-3, abs=0)
         assert sc.rank == rank and record.cut == 3 - rank
         err = np.linalg.norm(A - sc.expansion.to_dense())
         assert err <= sc.error_bound * (1 + 1e-12) + 10 * n * np.finfo(float).eps
         if rank == 2:
-            assert record.discarded == pytest.approx(t * a, rel=1e-3)
+            assert record.discarded == pytest.approx(t * a, rel=1e-3, abs=0)
 
 
 def test_tree_merges_keep_the_stream_rank_and_leave_their_inputs_alone(rng):
@@ -574,9 +574,9 @@ def test_blocks_near_their_precision_set_aside_their_rounding_share_at_most_a_te
     for b, expected in ((_WIDE, wide), (_WIDE - 1, narrow)):
         e0, e1 = set_aside_budget(opts, b, unit=u)
         assert e0 == 0.0
-        assert e1 / growth == pytest.approx(expected, rel=1e-12)
+        assert e1 / growth == pytest.approx(expected, rel=1e-12, abs=0)
     assert set_aside_budget(opts, _WIDE, unit=UNIT_FLOAT64)[1] / growth == pytest.approx(
-        0.003, rel=1e-12)
+        0.003, rel=1e-12, abs=0)
 
 
 def test_blocks_skip_the_gram_path_in_slices_beside_a_32nd_of_their_width_in_terms():

@@ -264,7 +264,7 @@ def test_noise_variance_covariance_and_precision_as_pca(rng):
     est = _feed(StreamingSVD(n_components=5), X, 20)
     total = np.sum(est.var_) * 120 / 119
     expected = (total - np.sum(est.explained_variance_)) / (30 - 5)
-    assert est.noise_variance_ == pytest.approx(expected, rel=1e-10)
+    assert est.noise_variance_ == pytest.approx(expected, rel=1e-10, abs=0)
 
 
 def test_feature_names_out(rng):
