@@ -3,7 +3,8 @@
 ```
 python bench/tight_targets.py [--cases heat,burgers,cap,rbs480a,ingest] [--repeat 3]
        [--blocks traj,10,1000] [--dtypes float64,float32]
-       [--ingest ZARR] [--ingest-data DIR] [--against REV] [--out DIR] [--quick]
+       [--ingest ZARR] [--ingest-data DIR] [--against REV] [--products] [--out DIR]
+       [--quick]
 ```
 
 One process, one BLAS thread, CPU time (``time.process_time``: the machine is shared),
@@ -43,6 +44,9 @@ of ``--repeat``; ``os.getloadavg()`` recorded with every row.
 ``--against REV`` runs the same rows on revision ``REV`` (a git worktree, a child
 process, after this version's rows) and prints its ratios beside these; for ``ingest``
 it adds ``cli@REV``, the command of revision ``REV``, interleaved with the others.
+``--products`` runs each contender of a ``heat`` or ``burgers`` row once more, untimed,
+with its ``n``-sized products counted (``_products.py``): Mflop and columns of ``M``
+per update, and the ratio of the flops beside the ratio of the times.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +73,7 @@ import scipy.sparse as sp  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _ingest  # noqa: E402
+import _products  # noqa: E402
 from _common import (  # noqa: E402
     REPO_ROOT,
     Run,
@@ -160,12 +166,14 @@ def _chunks(lengths: np.ndarray, block: str) -> tuple[np.ndarray, int]:
 
 def target_rows(case: str, cache: Path, repeat: int, quick: bool, *,
                 blocks: tuple[str, ...] = ("traj",),
-                dtypes: tuple[str, ...] = ("float64",)) -> list[dict[str, Any]]:
+                dtypes: tuple[str, ...] = ("float64",),
+                products: bool = False) -> list[dict[str, Any]]:
     """Every measure and target of ``case``: streamsvd and HAPOD interleaved.
 
     For each block width (``"traj"``: one trajectory per update) and each dtype of the
     snapshots (``float32``: rounded once, both contenders read the same array); the
-    errors are measured against the snapshots in that dtype.
+    errors are measured against the snapshots in that dtype. ``products``: each row also
+    counts both contenders' products in one more run each (``_products``).
     """
     from pymor.core.logger import set_log_levels
     from pymor.operators.numpy import NumpyMatrixOperator
@@ -186,13 +194,13 @@ def target_rows(case: str, cache: Path, repeat: int, quick: bool, *,
         for block in blocks:
             widths, steps = _chunks(lengths, block)
             rows += _block_rows(case, dtype, block, X, U, Xe, M, prod, widths, steps, norm,
-                                repeat)
+                                repeat, products)
     return rows
 
 
 def _block_rows(case: str, dtype: str, block: str, X: np.ndarray, U: Any, Xe: np.ndarray,
                 M: Any, prod: Any, widths: np.ndarray, steps: int, norm: float,
-                repeat: int) -> list[dict[str, Any]]:
+                repeat: int, products: bool) -> list[dict[str, Any]]:
     """The rows of one case, dtype and block width (every measure and target)."""
     n, m = X.shape
     rows = []
@@ -216,6 +224,13 @@ def _block_rows(case: str, dtype: str, block: str, X: np.ndarray, U: Any, Xe: np
                    "bound": bound / scale / target, "load": os.getloadavg()[0],
                    "streamsvd_runs": ts, "hapod_runs": th}
             row["ratio"] = row["streamsvd_cpu"] / row["hapod_cpu"]
+            if products:
+                row["streamsvd_products"] = _products.streamsvd_products(
+                    partial(_streamsvd_target, X, M, widths, target, measure), len(widths))
+                row["hapod_products"] = _products.hapod_products(
+                    partial(_hapod_target, U, prod, steps, eps), len(widths))
+                row["flop_ratio"] = (row["streamsvd_products"]["total"]
+                                     / row["hapod_products"]["total"])
             rows.append(row)
             print(f"{case} {dtype} block {block} {measure} {target:g}: ratio "
                   f"{row['ratio']:.2f}, modes {row['streamsvd_modes']}/{row['hapod_modes']}, "
@@ -336,7 +351,8 @@ def _measure(args: argparse.Namespace) -> dict[str, Any]:
         if case in ("heat", "burgers"):
             data["targets"] += target_rows(case, cache, args.repeat, args.quick,
                                            blocks=tuple(args.blocks.split(",")),
-                                           dtypes=tuple(args.dtypes.split(",")))
+                                           dtypes=tuple(args.dtypes.split(",")),
+                                           products=args.products)
         elif case == "cap":
             data["cap"] = cap_rows(cache, args.repeat, args.quick)
         elif case == "rbs480a":
@@ -387,12 +403,15 @@ def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
                      "" if o is None else f"{o['ratio']:.2f}",
                      f"{r['streamsvd_modes']}/{r['hapod_modes']}",
                      f"{r['streamsvd_error']:.3f}/{r['hapod_error']:.3f}", f"{r['bound']:.3f}",
-                     f"{r['load']:.1f}"])
+                     f"{r['load']:.1f}", *_products_cells(r)])
     if rows:
+        counted = any("flop_ratio" in r for r in data["targets"])
         print_table(["case", "dtype", "block", "measure", "target", "streamsvd CPU s",
                      "HAPOD CPU s", "ratio",
                      "ratio before", "modes s/H", "true err/target s/H", "bound/target",
-                     "load"], rows, title="\ntargets: streamsvd against inc_vectorarray_hapod")
+                     "load", *(["Mflop/update s/H", "flop ratio", "M columns/update s/H"]
+                               if counted else [])],
+                    rows, title="\ntargets: streamsvd against inc_vectorarray_hapod")
     if data["cap"]:
         print_table(["contender", "CPU s", "sv_err", "err/opt", "load"],
                     [[r["contender"], f"{r['cpu']:.2f}", f"{r['sv_err']:.1e}",
@@ -467,6 +486,15 @@ def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> 
     plt.close(fig)
 
 
+def _products_cells(row: dict[str, Any]) -> list[str]:
+    """The counted products of a row (``--products``), or no cells."""
+    if "flop_ratio" not in row:
+        return []
+    s, h = row["streamsvd_products"], row["hapod_products"]
+    return [f"{s['total']:.1f}/{h['total']:.1f}", f"{row['flop_ratio']:.2f}",
+            f"{s['m_columns']:.0f}/{h['m_columns']:.0f}"]
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     record = Run("tight_targets", argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -481,6 +509,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--ingest-data", default=str(Path(tempfile.gettempdir()) / "streamsvd-ooc"),
                     help="where --cases ingest writes its arrays (kept)")
     ap.add_argument("--against", default=None, help="git revision to compare with")
+    ap.add_argument("--products", action="store_true",
+                    help="also count each contender's products per update (one more run)")
     ap.add_argument("--out", default=None, help="directory for the PNG and JSON")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     ap.add_argument("--rows-only", default=None, help=argparse.SUPPRESS)

@@ -19,7 +19,7 @@ def test_tight_targets_quick(monkeypatch, tmp_path, rbs480a_path):
     mod = importlib.import_module("tight_targets")
     mod.main(["--quick", "--repeat", "1", "--out", str(tmp_path),
               "--cache", str(tmp_path / "cache"), "--blocks", "traj,10",
-              "--dtypes", "float64,float32"])
+              "--dtypes", "float64,float32", "--products"])
     assert_drawn(tmp_path / "tight_targets_quick.png")
     data = json.loads((tmp_path / "tight_targets_quick.json").read_text())["results"]
     # 2 cases x 2 measures x 5 targets, for each block width and dtype
@@ -31,6 +31,15 @@ def test_tight_targets_quick(monkeypatch, tmp_path, rbs480a_path):
         assert r["streamsvd_error"] <= r["bound"] * (1 + 1e-9) <= 1.0 + 1e-9, r
         assert r["streamsvd_modes"] <= r["hapod_modes"], r
         assert r["streamsvd_cpu"] > 0 and r["hapod_cpu"] > 0
+        # --products: every snapshot meets M at least once in each contender, and the
+        # products are counted (a wrapper that no longer takes would count nothing)
+        mean_width = r["width"] if r["block"] != "traj" else None
+        for side in ("streamsvd_products", "hapod_products"):
+            counts = r[side]
+            assert counts["total"] > 0 and counts["gram"] > 0, (side, r)
+            if mean_width is not None:
+                assert counts["m_columns"] >= 0.9 * mean_width, (side, r)
+        assert r["flop_ratio"] == r["streamsvd_products"]["total"] / r["hapod_products"]["total"]
     assert {r["contender"] for r in data["cap"]} >= {"streamsvd (default)", "HAPOD pod(modes=k)"}
     for r in data["rbs480a"]:
         if "residual" in r:
