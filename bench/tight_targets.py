@@ -440,35 +440,22 @@ def _print(data: dict[str, Any], before: dict[str, Any] | None) -> None:
 def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> None:
     plt = pyplot()
     dtypes = sorted({r.get("dtype", "float64") for r in data["targets"]}, reverse=True) or [""]
+    counted = any("flop_ratio" in r for r in data["targets"])  # --products: a second row
     panels = len(dtypes) + (1 if data["rbs480a"] else 0)
-    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4.2), squeeze=False)
-    axes = axes[0]
+    fig, grid = plt.subplots(2 if counted else 1, panels, figsize=(5.5 * panels,
+                             4.2 * (2 if counted else 1)), squeeze=False)
+    axes = grid[0]
     old = {_key(r): r for r in (before or {}).get("targets", [])}
-    styles = ("-", "--", "-.", (0, (3, 1, 1, 1)))
-    for ax, dtype in zip(axes, dtypes, strict=False):
+    for col, dtype in enumerate(dtypes):
         rows = [r for r in data["targets"] if r.get("dtype", "float64") == dtype]
-        blocks = list(dict.fromkeys(r.get("block", "traj") for r in rows))
-        for case in sorted({r["case"] for r in rows}):
-            for measure, mk in zip(MEASURES, ("o", "s"), strict=True):
-                for block, ls in zip(blocks, styles, strict=False):
-                    sel = [r for r in rows if r["case"] == case and r["measure"] == measure
-                           and r.get("block", "traj") == block]
-                    if not sel:
-                        continue
-                    label = f"{case} {measure}, blocks of {sel[0].get('width', block)}"
-                    line, = ax.plot([r["target"] for r in sel], [r["ratio"] for r in sel],
-                                    marker=mk, ls=ls, label=label)
-                    prev = [old[_key(r)] for r in sel if _key(r) in old]
-                    if prev:
-                        ax.plot([r["target"] for r in prev], [r["ratio"] for r in prev],
-                                marker=mk, ls=":", color=line.get_color(), alpha=0.5)
-        ax.axhline(1.0, color="k", lw=0.8)
-        ax.set_xscale("log")
-        ax.set_xlabel("target error (mean_l2 or relative)")
-        ax.set_ylabel("CPU time streamsvd / HAPOD")
-        ax.set_title(f"{dtype} snapshots (dotted: before)")
-        ax.legend(fontsize=6)
-        ax.grid(True, which="both", alpha=0.3)
+        _ratio_panel(axes[col], rows, "ratio", old, "CPU time streamsvd / HAPOD",
+                     f"{dtype} snapshots" + (" (dotted: before)" if old else ""))
+        if counted:
+            _ratio_panel(grid[1][col], rows, "flop_ratio", {},
+                         "flops streamsvd / HAPOD (counted)",
+                         f"{dtype} snapshots: the products of an update")
+    if counted and data["rbs480a"]:
+        grid[1][-1].axis("off")
     if data["rbs480a"]:
         ax = axes[-1]
         names = [r["method"] for r in data["rbs480a"]]
@@ -484,6 +471,34 @@ def _figure(data: dict[str, Any], before: dict[str, Any] | None, path: Path) -> 
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _ratio_panel(ax: Any, rows: list[dict[str, Any]], key: str, old: dict[Any, Any],
+                 ylabel: str, title: str) -> None:
+    """Plot ``row[key]`` against the target, a line per case, measure and block width."""
+    styles = ("-", "--", "-.", (0, (3, 1, 1, 1)))
+    blocks = list(dict.fromkeys(r.get("block", "traj") for r in rows))
+    for case in sorted({r["case"] for r in rows}):
+        for measure, mk in zip(MEASURES, ("o", "s"), strict=True):
+            for block, ls in zip(blocks, styles, strict=False):
+                sel = [r for r in rows if r["case"] == case and r["measure"] == measure
+                       and r.get("block", "traj") == block]
+                if not sel:
+                    continue
+                label = f"{case} {measure}, blocks of {sel[0].get('width', block)}"
+                line, = ax.plot([r["target"] for r in sel], [r[key] for r in sel],
+                                marker=mk, ls=ls, label=label)
+                prev = [old[_key(r)] for r in sel if _key(r) in old]
+                if prev:
+                    ax.plot([r["target"] for r in prev], [r[key] for r in prev],
+                            marker=mk, ls=":", color=line.get_color(), alpha=0.5)
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("target error (mean_l2 or relative)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=6)
+    ax.grid(True, which="both", alpha=0.3)
 
 
 def _products_cells(row: dict[str, Any]) -> list[str]:
