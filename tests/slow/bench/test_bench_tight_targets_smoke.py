@@ -31,15 +31,13 @@ def test_tight_targets_quick(monkeypatch, tmp_path, rbs480a_path):
         assert r["streamsvd_error"] <= r["bound"] * (1 + 1e-9) <= 1.0 + 1e-9, r
         assert r["streamsvd_modes"] <= r["hapod_modes"], r
         assert r["streamsvd_cpu"] > 0 and r["hapod_cpu"] > 0
-        # --products: every snapshot meets M at least once in each contender, and the
-        # products are counted (a wrapper that no longer takes would count nothing)
-        mean_width = r["width"] if r["block"] != "traj" else None
+        # --products: the products are counted (a wrapper that no longer takes would
+        # count nothing) and every snapshot meets M at least once in each contender (per
+        # update, at least the updates' width; the last update may be narrower)
         for side in ("streamsvd_products", "hapod_products"):
             counts = r[side]
             assert counts["total"] > 0 and counts["gram"] > 0, (side, r)
-            if mean_width is not None:
-                assert counts["m_columns"] >= 0.9 * mean_width, (side, r)
-        assert r["flop_ratio"] == r["streamsvd_products"]["total"] / r["hapod_products"]["total"]
+            assert counts["m_columns"] >= 0.9 * r["width"], (side, r)
     assert {r["contender"] for r in data["cap"]} >= {"streamsvd (default)", "HAPOD pod(modes=k)"}
     for r in data["rbs480a"]:
         if "residual" in r:
