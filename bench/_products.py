@@ -70,7 +70,7 @@ def streamsvd_products(run: Callable[[], Any], updates: int) -> dict[str, float]
     import streamsvd.linalg.sketch as sketch
 
     flops: Counter[str] = Counter()
-    columns = Counter[str]()
+    columns: Counter[str] = Counter()
     gram, subtract, mm = blas.gram, blas.subtract_product, blocks._mm
     solve, dgemm = blocks.right_solve, sketch.dgemm
     basis = memory.MemoryBasis
@@ -168,7 +168,7 @@ def hapod_products(run: Callable[[], Any], updates: int) -> dict[str, float]:
     from pymor.vectorarrays.numpy import NumpyVectorArrayImpl as Impl
 
     flops: Counter[str] = Counter()
-    columns = Counter[str]()
+    columns: Counter[str] = Counter()
     inner, lincomb, axpy = Impl.inner, Impl.lincomb, Impl.axpy
     apply = NumpyMatrixOperator.apply
 

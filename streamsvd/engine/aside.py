@@ -38,7 +38,7 @@ _NEAR_PRECISION = 0.1
 # the share its rounding takes (at most _ROUNDED_ASIDE_SHARE): what is set aside beyond
 # the rounding is budget the final cut no longer has (Burgers at relative 1e-6, where the
 # rounding is 0.019 of the growth, updates of 674 columns: a tenth kept 146 modes
-# against HAPOD's 145, the rounding's share 145 in 0.66-0.74x HAPOD's time; at mean_l2 1e-6,
+# against HAPOD's 145, the rounding's share 145 in 0.66-0.81x HAPOD's time; at mean_l2 1e-6,
 # 0.011, 140 against 141; heat at relative 1e-6, 26 against 27; updates of 10 or 101
 # columns took two more modes at the tenth, so narrower blocks are near only from a
 # tenth on, where the share is the tenth)
