@@ -10,7 +10,7 @@ import logging
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import streamsvd as ss
@@ -251,6 +251,9 @@ def test_orthonormalize_counts_what_accepted_columns_lose():
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(3, 12), log_t=st.floats(-11, -5),
        use_window=st.booleans(), extra=st.integers(0, 3))
+# found by 30,000 examples: a new row of the right factor solved once through the SVD of
+# a factor with two close singular values, 2.7e-13 from the data (73 in units of the slack)
+@example(seed=304594, n=3, log_t=-5.0, use_window=True, extra=3)
 def test_property_a_snapshot_carrying_almost_all_of_a_direction(seed, n, log_t, use_window,
                                                                 extra):
     rng = np.random.default_rng(seed)
