@@ -15,11 +15,12 @@ from streamsvd.engine.downdate import (
     intervals_skip,
     physical_rows,
 )
+from tests._examples import examples
 
 EPS = np.finfo(float).eps
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 2**16), m=st.integers(12, 200), k=st.integers(1, 10),
        r=st.integers(1, 10))
 def test_downdate_gives_an_orthonormal_factor_and_the_same_product(seed, m, k, r):
@@ -63,7 +64,7 @@ def test_downdate_keeps_every_direction_when_the_shares_are_large():
     np.testing.assert_allclose((Y[rest] @ d.S) @ d.R, Y[rest] @ R, atol=100 * EPS)
 
 
-@settings(max_examples=50, deadline=None)
+@settings(max_examples=examples(50), deadline=None)
 @given(removed=st.sets(st.integers(0, 60), max_size=30), probe=st.integers(0, 70))
 def test_intervals_count_and_skip_are_inverse(removed, probe):
     iv = intervals_add(np.zeros((0, 2), dtype=np.int64), np.array(sorted(removed), dtype=int))

@@ -13,6 +13,7 @@ from streamsvd.engine.bound import Bound
 from streamsvd.engine.rows import COND_LIMIT, RowFactor
 from streamsvd.parallel.cluster import TallCompressor
 from streamsvd.testing import with_spectrum
+from tests._examples import examples
 
 EPS = np.finfo(float).eps
 
@@ -196,7 +197,7 @@ _OPS = st.lists(
 )
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(ops=_OPS, weighted=st.booleans(), rule=st.sampled_from(["paper", "jacobi"]),
        trunc=st.sampled_from([{"max_rank": 4}, {"rtol": 1e-2}, {"eps": 1e-1}, {},
                               {"target_error": 1e-2}]),

@@ -7,6 +7,7 @@ from hypothesis import given, settings
 
 import streamsvd as ss
 from streamsvd.testing import assert_svd_contract, hard_matrices, low_rank_matrices, with_spectrum
+from tests._examples import examples
 
 EPS = np.finfo(float).eps
 HARD = hard_matrices(np.random.default_rng(7))
@@ -70,7 +71,7 @@ def test_nearly_repeated_singular_values_give_the_right_cluster_projector(rng):
     assert np.linalg.norm(P - Pref, 2) <= 50 * 30 * EPS * s[0] / gap
 
 
-@settings(max_examples=25)
+@settings(max_examples=examples(25))
 @given(low_rank_matrices())
 def test_compress_matches_lapack_on_random_low_rank_matrices(A):
     e = ss.orthonormalize(A, np.eye(A.shape[1])).expansion

@@ -11,6 +11,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 import streamsvd as ss
 from streamsvd.testing import assert_svd_contract, with_spectrum
+from tests._examples import examples
 
 EPS = np.finfo(float).eps
 
@@ -357,7 +358,7 @@ class StreamModel(RuleBasedStateMachine):
 
 
 TestStreamModel = StreamModel.TestCase
-TestStreamModel.settings = settings(max_examples=30, stateful_step_count=15, deadline=None)
+TestStreamModel.settings = settings(max_examples=examples(30), stateful_step_count=15, deadline=None)
 
 
 @pytest.mark.parametrize("sweeps,max_rank", [(None, 12), (1, 12), (None, None)])

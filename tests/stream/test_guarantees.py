@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 import streamsvd as ss
 from streamsvd.parallel.cluster import tree_compress
+from tests._examples import examples
 
 EPS = np.finfo(float).eps
 ROUNDING = 50.0  # the rounding allowance in units of max(n, m) eps ||A||: the LAPACK test
@@ -115,7 +116,7 @@ def test_targets_of_1e245_on_data_of_1e250(measure):
     assert sc.target_met
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), scale=st.sampled_from([1e-300, 2.0**-100, 1.0, 1e300]),
        zeros=st.lists(st.integers(0, 39), min_size=1, max_size=4),
        options=st.sampled_from([{}, {"target_error": 1e-6}, {"window": 24},
@@ -248,7 +249,7 @@ def test_orthonormalize_counts_what_accepted_columns_lose():
 # ----------------------------------------------------------------- property tests
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(3, 12), log_t=st.floats(-11, -5),
        use_window=st.booleans(), extra=st.integers(0, 3))
 # found by 30,000 examples: a new row of the right factor solved once through the SVD of
@@ -275,7 +276,7 @@ def test_property_a_snapshot_carrying_almost_all_of_a_direction(seed, n, log_t, 
     assert_bound_holds(sc, rest)
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(MEASURES + (None,)),
        cap=st.sampled_from([None, 4, 8]), removals=st.integers(1, 4),
        scale=st.sampled_from([1e-300, 1e-150, 1.0, 1e150, 1e300]))
@@ -305,7 +306,7 @@ def test_property_removals_after_truncation(seed, measure, cap, removals, scale)
     assert_bound_holds(sc, np.column_stack([A[:, cols], A[:, :5]]))
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(MEASURES),
        ops=st.lists(st.sampled_from(["absorb", "add", "merge", "remove"]), min_size=2,
                     max_size=6),
@@ -358,7 +359,7 @@ def test_property_targets_with_add_remove_merge(seed, measure, ops, scale):
 
 
 @pytest.mark.slow
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=examples(8), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(MEASURES),
        leaves=st.integers(16, 32), scale=st.sampled_from([1e-300, 1.0, 1e300]))
 def test_property_trees_of_many_leaves_meet_the_target(seed, measure, leaves, scale):
@@ -375,7 +376,7 @@ def test_property_trees_of_many_leaves_meet_the_target(seed, measure, leaves, sc
     assert err <= rel * norm * (1 + 1e-12) + ROUNDING * m * EPS * norm
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), sweeps=st.sampled_from([1, 2, None]),
        reject_tol=st.sampled_from([None, 1e-8, 1e-4]),
        measure=st.sampled_from(MEASURES + (None,)), cap=st.sampled_from([None, 3, 6]))
@@ -419,7 +420,7 @@ def _sliced(slice_columns):
                    mock.patch.object(slices_module, "extend_in_slices", spy))
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(["relative", "mean_l2"]),
        scale=st.sampled_from([1e-300, 2.0**-100, 1.0, 1e300]), mass=st.booleans(),
        block=st.sampled_from([32, 40]), zero=st.booleans())
@@ -452,7 +453,7 @@ def test_property_wide_blocks_in_slices_meet_the_target(seed, measure, scale, ma
     assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), measure=st.sampled_from(["relative", "mean_l2"]),
        scale=st.sampled_from([2.0**-60, 1.0, 2.0**60]), mass=st.booleans(),
        block=st.sampled_from([7, 20, 40, 200]), near=st.floats(1.0, 30.0))

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 import streamsvd as ss
 from streamsvd.errors import InputError
 from streamsvd.parallel.tall import TallCompressor
+from tests._examples import examples
 
 EPS = np.finfo(np.float64).eps
 
@@ -56,7 +57,7 @@ def _check_svd(sc: ss.StreamCompressor, B: np.ndarray, *, ratio: float = 50.0) -
 
 
 # ------------------------------------------------------------------------- remove
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(
     seed=st.integers(0, 2**16),
     block=st.integers(1, 13),
@@ -179,7 +180,7 @@ def test_window_tall_mode_equals_memory(rng, tmp_path):
 
 
 # ------------------------------------------------------------------------- forget
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(
     seed=st.integers(0, 2**16),
     sizes=st.lists(st.integers(1, 9), min_size=1, max_size=12),
@@ -423,7 +424,7 @@ def test_estimator_window_may_not_change_between_partial_fits(rng):
 
 
 # ------------------------------------------------------------------------- the bound
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=examples(20), deadline=None)
 @given(
     seed=st.integers(0, 2**16),
     ops=st.lists(st.tuples(st.sampled_from(["absorb", "remove"]), st.integers(1, 8)),
