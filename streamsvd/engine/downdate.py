@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamsvd._util.scaling import safe_column_norms
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.state import Plan, State, StepOptions
 from streamsvd.engine.update import _plan
@@ -274,7 +275,9 @@ def plan_remove(
     (:func:`bound_after_removal`). The removed rows stay stored, marked dead, so that a
     store only appends. When a share is below ``EXACT_BELOW``, or once the dead rows
     outnumber the live ones (and 64), the live rows are orthonormalised again and
-    written anew instead (``O(m_live w k)``; see the module docstring).
+    written anew instead (``O(m_live w k)``; see the module docstring). Without a target
+    error, a term left below ``reject_tol`` times the largest amplitude before the
+    removal is cut as by ``eps``, its norm counted in the bound.
     """
     rows = state.rows
     assert rows is not None
@@ -297,6 +300,15 @@ def plan_remove(
         logger.debug("remove %d columns: smallest remaining share %.3e", positions.size,
                      dd.c_min)
     k_new = K.shape[0]
+    # the remaining rows of Y were written relative to the amplitudes before the removal:
+    # a term below reject_tol times the largest of them is rounding of what left (a
+    # direction the removed columns alone carried), cut like a term below eps, its norm
+    # counted in the bound, as an absorbed residual that weak is rejected (a target's
+    # own cut takes such terms within its budget)
+    floor = opts.reject_tol * float(np.max(safe_column_norms(state.R), initial=0.0))
+    if opts.truncation.target is None and floor > opts.truncation.eps:
+        opts = dataclasses.replace(opts, truncation=dataclasses.replace(
+            opts.truncation, eps=floor))
     if k_new < state.rank:
         # directions left with the removed columns: the core has rank k_new at most, and
         # its other terms are rounding; a cap at k_new converges the core and cuts them

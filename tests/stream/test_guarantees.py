@@ -488,6 +488,49 @@ def test_property_float32_snapshots_near_their_precision_meet_the_target(
     assert np.linalg.norm(U.T @ (d[:, None] * U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
 
 
+@settings(max_examples=examples(60), deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 8), m=st.integers(3, 15),
+       block=st.integers(1, 3), mode=st.sampled_from(["absorb", "window", "remove", "forget"]))
+def test_property_small_streams_of_dependent_snapshots(seed, n, m, block, mode):
+    """Snapshots nearly parallel to earlier ones (down to 1e-12 of them, with a remainder
+    down to 1e-16), or zero. The rows of Y kept for the remaining snapshots were written
+    relative to everything absorbed: after removals the error is within the bound plus
+    the rounding of all the snapshots absorbed, removed ones included (a remaining
+    snapshot 1e-15 of a removed one is represented to that rounding, not to its own)."""
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, m))
+    for j in range(1, m):
+        r = rng.random()
+        if r < 0.2:
+            A[:, j] = (A[:, rng.integers(0, j)] * 10 ** rng.uniform(-12, 2)
+                       + rng.standard_normal(n) * 10 ** rng.uniform(-16, -6))
+        elif r < 0.25:
+            A[:, j] = 0.0
+    options = {"sweeps": None, "rule": "jacobi"}
+    rest = A
+    if mode == "window":
+        window = int(rng.integers(2, m))
+        options["window"] = window
+        rest = A[:, m - window:]
+    elif mode == "forget":
+        options["forget"] = float(rng.uniform(0.5, 1.0))
+        rest = A * options["forget"] ** np.arange(m - 1, -1, -1)
+    elif mode == "remove":
+        options["right_vectors"] = True
+    sc = ss.StreamCompressor(n, **options)
+    for j in range(0, m, block):
+        sc.absorb(A[:, j:j + block])
+    if mode == "remove":
+        gone = np.unique(rng.integers(0, m, size=int(rng.integers(1, m))))
+        sc.remove(gone)
+        rest = np.delete(A, gone, axis=1)
+    err = np.linalg.norm(rest - sc.expansion.to_dense())
+    slack = ROUNDING * max(n, m) * EPS * np.linalg.norm(A)
+    assert err <= sc.error_bound + slack, (err, sc.error_bound, slack)
+    U = sc.left_vectors
+    assert np.linalg.norm(U.T @ U - np.eye(U.shape[1]), 2) <= ROUNDING * n * EPS
+
+
 def test_a_wide_block_in_slices_refuses_a_non_finite_entry_and_changes_nothing(monkeypatch):
     import streamsvd.stream.updates as stream_module
 

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 import streamsvd as ss
 from streamsvd.errors import InputError
 from streamsvd.parallel.tall import TallCompressor
+from streamsvd.testing import assert_svd_contract
 from tests._examples import examples
 
 EPS = np.finfo(np.float64).eps
@@ -146,6 +147,22 @@ def test_window_equals_svd_of_last_snapshots(rng, sizes):
         start += b
         assert sc.n_seen == min(W, start) and sc.n_absorbed == start
         _check_svd(sc, A[:, max(0, start - W) : start])
+
+
+def test_a_direction_only_the_removed_snapshots_carried_leaves_no_term(rng):
+    """A zero snapshot in the window: the direction of the snapshot that left is carried
+    by none that remain, and its term came out of the downdate at 4e-162 (rank 4 for
+    data of rank 3, its right vector not orthogonal to the others: LAPACK ratio 1e15).
+    Below reject_tol times the amplitudes before the removal it is cut, its norm counted."""
+    n = 7
+    a, b, c, d = rng.standard_normal((4, n))
+    cols = [a, b, c, np.zeros(n), d]
+    sc = ss.StreamCompressor(n, window=4, sweeps=None, rule="jacobi")
+    for x in cols:
+        sc.absorb(x[:, None])
+    rest = np.column_stack(cols[1:])
+    assert sc.rank == 3 and any(h.kind == "remove" and h.cut for h in sc.history)
+    assert_svd_contract(rest, sc.expansion, error_bound=sc.error_bound)
 
 
 def test_window_with_truncation_keeps_the_bound_and_stays_flat(rng):
