@@ -39,9 +39,8 @@ def run(args: Any) -> int:
         plan = plan_ingest(args, source)
         if plan.mode != "memory":
             opened.close()  # the dask modes read SOURCE on their workers
-        elif not plan.resume:  # the first two blocks are read while the update step is
-            # imported: the second is then ready when the first update ends
-            source.read_early(0, min(2 * plan.block, source.m), block=plan.block)
+        elif not plan.resume:  # the first block is read while the update step is imported
+            source.read_early(0, min(plan.block, source.m))
         with removed_on_failure(plan.store, new=not plan.resume):
             try:
                 summary = (_ingest_memory(plan, source) if plan.mode == "memory"

@@ -151,67 +151,39 @@ def _fill(out: np.ndarray, data: Any, r0: int, start: int, stop: int, *,
 
 
 class EarlyRead:
-    """Consecutive column ranges of a source, read one after the other by a daemon thread.
+    """Columns ``start:stop`` of a source, read by a daemon thread from now on.
 
-    ``streamsvd ingest`` reads its first blocks while it imports the update step and
+    ``streamsvd ingest`` reads its first block while it imports the update step and
     creates its store: those run the interpreter, decoding does not need it, so the two
-    share the cores. The first range is decoded by :data:`FIRST_THREADS` threads, the
-    others by one. Each block is checked as any other, and its error is raised by
-    :meth:`result`, where the block is asked for; the ranges after a failed one are not
-    read.
+    share the cores. The block is checked as any other, and its error is raised by
+    :meth:`result`, where the block is asked for.
     """
 
-    def __init__(self, source: Source, ranges: list[tuple[int, int]]) -> None:
-        self.ranges = list(ranges)
-        self._blocks: dict[tuple[int, int], np.ndarray] = {}
-        self._errors: dict[tuple[int, int], BaseException] = {}
-        self._stop = threading.Event()
-        self._lock = threading.Lock()  # a block is kept, or dropped by cancel(), not both
-        self._done = {r: threading.Event() for r in self.ranges}
+    def __init__(self, source: Source, start: int, stop: int) -> None:
+        self.range = (start, stop)
+        self._block: np.ndarray | None = None
+        self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, args=(source,),
                                         name="streamsvd-early-read", daemon=True)
         self._thread.start()
 
     def _run(self, source: Source) -> None:
         try:
-            for i, r in enumerate(self.ranges):
-                if self._stop.is_set():
-                    return
-                try:
-                    threads = FIRST_THREADS if i == 0 else 1
-                    block = source._read_checked(*r, threads=threads)
-                    with self._lock:
-                        if not self._stop.is_set():
-                            self._blocks[r] = block
-                except BaseException as exc:  # raised where the block is asked for
-                    self._errors[r] = exc
-                    return
-                finally:
-                    self._done[r].set()
-        finally:  # a range not read is not waited for
-            for done in self._done.values():
-                done.set()
-
-    def cancel(self) -> None:
-        """Drop the blocks: the read in progress ends, the ranges not started are not read."""
-        with self._lock:
-            self._stop.set()
-            self._blocks.clear()
+            self._block = source._read_checked(*self.range, threads=FIRST_THREADS)
+        except BaseException as exc:  # raised where the block is asked for
+            self._error = exc
 
     def join(self) -> None:
-        """Cancel (:meth:`cancel`) and wait for the read in progress to end."""
-        self.cancel()
+        """Wait for the read to end."""
         self._thread.join()
 
-    def result(self, r: tuple[int, int]) -> np.ndarray:
-        """Return the block of range ``r`` (waiting for its read), or raise its read's error."""
-        self._done[r].wait()
-        if r in self._errors:
-            raise self._errors.pop(r)
-        if r not in self._blocks:
-            raise SourceError(f"columns {r[0]}:{r[1]} were not read early: a read before "
-                              "them failed, or the reads were cancelled")
-        return self._blocks.pop(r)
+    def result(self) -> np.ndarray:
+        """Return the block (waiting for it), or raise the read's error."""
+        self._thread.join()
+        block, self._block = self._block, None
+        if self._error is not None:
+            raise self._error
+        return cast(np.ndarray, block)
 
 
 class _ChunkReader:

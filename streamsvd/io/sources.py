@@ -124,8 +124,7 @@ class Source:
         self.description = description
         # a local zarr array of the blocks' dtype is decoded chunk by chunk (io/chunks.py)
         self._files = None if compute or dtype != self.block_dtype else ChunkFiles.of(data)
-        self._early: EarlyRead | None = None  # for the next blocks()
-        self._early_reads: list[EarlyRead] = []  # every one started, joined by close()
+        self._early: EarlyRead | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -223,21 +222,15 @@ class Source:
             finite = finite and bool(np.isfinite(slab).all())
         return out, finite
 
-    def read_early(self, start: int, stop: int, *, block: int | None = None) -> None:
+    def read_early(self, start: int, stop: int) -> None:
         """Start reading columns ``start:stop`` now, in a background thread (:class:`EarlyRead`).
 
-        The columns are read in consecutive blocks of ``block`` columns (default: one block
-        of them all), one after the other. The next :meth:`blocks` (read ahead) takes its
-        first blocks from them when they are its first ranges, with their errors;
-        otherwise the reads are dropped.
+        The next :meth:`blocks` (read ahead) takes its first block from it when it is this
+        range, with its errors; otherwise the read is dropped.
         """
         start = _check_index(start, "start", self.m)
         stop = _check_index(stop, "stop", self.m)
-        width = stop - start if block is None else cast(int, check_positive_int(block, "block"))
-        ranges = [(a, min(a + width, stop)) for a in range(start, stop, max(width, 1))]
-        self._early = EarlyRead(self, ranges) if ranges else None
-        if self._early is not None:
-            self._early_reads.append(self._early)
+        self._early = EarlyRead(self, start, stop) if stop > start else None
 
     def lazy(self, start: int, stop: int, *, rows: int) -> LazyBlock:
         """Return columns ``start:stop`` as a :class:`LazyBlock` read by chunks of ``rows`` rows.
@@ -337,13 +330,10 @@ class Source:
             return ((a, self._read_checked(a, b)) for a, b in ranges)
         first = ranges[0] if ranges else (0, 0)
         early, self._early = self._early, None
-        if early is not None and ranges[:len(early.ranges)] != early.ranges:
-            early.cancel()  # not this read's first ranges
-            early = None
 
         def read(a: int, b: int, spare: np.ndarray | None) -> np.ndarray:
-            if early is not None and (a, b) in early.ranges:
-                return early.result((a, b))
+            if early is not None and (a, b) == first:
+                return early.result()
             # the caller waits for the first block with nothing to overlap: two cores
             # decode it; later blocks are decoded by the reader alone, beside the update
             threads = FIRST_THREADS if (a, b) == first else 1
@@ -354,8 +344,8 @@ class Source:
     def close(self) -> None:
         """Release what the source opened (an HDF5 file, for instance); idempotent."""
         on_close, self._on_close = self._on_close, None
-        self._early, reads, self._early_reads = None, self._early_reads, []
-        for early in reads:
+        early, self._early = self._early, None
+        if early is not None:
             early.join()  # the file it reads stays open until it is done
         if on_close is not None:
             on_close()

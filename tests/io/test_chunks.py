@@ -6,7 +6,7 @@ import zarr
 import zarr.codecs
 
 import streamsvd.io.sources as sources
-from streamsvd.errors import InputError, NonFiniteError, SourceError
+from streamsvd.errors import NonFiniteError, SourceError
 from streamsvd.io.chunks import ChunkFiles
 from streamsvd.io.open import open_source
 from streamsvd.io.sources import Source, _ChunkReader
@@ -183,29 +183,3 @@ def test_an_early_read_is_the_first_block_and_keeps_its_error_for_it(rng, tmp_pa
         src.read_early(0, 5)
         with pytest.raises(NonFiniteError, match="column 2, row 7"):
             next(src.blocks(5))
-
-
-def test_early_reads_of_several_blocks_are_the_first_blocks_with_their_errors(rng, tmp_path):
-    A = rng.standard_normal((40, 12))
-    _array(tmp_path, A)
-    with open_source(tmp_path / "zstd.zarr") as src:
-        src.read_early(0, 10, block=5)
-        got = [(o, X.copy()) for o, X in src.blocks(5)]
-        assert [o for o, _ in got] == [0, 5, 10]
-        assert all(np.array_equal(X, A[:, o:o + 5]) for o, X in got)
-        src.read_early(0, 10, block=5)  # other ranges than the next read's: dropped
-        got = [(o, X.copy()) for o, X in src.blocks(4)]
-        assert [o for o, _ in got] == [0, 4, 8]
-        assert all(np.array_equal(X, A[:, o:o + 4]) for o, X in got)
-        with pytest.raises(InputError, match="`block`"):
-            src.read_early(0, 10, block=0)
-    A[7, 6] = np.inf
-    (tmp_path / "inf").mkdir()
-    _array(tmp_path / "inf", A)
-    with open_source(tmp_path / "inf" / "zstd.zarr") as src:
-        src.read_early(0, 10, block=5)
-        blocks = src.blocks(5)
-        offset, X = next(blocks)  # the first block is good
-        assert offset == 0 and np.array_equal(X, A[:, :5])
-        with pytest.raises(NonFiniteError, match="column 6, row 7"):
-            next(blocks)
