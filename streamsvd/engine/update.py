@@ -42,7 +42,7 @@ from streamsvd.engine.core import core_step, r_factor
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
-from streamsvd.engine.truncation import Before
+from streamsvd.engine.truncation import Before, Truncation
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
@@ -267,6 +267,7 @@ def _plan(
         on_sweep=on_sweep, rows_before=K_before,
     )
     Q_R, R = _core_qr(step.R, want_q=keep_rows)
+    sweeps = step.sweeps
     w = state.basis.width
     T = step.T
     p_new = T.shape[1]
@@ -299,6 +300,14 @@ def _plan(
         coords = scipy.linalg.solve_triangular(L, coords.T, lower=True).T
         R = R @ L
         orth = gram_orthogonality(coords, H)
+        if opts.sweeps is None:
+            # L mixes the terms of the converged core by U's loss of orthogonality (a term
+            # of 1e-13 beside terms of order 1 was left at cosines of 1e-12 with them):
+            # the caller asked for the SVD at every update, so the core converges again
+            again = core_step(R, rule=opts.rule, sweeps=None, m=m, truncation=Truncation(),
+                              kind=kind)
+            coords, R, sweeps = coords @ again.T, again.R, sweeps + again.sweeps
+            orth = gram_orthogonality(coords, H)
     rows = Y_full = None
     if state.rows is not None:
         # Y <- blockdiag(Y, Y_appended) P, P = Q_K Q_R orthonormal
@@ -317,13 +326,13 @@ def _plan(
     record = UpdateRecord(
         kind=kind, columns=columns, rank=p_new, new_directions=ext.rank,
         rejected=ext.rejected, cut=step.cut, discarded=discarded,
-        sweeps=step.sweeps, max_cosine=step.max_cosine, orthogonality=orth,
+        sweeps=sweeps, max_cosine=step.max_cosine, orthogonality=orth,
         error_bound=bound.bound, seconds=time.perf_counter() - t0,
         passes=ext.passes + int(compact),
     )
     logger.debug(
         "%s of %d columns: %d passes over the basis, %d sweeps, rank %d", kind, columns,
-        ext.passes, step.sweeps, p_new,
+        ext.passes, sweeps, p_new,
     )
     writes = Writes(
         columns=0 if compact else r, compacted=compact, rows=rows, rows_replaced=Y_full,
