@@ -51,7 +51,7 @@ import numpy as np
 from streamsvd._util.scaling import safe_column_norms
 from streamsvd.engine.bound import Bound
 from streamsvd.engine.state import Plan, State, StepOptions
-from streamsvd.engine.update import _plan
+from streamsvd.engine.update import _plan, cutting_rounding
 from streamsvd.linalg.extension import BasisExtension
 
 __all__ = [
@@ -302,13 +302,10 @@ def plan_remove(
     k_new = K.shape[0]
     # the remaining rows of Y were written relative to the amplitudes before the removal:
     # a term below reject_tol times the largest of them is rounding of what left (a
-    # direction the removed columns alone carried), cut like a term below eps, its norm
-    # counted in the bound, as an absorbed residual that weak is rejected (a target's
-    # own cut takes such terms within its budget)
-    floor = opts.reject_tol * float(np.max(safe_column_norms(state.R), initial=0.0))
-    if opts.truncation.target is None and floor > opts.truncation.eps:
-        opts = dataclasses.replace(opts, truncation=dataclasses.replace(
-            opts.truncation, eps=floor))
+    # direction the removed columns alone carried), as an absorbed residual that weak is
+    # rejected
+    opts = cutting_rounding(
+        opts, opts.reject_tol * float(np.max(safe_column_norms(state.R), initial=0.0)))
     if k_new < state.rank:
         # directions left with the removed columns: the core has rank k_new at most, and
         # its other terms are rounding; a cap at k_new converges the core and cuts them

@@ -51,8 +51,8 @@ from streamsvd.linalg.sketch import plan_sketch
 from streamsvd.linalg.slices import extend_block
 
 __all__ = [
-    "COMPACT_PER_COLUMN", "plan_absorb", "plan_add", "plan_finalize", "plan_merge",
-    "plan_rows",
+    "COMPACT_PER_COLUMN", "cutting_rounding", "plan_absorb", "plan_add", "plan_finalize",
+    "plan_merge", "plan_rows",
 ]
 
 logger = logging.getLogger(__name__)
@@ -175,9 +175,7 @@ def plan_merge(
     tops = [top_energy(u_norms, v_norms)]
     if state.rank:
         tops.append(float(np.max(safe_column_norms(state.R))))
-    floor = opts.reject_tol * min(tops)
-    if opts.truncation.target is None and floor > opts.truncation.eps:
-        opts = replace(opts, truncation=replace(opts.truncation, eps=floor))
+    opts = cutting_rounding(opts, opts.reject_tol * min(tops))
     ext = extend_basis(
         state.basis, state.coords, U_o, inner=opts.inner, reject_tol=opts.reject_tol,
         reference=ref, basis_gram=state.gram,
@@ -197,6 +195,17 @@ def plan_merge(
         Y_appended=Y_o, d_rej=d_rej,
         rejection_root=math.sqrt(d_rej) * math.sqrt(safe_norm(R_o)), prior=prior,
     )
+
+
+def cutting_rounding(opts: StepOptions, floor: float) -> StepOptions:
+    """Return ``opts`` cutting the terms below ``floor`` as ``eps`` does, their norms in the bound.
+
+    For the terms an update leaves at the rounding of what it combined (a merge, a
+    removal); a target error's own cut takes such terms within its budget instead.
+    """
+    if opts.truncation.target is None and floor > opts.truncation.eps:
+        return replace(opts, truncation=replace(opts.truncation, eps=floor))
+    return opts
 
 
 def plan_finalize(
