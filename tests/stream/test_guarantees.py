@@ -501,7 +501,7 @@ def test_property_small_streams_of_dependent_snapshots(seed, n, m, block, mode):
     snapshot 1e-15 of a removed one is represented to that rounding, not to its own).
     The right vectors, normalised, are orthonormal to LAPACK's test ratio: a term left
     at 4e-162 by a removal, or a core mixed by the basis's re-orthonormalisation after its
-    sweeps, put it at 1e15 and 1390."""
+    sweeps, put it at 1e15 and 12801."""
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((n, m))
     for j in range(1, m):
