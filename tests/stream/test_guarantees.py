@@ -10,6 +10,7 @@ import logging
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -486,6 +487,72 @@ def test_property_float32_snapshots_near_their_precision_meet_the_target(
     assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
     U = sc.left_vectors
     assert np.linalg.norm(U.T @ (d[:, None] * U) - np.eye(U.shape[1]), 2) <= 100 * n * EPS
+
+
+def trajectories(rng, n, count, length, noise):
+    """``count`` trajectories of ``length`` time steps, each a sum of decaying exponentials
+    on a few shared modes of amplitudes 1 to 1e-12 (nearly collinear snapshots, as time
+    steps are), plus noise of relative size ``noise``."""
+    rank = int(rng.integers(2, 12))
+    modes = np.linalg.qr(rng.standard_normal((n, rank)))[0]
+    rates, amps = rng.uniform(0, 3, rank), 10.0 ** -rng.uniform(0, 12, rank)
+    t = np.linspace(0, 1, length)
+    out = []
+    for _ in range(count):
+        coeffs = rng.standard_normal(rank) * amps
+        X = modes @ (coeffs[:, None] * np.exp(-np.outer(rates * rng.uniform(0.5, 2), t)))
+        out.append(X + noise * float(np.linalg.norm(X)) / np.sqrt(X.size)
+                   * rng.standard_normal(X.shape))
+    return np.hstack(out)
+
+
+def ill_conditioned_mass(rng, n, kind):
+    """Weights over four decades, or the mass matrix of linear elements on a mesh whose
+    element sizes span five (condition numbers up to about 1e5): as a sparse matrix and
+    dense."""
+    if kind == "weights":
+        w = 10.0 ** rng.uniform(-2, 2, n)
+        return w, np.diag(w)
+    h = 10.0 ** rng.uniform(-5, 0, n + 1)
+    M = sp.diags([h[1:-1] / 6, (h[:-1] + h[1:]) / 3, h[1:-1] / 6], [-1, 0, 1], format="csr")
+    return M, M.toarray()
+
+
+@settings(max_examples=examples(25), deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), mass=st.sampled_from(["weights", "elements"]),
+       measure=st.sampled_from(MEASURES), block=st.sampled_from([1, 10, 0]),
+       noise=st.sampled_from([0.0, 1e-10, 1e-6]), log_t=st.floats(1, 7))
+# with the images combined: 1.8 and 1.9 times reorth_tol from the factors (0.009 and 0.05)
+@example(seed=0, mass="weights", measure="relative", block=1, noise=0.0, log_t=4.0)
+@example(seed=2881021351, mass="elements", measure="absolute", block=1, noise=1e-6,
+         log_t=4.091953366252852)
+def test_property_trajectories_under_an_ill_conditioned_mass_matrix(seed, mass, measure,
+                                                                    block, noise, log_t):
+    """Time steps under a badly scaled inner product, a target of ``10^-log_t`` relative
+    to the data, blocks of 1 or 10 columns or one trajectory (``block=0``): the Gram
+    path compacts the basis with the weak kept terms scaled up, by as much as 1e5. The
+    basis is orthonormal from its factors (``||U^T M U - I|| <= reorth_tol``, what the
+    compressor keeps it to), the bound holds and the target is met. With the image of
+    a compaction combined from the old images the basis's measured orthogonality missed
+    its columns' by 1e-12 and drifted (a broken basis, then a failed factorisation)."""
+    rng = np.random.default_rng(seed)
+    n, count, length = int(rng.integers(20, 80)), 4, int(rng.integers(5, 40))
+    A = trajectories(rng, n, count, length, noise)
+    inner, M = ill_conditioned_mass(rng, n, mass)
+    L = np.linalg.cholesky(M)
+    norm = float(np.linalg.norm(L.T @ A))
+    m = A.shape[1]
+    t = 10.0 ** -log_t * {"relative": 1.0, "mean_l2": norm / np.sqrt(m), "absolute": norm}[measure]
+    sc = ss.StreamCompressor(n, inner=inner, target_error=t, error_measure=measure,
+                             rule="jacobi", sweeps=None)
+    for j in range(0, m, block or length):
+        sc.absorb(A[:, j:j + (block or length)])
+    sc.finalize()
+    U = sc.left_vectors
+    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= sc.reorth_tol
+    err = float(np.linalg.norm(L.T @ (A - sc.expansion.to_dense())))
+    assert err <= sc.error_bound + ROUNDING * max(n, m) * EPS * norm
+    assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
 
 
 @settings(max_examples=examples(60), deadline=None)
