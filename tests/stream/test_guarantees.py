@@ -530,11 +530,12 @@ def test_property_trajectories_under_an_ill_conditioned_mass_matrix(seed, mass, 
                                                                     block, noise, log_t):
     """Time steps under a badly scaled inner product, a target of ``10^-log_t`` relative
     to the data, blocks of 1 or 10 columns or one trajectory (``block=0``): the Gram
-    path compacts the basis with the weak kept terms scaled up, by as much as 1e5. The
+    path compacts the basis with the weak kept terms scaled up, by 1e5 and more. The
     basis is orthonormal from its factors (``||U^T M U - I|| <= reorth_tol``, what the
     compressor keeps it to), the bound holds and the target is met. With the image of
-    a compaction combined from the old images the basis's measured orthogonality missed
-    its columns' by 1e-12 and drifted (a broken basis, then a failed factorisation)."""
+    a compaction combined from the old images, the Gram the basis measured its
+    orthogonality by missed its columns' by about 1e-12, and the loss went uncorrected
+    (in a longer stream, drifting until the factorisation of ``finalize`` failed)."""
     rng = np.random.default_rng(seed)
     n, count, length = int(rng.integers(20, 80)), 4, int(rng.integers(5, 40))
     A = trajectories(rng, n, count, length, noise)
