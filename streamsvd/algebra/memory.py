@@ -23,6 +23,7 @@ panels on disk.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -255,38 +256,13 @@ class MemoryBasis(BasisBuffer):
         """Write ``[Q, X] G`` (and its ``M`` image) over ``Q``, a slab of rows at a time.
 
         Row ``i`` of the result depends on row ``i`` of ``Q`` and ``X`` only, so each slab is
-        computed from the stored rows, then written over them; the image is ``M`` applied
-        to the columns written, or the images combined slab by slab (as in
-        :meth:`_compact`). Returns the Gram of the columns written.
+        computed from the stored rows, then written over them (:func:`_combine_by_slabs`).
+        Returns the Gram of the columns written.
         """
         p = G.shape[1]
         self._planned_width, self._overwritten = p, True
-        spread = self._rounding_spread(G, parts)  # before the parts are written over
-        starts = row_slabs(self._bufs[0][:, :p])
-        slabs = [np.empty((starts.step, p), order="F") for _ in parts]
-
-        def write(image: int) -> None:
-            target = self._bufs[image]
-            for i in starts:
-                rows = slice(i, min(i + starts.step, self.n))
-                h = rows.stop - i
-                out = slabs if h == starts.step else [np.empty((h, p), order="F") for _ in parts]
-                row = 0
-                for part, slab in zip(parts, out, strict=True):
-                    A = part[image]
-                    np.matmul(A[rows], G[row:row + A.shape[1]], out=slab)
-                    row += A.shape[1]
-                for slab in out[1:]:
-                    out[0] += slab
-                target[rows, :p] = out[0]
-
-        write(0)
         Q, MQ = self._bufs[0][:, :p], self._bufs[1][:, :p]
-        if not self.inner.is_euclidean:
-            if _combines_images(spread, Q):
-                write(1)
-            else:
-                m_apply_into(self.inner, Q, MQ)
+        self._write_compaction(Q, MQ, G, parts, _combine_by_slabs)
         return self._gram_of(Q, MQ)
 
     def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]], *,
@@ -294,10 +270,7 @@ class MemoryBasis(BasisBuffer):
         """Write ``[A_1, A_2, ...] G`` (and its ``M`` image) into the spare buffer.
 
         ``parts`` are the ``(A_i, M A_i)`` whose columns the rows of ``G`` combine, in
-        order. The image is ``M`` applied to the columns written, or the parts' images
-        combined by ``G`` when that costs less and keeps the image within a few ``eps``
-        of the columns' (:func:`_combines_images`). Returns the Gram of the columns
-        written (None unless ``measure``).
+        order. Returns the Gram of the columns written (None unless ``measure``).
         """
         p = G.shape[1]
         if self._spare is None or self._spare[0].shape[1] < max(self.capacity, p):
@@ -306,16 +279,30 @@ class MemoryBasis(BasisBuffer):
         if p == 0:
             return np.zeros((0, 0))
         Q, MQ = self._spare[0][:, :p], self._spare[1][:, :p]
-        spread = self._rounding_spread(G, parts)
-        _combine(Q, [A for A, _ in parts], G)
-        if not self.inner.is_euclidean:
-            if _combines_images(spread, Q):
-                _combine(MQ, [MA for _, MA in parts], G)
-            else:
-                m_apply_into(self.inner, Q, MQ)
+        self._write_compaction(Q, MQ, G, parts, _combine)
         if not measure:
             return None
         return self._gram_of(Q, MQ)
+
+    def _write_compaction(self, Q: np.ndarray, MQ: np.ndarray, G: np.ndarray,
+                          parts: list[tuple[np.ndarray, np.ndarray]],
+                          combine: Callable[[np.ndarray, list[np.ndarray], np.ndarray], None]
+                          ) -> None:
+        """Write ``[A_1, A_2, ...] G`` into ``Q`` and its ``M`` image into ``MQ``.
+
+        ``combine(out, sources, G)`` writes ``[S_1, S_2, ...] G`` (:func:`_combine`, or
+        :func:`_combine_by_slabs` over the parts themselves). The image is ``M`` applied
+        to ``Q``, or the parts' images combined by ``G`` when that costs less and keeps
+        the image within a few ``eps`` of ``Q``'s (:func:`_combines_images`).
+        """
+        spread = self._rounding_spread(G, parts)  # before Q is written (over the parts)
+        combine(Q, [A for A, _ in parts], G)
+        if self.inner.is_euclidean:
+            return
+        if _combines_images(spread, Q):
+            combine(MQ, [MA for _, MA in parts], G)
+        else:
+            m_apply_into(self.inner, Q, MQ)
 
     def _rounding_spread(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]
                          ) -> np.ndarray | None:
@@ -378,6 +365,28 @@ def _combine(out: np.ndarray, sources: list[np.ndarray], G: np.ndarray) -> None:
         res = blas.dgemm(1.0, source, Gi, beta=1.0, c=out, overwrite_c=1)
         if not np.shares_memory(res, out):
             out[...] = res
+
+
+def _combine_by_slabs(out: np.ndarray, sources: list[np.ndarray], G: np.ndarray) -> None:
+    """Write ``[S_1, S_2, ...] G`` into ``out`` a slab of rows at a time.
+
+    ``out`` may share its rows with the sources (a compaction written over the stored
+    columns): each slab of the result is formed from the sources' rows, then written.
+    """
+    p = G.shape[1]
+    starts = row_slabs(out)
+    slabs = [np.empty((starts.step, p), order="F") for _ in sources]
+    for i in starts:
+        rows = slice(i, min(i + starts.step, out.shape[0]))
+        h = rows.stop - i
+        parts = slabs if h == starts.step else [np.empty((h, p), order="F") for _ in sources]
+        row = 0
+        for source, slab in zip(sources, parts, strict=True):
+            np.matmul(source[rows], G[row:row + source.shape[1]], out=slab)
+            row += source.shape[1]
+        for slab in parts[1:]:
+            parts[0] += slab
+        out[rows] = parts[0]
 
 
 def _combines_images(spread: np.ndarray | None, Q: np.ndarray) -> bool:
