@@ -522,17 +522,18 @@ def ill_conditioned_mass(rng, n, kind):
 @given(seed=st.integers(0, 2**32 - 1), mass=st.sampled_from(["weights", "elements"]),
        measure=st.sampled_from(MEASURES), block=st.sampled_from([1, 10, 0]),
        noise=st.sampled_from([0.0, 1e-10, 1e-6]), log_t=st.floats(1, 7))
-# with the images combined: 1.8 and 1.9 times reorth_tol from the factors (0.009 and 0.05)
-@example(seed=0, mass="weights", measure="relative", block=1, noise=0.0, log_t=4.0)
-@example(seed=2881021351, mass="elements", measure="absolute", block=1, noise=1e-6,
-         log_t=4.091953366252852)
+# with the images combined: 441 and 143 times reorth_tol from the factors
+@example(seed=3278588371, mass="elements", measure="relative", block=0, noise=1e-10,
+         log_t=4.438426540621046)
+@example(seed=1641599470, mass="weights", measure="relative", block=10, noise=1e-10,
+         log_t=4.960304485289428)
 def test_property_trajectories_under_an_ill_conditioned_mass_matrix(seed, mass, measure,
                                                                     block, noise, log_t):
     """Time steps under a badly scaled inner product, a target of ``10^-log_t`` relative
     to the data, blocks of 1 or 10 columns or one trajectory (``block=0``): the Gram
     path compacts the basis with the weak kept terms scaled up, by 1e5 and more. The
     basis is orthonormal from its factors (``||U^T M U - I|| <= reorth_tol``, what the
-    compressor keeps it to), the bound holds and the target is met. With the image of
+    compressor keeps it to, plus the rounding of computing it), the bound holds and the target is met. With the image of
     a compaction combined from the old images, the Gram the basis measured its
     orthogonality by missed its columns' by about 1e-12, and the loss went uncorrected
     (in a longer stream, drifting until the factorisation of ``finalize`` failed)."""
@@ -550,7 +551,9 @@ def test_property_trajectories_under_an_ill_conditioned_mass_matrix(seed, mass, 
         sc.absorb(A[:, j:j + (block or length)])
     sc.finalize()
     U = sc.left_vectors
-    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= sc.reorth_tol
+    # reorth_tol, plus what computing U^T M U here may round by
+    measured = n * EPS * np.linalg.norm(np.abs(U).T @ np.abs(M) @ np.abs(U), 2)
+    assert np.linalg.norm(U.T @ M @ U - np.eye(U.shape[1]), 2) <= sc.reorth_tol + measured
     err = float(np.linalg.norm(L.T @ (A - sc.expansion.to_dense())))
     assert err <= sc.error_bound + ROUNDING * max(n, m) * EPS * norm
     assert sc.target_met, (sc.error_in_measure, sc.target_missed_by)
