@@ -2,7 +2,8 @@
 
 The backend interface (the Protocols an update needs of the basis) lives in
 :mod:`~streamsvd.algebra.interface`; its in-memory implementation in
-:mod:`~streamsvd.algebra.memory`, on the growable buffer of :mod:`~streamsvd.algebra.buffer`;
+:mod:`~streamsvd.algebra.memory`, on the growable buffer of :mod:`~streamsvd.algebra.buffer`
+(its compactions' columns and images written by :mod:`~streamsvd.algebra.compaction`);
 the out-of-core one in :mod:`~streamsvd.algebra.panels`. Inner products are in
 :mod:`~streamsvd.algebra.inner` (the checks that a matrix is symmetric positive definite in
 :mod:`~streamsvd.algebra.spd`), the Gram products in :mod:`~streamsvd.algebra.blas`.

@@ -23,17 +23,16 @@ panels on disk.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import scipy.linalg.blas as blas
 
-from streamsvd._util.slabs import row_slabs
 from streamsvd._util.validation import as_float_array, check_finite
 from streamsvd.algebra.blas import apply_into as m_apply_into
 from streamsvd.algebra.blas import gram, subtract_product
 from streamsvd.algebra.buffer import BasisBuffer
+from streamsvd.algebra.compaction import combine, combine_by_slabs, write_compaction
 from streamsvd.algebra.inner import InnerProduct
 from streamsvd.algebra.interface import BasisBackend
 
@@ -256,13 +255,14 @@ class MemoryBasis(BasisBuffer):
         """Write ``[Q, X] G`` (and its ``M`` image) over ``Q``, a slab of rows at a time.
 
         Row ``i`` of the result depends on row ``i`` of ``Q`` and ``X`` only, so each slab is
-        computed from the stored rows, then written over them (:func:`_combine_by_slabs`).
+        computed from the stored rows, then written over them
+        (:func:`~streamsvd.algebra.compaction.combine_by_slabs`).
         Returns the Gram of the columns written.
         """
         p = G.shape[1]
         self._planned_width, self._overwritten = p, True
         Q, MQ = self._bufs[0][:, :p], self._bufs[1][:, :p]
-        self._write_compaction(Q, MQ, G, parts, _combine_by_slabs)
+        write_compaction(self.inner, Q, MQ, G, parts, combine=combine_by_slabs)
         return self._gram_of(Q, MQ)
 
     def _compact(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]], *,
@@ -270,7 +270,8 @@ class MemoryBasis(BasisBuffer):
         """Write ``[A_1, A_2, ...] G`` (and its ``M`` image) into the spare buffer.
 
         ``parts`` are the ``(A_i, M A_i)`` whose columns the rows of ``G`` combine, in
-        order. Returns the Gram of the columns written (None unless ``measure``).
+        order; the image as :func:`~streamsvd.algebra.compaction.write_compaction`
+        decides. Returns the Gram of the columns written (None unless ``measure``).
         """
         p = G.shape[1]
         if self._spare is None or self._spare[0].shape[1] < max(self.capacity, p):
@@ -279,45 +280,10 @@ class MemoryBasis(BasisBuffer):
         if p == 0:
             return np.zeros((0, 0))
         Q, MQ = self._spare[0][:, :p], self._spare[1][:, :p]
-        self._write_compaction(Q, MQ, G, parts, _combine)
+        write_compaction(self.inner, Q, MQ, G, parts, combine=combine)
         if not measure:
             return None
         return self._gram_of(Q, MQ)
-
-    def _write_compaction(self, Q: np.ndarray, MQ: np.ndarray, G: np.ndarray,
-                          parts: list[tuple[np.ndarray, np.ndarray]],
-                          combine: Callable[[np.ndarray, list[np.ndarray], np.ndarray], None]
-                          ) -> None:
-        """Write ``[A_1, A_2, ...] G`` into ``Q`` and its ``M`` image into ``MQ``.
-
-        ``combine(out, sources, G)`` writes ``[S_1, S_2, ...] G`` (:func:`_combine`, or
-        :func:`_combine_by_slabs` over the parts themselves). The image is ``M`` applied
-        to ``Q``, or the parts' images combined by ``G`` when that costs less and keeps
-        the image within a few ``eps`` of ``Q``'s (:func:`_combines_images`).
-        """
-        spread = self._rounding_spread(G, parts)  # before Q is written (over the parts)
-        combine(Q, [A for A, _ in parts], G)
-        if self.inner.is_euclidean:
-            return
-        if _combines_images(spread, Q):
-            combine(MQ, [MA for _, MA in parts], G)
-        else:
-            m_apply_into(self.inner, Q, MQ)
-
-    def _rounding_spread(self, G: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]
-                         ) -> np.ndarray | None:
-        """Return ``sum_i |g_ij| ||a_i||`` for each column ``j`` of ``[A_1, ...] G``, or None.
-
-        None when the image is ``M`` applied whatever the combination: the Euclidean
-        product has no image, and an ``M`` whose product costs no more per entry than
-        the combination (``entries_per_row`` at most ``G``'s rows: a diagonal, or a
-        sparse ``M`` beside a basis wider than its rows' entries) is applied.
-        """
-        per_row = getattr(self.inner, "entries_per_row", None)
-        if self.inner.is_euclidean or (per_row is not None and per_row <= G.shape[0]):
-            return None
-        norms = np.concatenate([np.linalg.norm(A, axis=0) for A, _ in parts])
-        return np.abs(G).T @ norms
 
     def _gram_of(self, Q: np.ndarray, MQ: np.ndarray) -> np.ndarray:
         """Return the Gram ``Q^T M Q`` of written columns, symmetric."""
@@ -333,70 +299,3 @@ class MemoryBasis(BasisBuffer):
         if self._w == 0 or G.shape[1] == 0:
             return np.zeros((self.n, G.shape[1]), order="F")
         return blas.dgemm(1.0, self.Q, G)
-
-
-# a compaction's image is combined from the parts' images only while the combination
-# amplifies the rounding of its terms at most this much: column j of [M A_1, ...] G errs
-# by about eps sum_i |g_ij| ||M a_i||, and an image that is not M applied to the column
-# stored makes every product with the basis (projections, its Gram) err by as much,
-# unseen by the orthogonality measured from them. A Gram path's G = W Lambda^(-1/2)
-# scales weak kept terms up by 1e5 and more: combined, the image of the compacted basis
-# was 5e-11 to 1.3e-10 off its columns (tests/algebra/test_memory.py). In a stream under
-# weights over four decades the basis then measured its loss of orthogonality at 1e-16
-# where its columns had 1.1e-12 (243 n eps, over reorth_tol, never corrected); under the
-# mass matrix of linear elements of sizes 1e-5 to 1 (condition 3.9e4) it drifted to
-# 1.6e7 n eps by its 311th update (of 345), accepting directions it already held, until
-# the factorisation of finalize failed (tests/stream/test_guarantees.py)
-_COMBINED_IMAGE_MAX = 8.0
-
-
-def _combine(out: np.ndarray, sources: list[np.ndarray], G: np.ndarray) -> None:
-    """Write ``[S_1, S_2, ...] G`` into ``out``: one product per source, none concatenated."""
-    row = 0
-    for i, source in enumerate(sources):
-        Gi = G[row:row + source.shape[1]]
-        row += source.shape[1]
-        if i == 0:
-            np.matmul(source, Gi, out=out)
-            continue
-        if not source.flags.f_contiguous:
-            out += source @ Gi
-            continue
-        res = blas.dgemm(1.0, source, Gi, beta=1.0, c=out, overwrite_c=1)
-        if not np.shares_memory(res, out):
-            out[...] = res
-
-
-def _combine_by_slabs(out: np.ndarray, sources: list[np.ndarray], G: np.ndarray) -> None:
-    """Write ``[S_1, S_2, ...] G`` into ``out`` a slab of rows at a time.
-
-    ``out`` may share its rows with the sources (a compaction written over the stored
-    columns): each slab of the result is formed from the sources' rows, then written.
-    """
-    p = G.shape[1]
-    starts = row_slabs(out)
-    slabs = [np.empty((starts.step, p), order="F") for _ in sources]
-    for i in starts:
-        rows = slice(i, min(i + starts.step, out.shape[0]))
-        h = rows.stop - i
-        parts = slabs if h == starts.step else [np.empty((h, p), order="F") for _ in sources]
-        row = 0
-        for source, slab in zip(sources, parts, strict=True):
-            np.matmul(source[rows], G[row:row + source.shape[1]], out=slab)
-            row += source.shape[1]
-        for slab in parts[1:]:
-            parts[0] += slab
-        out[rows] = parts[0]
-
-
-def _combines_images(spread: np.ndarray | None, Q: np.ndarray) -> bool:
-    """Whether a compaction combines the parts' images (True) or applies ``M`` to ``Q``.
-
-    ``spread`` is :meth:`MemoryBasis._rounding_spread` (None: ``M`` is applied); the
-    images are combined when no column of ``Q`` is smaller than its spread by more than
-    :data:`_COMBINED_IMAGE_MAX`.
-    """
-    if spread is None:
-        return False
-    written = np.linalg.norm(Q, axis=0)
-    return bool(np.all(spread <= _COMBINED_IMAGE_MAX * written))

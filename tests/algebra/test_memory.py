@@ -102,7 +102,7 @@ def test_a_compaction_that_scales_nothing_up_combines_the_images_when_cheaper(ki
     MY[...] = M @ Y
     basis.accept(w)
     applied = []
-    monkeypatch.setattr("streamsvd.algebra.memory.m_apply_into",
+    monkeypatch.setattr("streamsvd.algebra.compaction.m_apply_into",
                         lambda inner, X, out: applied.append(X.shape[1]))
     basis.compact_planned(np.linalg.qr(rng.standard_normal((w, w)))[0], 0)
     assert applied == ([w] if kind == "sparse" else [])
