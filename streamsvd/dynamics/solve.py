@@ -87,10 +87,16 @@ def dmd_from_pairs(
     if dt is not None and not (math.isfinite(float(dt)) and float(dt) > 0):
         raise InputError(f"`dt` must be a finite number > 0 (the time step); got {dt!r}.")
     k, q = pairs.k, pairs.pairs
-    if q == 0 or k == 0:
+    if q == 0:
         raise InputError(
-            f"DMD needs at least one pair of consecutive snapshots of one trajectory in a "
-            f"basis of rank >= 1; got {q} pairs at rank {k}. Absorb more snapshots."
+            f"DMD needs at least one pair of consecutive snapshots of one trajectory; got "
+            f"0 pairs at rank {k}. Absorb more snapshots."
+        )
+    if k == 0:
+        raise InputError(
+            f"DMD needs a basis of rank >= 1; got {q} pairs in a basis of rank 0: the "
+            f"compressor's truncation (`target_error`, `eps`, `rtol` or `max_rank`) cut "
+            f"every term, or the snapshots are zero. A smaller `target_error` keeps terms."
         )
     P, S, Wt = np.linalg.svd(pairs.Tx.T, full_matrices=False)
     tol = (max(k, q) * _EPS if rtol is None else rtol) * (S[0] if S.size else 0.0)

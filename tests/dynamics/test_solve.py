@@ -110,6 +110,13 @@ def test_rank_cut_and_messages(rng):
     one.absorb(X[:, :1])
     with pytest.raises(InputError, match="got 0 pairs"):
         one.dmd()
+    cut = ss.StreamCompressor(40, dynamics=True, target_error=2 * np.linalg.norm(X),
+                              error_measure="absolute")  # cuts every term
+    cut.absorb(X)
+    cut.finalize()
+    assert cut.rank == 0
+    with pytest.raises(InputError, match="39 pairs in a basis of rank 0: the\n?.*truncation"):
+        cut.dmd()
     with pytest.raises(InputError, match="right_vectors=False. Pass `right_vectors=True`"):
         ss.StreamCompressor(40, dynamics=True, right_vectors=False)
     bare = ss.StreamCompressor(40, right_vectors=False)
