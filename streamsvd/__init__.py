@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from streamsvd.errors import (
     BrokenStateError,
     ConvergenceError,
+    FloatRangeError,
     InnerProductMismatchError,
     InputError,
     NonFiniteError,
@@ -188,6 +189,7 @@ __all__ = [
     "DiagonalInner",
     "Euclidean",
     "Expansion",
+    "FloatRangeError",
     "GramSchmidtResult",
     "InnerProduct",
     "InnerProductMismatchError",

@@ -30,6 +30,34 @@ class NonFiniteError(InputError):
     """An array argument holds NaN or infinite entries."""
 
 
+class FloatRangeError(InputError, OverflowError):
+    """Data whose expansion (its norm, amplitudes, error bound) lies beyond float64's range.
+
+    Parameters
+    ----------
+    argument : str
+        The argument the update came from, in the words of the call (```columns```).
+    norm : float, optional
+        The norm of the expansion before the update, when known.
+    """
+
+    def __init__(self, argument: str, norm: float | None = None) -> None:
+        before = "" if norm is None else f" (the expansion's norm before it is {norm:.3g})"
+        super().__init__(
+            f"{argument} would take the expansion beyond the float64 range: its norm, a "
+            f"singular value, the error bound or a right vector's entry would exceed "
+            f"1.8e308{before}. Scale the snapshots down by a power of two (2**-64, say: "
+            f"the left vectors are unchanged and the amplitudes scale with the data, "
+            f"exactly). Nothing was changed."
+        )
+        self.argument = argument
+        self.norm = norm
+
+    def naming(self, argument: str, norm: float | None = None) -> FloatRangeError:
+        """Return the same error for the argument of an outer call (``source``)."""
+        return FloatRangeError(argument, self.norm if norm is None else norm)
+
+
 class ShapeMismatchError(InputError):
     """An array argument does not have the shape the operation needs."""
 

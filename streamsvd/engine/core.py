@@ -22,10 +22,11 @@ from scipy.linalg.lapack import dgesdd, dgesdd_lwork
 
 from streamsvd._util.scaling import pow2_exponent, safe_column_norms
 from streamsvd.engine.truncation import NOTHING_BEFORE, Before, Truncation
+from streamsvd.errors import FloatRangeError
 from streamsvd.linalg.compress import _precondition, newton_schulz
 from streamsvd.linalg.rotations import SweepStats, sweep_until
 
-__all__ = ["CoreStep", "core_step", "r_factor"]
+__all__ = ["CoreStep", "core_qr", "core_step", "qr_factors", "r_factor"]
 
 logger = logging.getLogger(__name__)
 
@@ -47,11 +48,62 @@ def _singular_values(W: np.ndarray) -> np.ndarray:
     return s
 
 
+# entries beyond 2^±500 are scaled first: LAPACK's Householder vector divides by
+# alpha - beta, which overflows for entries near 1e308 (|alpha| + ||x|| > 2^1024)
+_QR_SAFE = 500
+
+
 def r_factor(X: np.ndarray) -> np.ndarray:
-    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``)."""
+    """Return the triangular factor of a Householder QR of ``X`` (``min(rows, cols) x cols``).
+
+    Entries beyond ``2^±500`` are scaled by a power of two first (exact), so that entries
+    near the ends of the range give ``R`` to rounding wherever ``R`` is representable
+    (elsewhere it holds infinities, and :meth:`~streamsvd.engine.state.Plan.in_range`
+    refuses the update).
+    """
     if X.size == 0:
         return np.zeros((0, X.shape[1]))
-    return np.asarray(np.linalg.qr(X, mode="r"))
+    e = pow2_exponent(X)
+    if abs(e) <= _QR_SAFE:
+        return np.asarray(np.linalg.qr(X, mode="r"))
+    with np.errstate(over="ignore"):  # beyond the range: the plan is refused whole
+        return np.ldexp(np.linalg.qr(np.ldexp(X, -e), mode="r"), e)
+
+
+def core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ``(Q, R)`` with ``K = Q R``, ``R`` no taller than wide (``Q = None``: ``I``).
+
+    A core taller than wide is reduced by a Householder QR, whose ``Q`` (formed only when
+    the right vectors are kept) is orthonormal to rounding level.
+    """
+    if K.shape[0] <= K.shape[1]:
+        return None, K
+    if not want_q:
+        return None, r_factor(K)
+    return qr_factors(K)
+
+
+def _check_range(norm_scaled: float, e: int) -> None:
+    """Raise :class:`FloatRangeError` unless ``norm_scaled 2^e`` is a finite float64.
+
+    ``norm_scaled 2^e`` is the norm of the expansion (its amplitudes'): every norm,
+    energy share and bound the truncation and the measures form lies below it.
+    """
+    if norm_scaled == 0.0 or (math.isfinite(norm_scaled)
+                              and math.frexp(norm_scaled)[1] + e <= 1024):
+        return
+    raise FloatRangeError("the update")  # the facade names its argument
+
+
+def qr_factors(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(Q, R)`` of a Householder QR of ``X``, scaled as :func:`r_factor` is."""
+    e = pow2_exponent(X)
+    if abs(e) <= _QR_SAFE:
+        Q, R = np.linalg.qr(X)
+        return Q, R
+    Q, R = np.linalg.qr(np.ldexp(X, -e))
+    with np.errstate(over="ignore"):  # beyond the range: the plan is refused whole
+        return Q, np.ldexp(R, e)
 
 
 # what the squares of a term's entries below 2^-511 may lose (_norms_before)
@@ -155,6 +207,8 @@ def core_step(
     """
     p = K.shape[1]
     R = r_factor(K) if K.shape[0] > p else K
+    if not np.isfinite(R).all():
+        _check_range(math.inf, 0)
     e = pow2_exponent(R)
     Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
     Qt = np.eye(p)
@@ -177,6 +231,7 @@ def core_step(
             limit=_MAX_SWEEPS if sweeps is None else sweeps, after=after,
         )
     amps_scaled = safe_column_norms(Rt.T)
+    _check_range(float(np.linalg.norm(amps_scaled)), e)
     # each term's norm in the columns before the update, at the current rotation
     olds = (None if rows_before is None else
             lambda idx, rows=rows_before: _norms_before(rows, Qt, amps_scaled, e, idx))

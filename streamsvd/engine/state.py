@@ -21,6 +21,7 @@ switches the state to it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import cast
 
@@ -203,6 +204,19 @@ class Plan:
     bound: Bound
     record: UpdateRecord
     writes: Writes
+
+    def in_range(self) -> bool:
+        """Whether its amplitudes, error bound and right factor's rows are all finite.
+
+        An update of data near the top of the float64 range can take a singular value
+        or the bound past it (``1.8e308``) while every input entry is finite.
+        """
+        rows = self.writes.rows
+        small = [self.R, self.coords] + ([] if rows is None else [rows.rows, rows.Vp])
+        if self.writes.rows_replaced is not None:
+            small.append(self.writes.rows_replaced)
+        return (math.isfinite(self.bound.bound) and math.isfinite(self.bound.discarded)
+                and all(bool(np.isfinite(a).all()) for a in small))
 
 
 def stage_plan(state: State, plan: Plan) -> None:

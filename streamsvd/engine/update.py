@@ -38,11 +38,12 @@ import scipy.linalg
 from streamsvd._util.scaling import safe_column_norms, safe_m_norms, safe_norm
 from streamsvd.engine.aside import UNIT_FLOAT64, set_aside_budget
 from streamsvd.engine.bound import Bound
-from streamsvd.engine.core import core_step, r_factor
+from streamsvd.engine.core import core_qr, core_step, qr_factors
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowAppend
 from streamsvd.engine.state import Plan, State, StepOptions, Writes, gram_orthogonality
 from streamsvd.engine.truncation import Before, Truncation
+from streamsvd.errors import FloatRangeError
 from streamsvd.linalg.blocks import skew_factor
 from streamsvd.linalg.extend import extend_basis
 from streamsvd.linalg.extension import BasisExtension
@@ -133,8 +134,11 @@ def plan_add(
              else np.zeros((V_k.shape[0], 0)))
     if dV is not None:
         V_old = V_old + dV
-    V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
-    Y_new, K = np.linalg.qr(V_new)
+    with np.errstate(over="ignore"):  # entries beyond the range are refused below
+        V_new = np.concatenate([V_old + V_k @ ext.coeffs.T, V_k @ ext.R_new.T], axis=1)
+    if not np.isfinite(V_new).all():
+        raise FloatRangeError("the update")
+    Y_new, K = qr_factors(V_new)
     return _plan(
         state, ext, K, opts, kind="add", columns=U_k.shape[1], m=V_k.shape[0],
         t0=t0, Y_replace=Y_new, d_rej=ext.rejected_norm(V_k), rejection_root=0.0,
@@ -269,13 +273,13 @@ def _plan(
         L, Lt_inv = skew_factor(state.coords, state.gram, ext.cross_gram, ext.gram_new)
         K = K @ L
     K_before = None if old_rows is None else K[:old_rows]
-    Q_K, K = _core_qr(K, want_q=keep_rows)
+    Q_K, K = core_qr(K, want_q=keep_rows)
     step = core_step(
         K, rule=opts.rule, sweeps=opts.sweeps, m=m, truncation=opts.truncation, kind=kind,
         before=Before(prior, d_rej, overlapping, decided_new=old_rows is not None),
         on_sweep=on_sweep, rows_before=K_before,
     )
-    Q_R, R = _core_qr(step.R, want_q=keep_rows)
+    Q_R, R = core_qr(step.R, want_q=keep_rows)
     sweeps = step.sweeps
     w = state.basis.width
     T = step.T
@@ -384,17 +388,3 @@ def _extended_gram(state: State, ext: BasisExtension) -> np.ndarray:
     H[w:, :w] = ext.cross_gram.T
     H[w:, w:] = ext.gram_new
     return H
-
-
-def _core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
-    """Return ``(Q, R)`` with ``K = Q R``, ``R`` no taller than wide (``Q = None``: ``I``).
-
-    A core taller than wide is reduced by a Householder QR, whose ``Q`` (formed only when
-    the right vectors are kept) is orthonormal to rounding level.
-    """
-    if K.shape[0] <= K.shape[1]:
-        return None, K
-    if not want_q:
-        return None, r_factor(K)
-    Q, R = np.linalg.qr(K)
-    return Q, R

@@ -126,8 +126,9 @@ def plan_absorb_by_gram(
     top = max(int(live.max()), pow2_exponent(state.R) if state.R.size else int(live.max()))
     if top - int(live.min()) > _MAX_SPREAD or abs(top) > _MAX_SPREAD:
         return _declined(basis)
-    # over the live columns only: a zero column's exponent 0 may lie 2^1000 above `top`
-    block_energy = float(np.sum(norms2[~zero] * np.ldexp(1.0, 2 * (live - top))))
+    # a zero column's exponent (0) may lie 2^664 above `top`: its 0 is not multiplied by
+    # that power (0 * inf); the zeros stay in the sum (the same rounding of the others)
+    block_energy = float(np.sum(norms2 * np.ldexp(1.0, 2 * (np.where(zero, top, exps) - top))))
     if measured_first:
         # the budget's growth is known before the projection: with ||F||^2 = ||R||^2 +
         # ||X||^2 (U orthonormal), a target the rounding cannot meet skips it

@@ -327,6 +327,7 @@ def _aside_budget(nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float]) 
     if top is None or not (aside[0] > 0 or aside[1] > 0):
         return 0.0
     energy = float(np.sum(nu[live] ** 2 * np.ldexp(1.0, 2 * (exps[live] - top))))
-    with np.errstate(over="ignore"):
-        budget = math.ldexp(aside[0], -2 * top) + aside[1] * energy
-    return budget if math.isfinite(budget) else 0.0
+    try:
+        return math.ldexp(aside[0], -2 * top) + aside[1] * energy
+    except OverflowError:  # past the range in the block's units (data near 1e-180 and
+        return 0.0  # below): nothing is set aside, as for a budget of infinity

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamsvd._util.scaling import pow2_exponent, scaled_norm, top_exponent
+from streamsvd.errors import FloatRangeError
 
 __all__ = ["BasisExtension"]
 
@@ -121,14 +122,19 @@ class BasisExtension:
             rejected_map[:, zero] = 0.0
             if column_energies is not None:
                 column_energies[zero] = 0.0
+        # a column whose norm lies beyond the float64 range (finite entries near 1e308)
+        # scales back to infinities: _block_norm refuses the update
+        with np.errstate(over="ignore"):
+            coeffs = np.ldexp(C, exponents[np.newaxis, :])
+            R_new = np.ldexp(R_new, exponents[np.newaxis, :])
         return cls(
-            coeffs=np.ldexp(C, exponents[np.newaxis, :]),
-            R_new=np.ldexp(R_new, exponents[np.newaxis, :]),
+            coeffs=coeffs,
+            R_new=R_new,
             accepted=accepted,
             rejected_gram=np.zeros((0, 0)) if rejected_gram is None else rejected_gram,
             rejected_map=rejected_map,
             exponents=exponents,
-            block_norm=scaled_norm(nu, exponents),
+            block_norm=_block_norm(nu, exponents),
             cross_gram=cross_gram,
             gram_new=gram_new,
             passes=passes,
@@ -174,3 +180,15 @@ class BasisExtension:
         DF = np.ldexp(DF, -top)
         energy = float(np.sum(self.rejected_gram * (DF.T @ DF)))
         return math.ldexp(math.sqrt(max(energy, 0.0)), shift + top)
+
+
+def _block_norm(nu: np.ndarray, exponents: np.ndarray) -> float:
+    """Return the block's norm, ``sqrt(sum (nu_k 2^e_k)^2)``.
+
+    Raises :class:`~streamsvd.errors.FloatRangeError` when it lies beyond the float64
+    range (columns of finite entries near 1e308).
+    """
+    try:
+        return scaled_norm(nu, exponents)
+    except OverflowError as exc:
+        raise FloatRangeError("the update") from exc

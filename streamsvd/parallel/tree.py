@@ -38,7 +38,7 @@ from typing import Any, cast
 from streamsvd._util.malloc import keep_freed_memory
 from streamsvd._util.scheduling import check_client
 from streamsvd._util.validation import check_positive_int
-from streamsvd.errors import InputError, ShapeMismatchError, StoreError
+from streamsvd.errors import FloatRangeError, InputError, ShapeMismatchError, StoreError
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.parallel.checkpoints import checkpoints_beside, open_checkpoints
 from streamsvd.parallel.spec import SourceSpec, check_options, options_of
@@ -227,6 +227,10 @@ def tree_compress(
             saved.remove()
         if finalize and not target.finalized:
             target.finalize()
+    except FloatRangeError as exc:  # a leaf's block or a merge: the caller's `source`
+        if target is not None:
+            target.close(finalize=False)
+        raise exc.naming("`source`") from exc
     except BaseException:
         if target is not None:
             target.close(finalize=False)

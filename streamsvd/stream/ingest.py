@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from streamsvd.errors import FloatRangeError
 from streamsvd.io.sources import Source
 from streamsvd.linalg.rotations import load_kernels_in_background
 
@@ -117,9 +118,10 @@ def ingest(
 
     Raises
     ------
-    SourceError, NonFiniteError
-        A block cannot be read or holds NaN or infinite entries; every block before it
-        was absorbed (and committed as the compressor's ``commit_every`` says).
+    SourceError, NonFiniteError, FloatRangeError
+        A block cannot be read, holds NaN or infinite entries, or would take the
+        expansion's norm beyond the float64 range; every block before it was absorbed
+        (and committed as the compressor's ``commit_every`` says).
     """
     first = int(compressor.source_offset if start is None else start)
     last = source.m if stop is None else int(stop)
@@ -153,7 +155,11 @@ def ingest(
             offset, X = item
             if preload_sweeps and offset + X.shape[1] >= last:
                 load_kernels_in_background()  # the reads are over: their core loads them
-            rec = compressor.absorb(X, source_offset=offset + X.shape[1])
+            try:
+                rec = compressor.absorb(X, source_offset=offset + X.shape[1])
+            except FloatRangeError as exc:
+                raise exc.naming(f"`source` (its columns {offset}:{offset + X.shape[1]})"
+                                 ) from exc
             count += 1
             if bar is not None:  # the postfix first: the redraw shows this update
                 bar.set_postfix(rank=rec.rank, bound=f"{rec.error_bound:.2e}", refresh=False)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from streamsvd._util.scaling import safe_norm
 from streamsvd._util.threads import blas_threads
 from streamsvd._util.validation import check_choice
 from streamsvd.algebra.inner import InnerProduct
@@ -28,7 +29,7 @@ from streamsvd.engine.downdate import Ledger
 from streamsvd.engine.record import UpdateRecord
 from streamsvd.engine.rows import RowFactor
 from streamsvd.engine.state import Plan, State, apply_plan
-from streamsvd.errors import StoreError
+from streamsvd.errors import FloatRangeError, StoreError
 from streamsvd.io.inner_file import inner_arrays
 from streamsvd.io.provenance import SourceRecord
 from streamsvd.storage import open_storage
@@ -244,12 +245,15 @@ class Lifecycle:
     def run(
         self, make_plan: Callable[[], Plan], source_offset: int, *,
         ledger: Ledger | None = None, removed: np.ndarray | None = None,
+        name: str = "the update",
     ) -> UpdateRecord:
         """Plan an update, persist it when a commit is due, then switch to it.
 
         The plan runs with the BLAS limited to :attr:`threads` threads. ``ledger`` and
         ``removed`` are the error ledger and the removed indices before the update's own
-        discard (default: the current ones).
+        discard (default: the current ones). ``name`` is the argument the update came
+        from, for the message of a result beyond the float64 range
+        (:class:`~streamsvd.errors.FloatRangeError`, the state left as it was).
         """
         # plan, then persist, then switch the in-memory state: an exception anywhere
         # before the switch leaves both the memory and the store as they were, and the
@@ -260,7 +264,12 @@ class Lifecycle:
             p.check_writable()
         try:
             with blas_threads(self.threads):
-                plan = make_plan()
+                try:
+                    plan = make_plan()
+                except FloatRangeError as exc:  # the engine's, named here
+                    raise exc.naming(name, self._norm()) from exc
+            if not plan.in_range():
+                raise FloatRangeError(name, self._norm())
             self._pending = (
                 (self.ledger if ledger is None else ledger).appended(
                     plan.m, plan.record.discarded),
@@ -287,3 +296,7 @@ class Lifecycle:
         self.version += 1
         self.source_offset = source_offset
         return plan.record
+
+    def _norm(self) -> float:
+        """Return the norm of the expansion, ``||R||_F`` (0 when it is empty)."""
+        return safe_norm(self.state.R)

@@ -100,7 +100,7 @@ class Updates:
             return life.run(
                 exact if skip
                 else lambda: plan_absorb_by_gram(state, B, life.opts, t0=t0) or exact(),
-                offset, ledger=ledger, removed=removed,
+                offset, ledger=ledger, removed=removed, name="`columns`",
             )
         except BaseException:
             life.trajectory_starts = starts
@@ -134,7 +134,8 @@ class Updates:
         Uk, Vk, dV = _increment(s, U_k, V_k, coefficients, n=life.n)
         dV_int = None if dV is None else self._view.internal_coefficients(dV)
         return life.run(
-            lambda: plan_add(s, Uk, Vk, dV_int, life.opts, t0=t0), life.source_offset
+            lambda: plan_add(s, Uk, Vk, dV_int, life.opts, t0=t0), life.source_offset,
+            name="the increment (`U_k`, `V_k`, `coefficients`)",
         )
 
     def merge(self, other: Any, *, spend_target: bool = True) -> UpdateRecord:
@@ -172,7 +173,7 @@ class Updates:
             or plan_merge(s, op.left_vectors(life.backend.in_memory), op.R, op.Y, op.m,
                           prior, opts, t0=t0),
             life.source_offset + op.m,
-            ledger=life.ledger.appended(s.m + op.m, prior.bound),
+            ledger=life.ledger.appended(s.m + op.m, prior.bound), name="`other`",
         )
 
     def finalize(
