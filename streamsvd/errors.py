@@ -36,7 +36,8 @@ class FloatRangeError(InputError, OverflowError):
     Parameters
     ----------
     argument : str
-        The argument the update came from, in the words of the call (```columns```).
+        The argument the update came from, in the words of the call (a quoted name:
+        ``"`columns`"``).
     norm : float, optional
         The norm of the expansion before the update, when known.
     """
