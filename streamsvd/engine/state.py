@@ -210,7 +210,7 @@ class Plan:
 
         An update of data near the top of the float64 range can take a singular value
         or the bound past it (``1.8e308``) while every input entry is finite. (The
-        orthonormal factors are finite when these are: 3-6 microseconds an update.)
+        orthonormal factors are finite when these are: 9 microseconds at rank 70.)
         """
         rows = self.writes.rows
         return (math.isfinite(self.bound.bound) and bool(np.isfinite(self.R).all())
