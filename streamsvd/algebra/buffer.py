@@ -93,6 +93,11 @@ class BasisBuffer:
         """Columns the buffers hold (stored and workspace) before they must grow."""
         return int(self._bufs[0].shape[1])
 
+    @property
+    def pieces(self) -> int:
+        """One: the stored columns are contiguous."""
+        return 1
+
     def _ensure(self, cols: int) -> None:
         if cols <= self.capacity:
             return

@@ -90,6 +90,10 @@ class BasisAlgebra(BasisProducts, Protocol):
     def capacity(self) -> int:
         """Columns the basis can hold (stored and workspace) without growing its storage."""
 
+    @property
+    def pieces(self) -> int:
+        """Separately stored pieces every product reads (panels out of core; 1 in memory)."""
+
     def compact_planned(self, G: np.ndarray, r: int) -> np.ndarray:
         """Write ``[Q, Y[:, :r]] G`` aside; return its Gram ``Q'^T M Q'``."""
 

@@ -64,6 +64,11 @@ logger = logging.getLogger(__name__)
 # block beside the basis records that cost as already wasted).
 _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
+# and when the basis is stored in this many pieces (the panels out of core, one per
+# update that does not compact): every pass reads each in tasks of its own, so without
+# cuts the passes grew with the updates (blocks of 1 at n = 2e5: 43 s for 60 columns,
+# 14.6 s compacting at 8 panels; bench/studies/tight-targets.md)
+_MAX_PIECES = 8
 
 
 # ---------------------------------------------------------------------------- planning
@@ -296,6 +301,7 @@ def _plan(
         wasted_flops >= COMPACT_PER_COLUMN * (w + r) * max(p_new, 1)
         or p_new == 0
         or (w + r + block > capacity and capacity >= 2 * p_new + block)
+        or state.basis.pieces >= _MAX_PIECES
     )
     T = T if Lt_inv is None else Lt_inv @ T
     coords = np.vstack([state.coords @ T[:p], T[p:]])

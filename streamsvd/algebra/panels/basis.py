@@ -110,6 +110,11 @@ class PanelBasis:
         """Columns the basis can hold without growing: panels are added, never grown."""
         return np.iinfo(np.int64).max
 
+    @property
+    def pieces(self) -> int:
+        """Number of panels: each pass reads every one, in tasks per row chunk."""
+        return len(self.panels)
+
     def _write(self, data: Any) -> tuple[str, int]:
         """Write an ``n x c`` numpy or dask array as a new panel; return its name and width."""
         import dask.array as da
