@@ -66,8 +66,8 @@ _WASTE_PER_COLUMN = 4.0
 COMPACT_PER_COLUMN = 2.0
 # and when the basis is stored in this many pieces (the panels out of core, one per
 # update that does not compact): every pass reads each in tasks of its own, so without
-# cuts the passes grew with the updates (blocks of 1 at n = 2e5: 43 s for 60 columns,
-# 14.6 s compacting at 8 panels; bench/studies/tight-targets.md)
+# cuts the passes grew with the updates (blocks of 1 at n = 2e5: 35.4 s for 60 columns,
+# 8.4 s compacting at 8 panels; bench/studies/outofcore-benchmark.md)
 _MAX_PIECES = 8
 
 

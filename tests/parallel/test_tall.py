@@ -357,9 +357,9 @@ def test_tall_converged_is_the_svd_for_any_chunking_and_scheduler(rng, client):
 def test_narrow_blocks_without_cuts_keep_few_panels(rng):
     """Blocks of one column and nothing cut: each update that does not compact adds a
     panel, and every pass reads each panel in tasks of its own; the basis compacts once
-    it holds 8, so a pass reads at most 8 (it read 60 at the 60th update: 43 s against
-    14.6 s for n = 2e5, bench/studies/tight-targets.md). The result is the in-memory
-    stream's to rounding."""
+    it holds 8, so a pass reads at most 8 (it read 60 at the 60th update: 35.4 s against
+    8.4 s for n = 2e5, bench/studies/outofcore-benchmark.md). The result is the
+    in-memory stream's to rounding."""
     A = low_rank(rng, n=200, m=30, rank=30, noise=0.0)
     ref = stream(A, 1)
     pieces = []
