@@ -58,16 +58,12 @@ def r_factor(X: np.ndarray) -> np.ndarray:
 
     Entries beyond ``2^±500`` are scaled by a power of two first (exact), so that entries
     near the ends of the range give ``R`` to rounding wherever ``R`` is representable
-    (elsewhere it holds infinities, and :meth:`~streamsvd.engine.state.Plan.in_range`
-    refuses the update).
+    (elsewhere it holds infinities, and the update is refused:
+    :class:`~streamsvd.errors.FloatRangeError`).
     """
     if X.size == 0:
         return np.zeros((0, X.shape[1]))
-    e = pow2_exponent(X)
-    if abs(e) <= _QR_SAFE:
-        return np.asarray(np.linalg.qr(X, mode="r"))
-    with np.errstate(over="ignore"):  # beyond the range: the plan is refused whole
-        return np.ldexp(np.linalg.qr(np.ldexp(X, -e), mode="r"), e)
+    return _householder(X, want_q=False)[1]
 
 
 def core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
@@ -97,13 +93,23 @@ def _check_range(norm_scaled: float, e: int) -> None:
 
 def qr_factors(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(Q, R)`` of a Householder QR of ``X``, scaled as :func:`r_factor` is."""
+    Q, R = _householder(X, want_q=True)
+    assert Q is not None
+    return Q, R
+
+
+def _householder(X: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ``(Q or None, R)`` of ``X``, through a power-of-two scaling beyond 2^±500."""
     e = pow2_exponent(X)
-    if abs(e) <= _QR_SAFE:
-        Q, R = np.linalg.qr(X)
-        return Q, R
-    Q, R = np.linalg.qr(np.ldexp(X, -e))
-    with np.errstate(over="ignore"):  # beyond the range: the plan is refused whole
-        return Q, np.ldexp(R, e)
+    scaled = X if abs(e) <= _QR_SAFE else np.ldexp(X, -e)
+    if want_q:
+        Q, R = np.linalg.qr(scaled)
+    else:
+        Q, R = None, np.asarray(np.linalg.qr(scaled, mode="r"))
+    if scaled is not X:
+        with np.errstate(over="ignore"):  # beyond the range: the update is refused
+            R = np.ldexp(R, e)
+    return Q, R
 
 
 # what the squares of a term's entries below 2^-511 may lose (_norms_before)
@@ -208,7 +214,7 @@ def core_step(
     p = K.shape[1]
     R = r_factor(K) if K.shape[0] > p else K
     if not np.isfinite(R).all():
-        _check_range(math.inf, 0)
+        raise FloatRangeError("the update")  # the facade names its argument
     e = pow2_exponent(R)
     Rt = np.ascontiguousarray(np.ldexp(R, -e).T)
     Qt = np.eye(p)
