@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from streamsvd.dynamics import DMDResult
-from streamsvd.errors import InputError
+from streamsvd.errors import FloatRangeError, InputError
 from streamsvd.sklearn._model import NotFittedError
 from streamsvd.stream.compressor import StreamCompressor
 
@@ -106,7 +106,10 @@ class StreamingDMD:
                 f"`X` must have {sc.n} features (columns), as the samples fitted so far; "
                 f"got {X.shape[1]}."
             )
-        sc.absorb(X.T, new_trajectory=new_trajectory)
+        try:
+            sc.absorb(X.T, new_trajectory=new_trajectory)
+        except FloatRangeError as exc:
+            raise exc.naming("`X`") from exc
         if sc.n_seen >= 2:
             res = sc.dmd(rank=self.rank, rtol=self.rtol, model_error=self.model_error,
                          dt=self.dt)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from streamsvd.errors import InputError
+from streamsvd.errors import FloatRangeError, InputError
 from streamsvd.sklearn import StreamingDMD
 from streamsvd.sklearn._model import NotFittedError
 from streamsvd.testing.systems import match_eigenvalues, normal_system
@@ -53,3 +53,5 @@ def test_messages(rng):
     with pytest.raises(InputError, match="unknown parameter `bogus`"):
         est.set_params(bogus=1)
     assert est.set_params(rank=2).get_params()["rank"] == 2
+    with pytest.raises(FloatRangeError, match="^`X` would take the expansion beyond"):
+        StreamingDMD().partial_fit(np.full((4, 25), 1e308 / 5.0))  # rows of norm 1e308
