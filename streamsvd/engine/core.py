@@ -66,6 +66,27 @@ def r_factor(X: np.ndarray) -> np.ndarray:
     return _householder(X, want_q=False)[1]
 
 
+def qr_factors(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(Q, R)`` of a Householder QR of ``X``, scaled as :func:`r_factor` is."""
+    Q, R = _householder(X, want_q=True)
+    assert Q is not None
+    return Q, R
+
+
+def _householder(X: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ``(Q or None, R)`` of ``X``, through a power-of-two scaling beyond 2^±500."""
+    e = pow2_exponent(X)
+    scaled = X if abs(e) <= _QR_SAFE else np.ldexp(X, -e)
+    if want_q:
+        Q, R = np.linalg.qr(scaled)
+    else:
+        Q, R = None, np.asarray(np.linalg.qr(scaled, mode="r"))
+    if scaled is not X:
+        with np.errstate(over="ignore"):  # beyond the range: the update is refused
+            R = np.ldexp(R, e)
+    return Q, R
+
+
 def core_qr(K: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
     """Return ``(Q, R)`` with ``K = Q R``, ``R`` no taller than wide (``Q = None``: ``I``).
 
@@ -89,27 +110,6 @@ def _check_range(norm_scaled: float, e: int) -> None:
                               and math.frexp(norm_scaled)[1] + e <= 1024):
         return
     raise FloatRangeError("the update")  # the facade names its argument
-
-
-def qr_factors(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(Q, R)`` of a Householder QR of ``X``, scaled as :func:`r_factor` is."""
-    Q, R = _householder(X, want_q=True)
-    assert Q is not None
-    return Q, R
-
-
-def _householder(X: np.ndarray, *, want_q: bool) -> tuple[np.ndarray | None, np.ndarray]:
-    """Return ``(Q or None, R)`` of ``X``, through a power-of-two scaling beyond 2^±500."""
-    e = pow2_exponent(X)
-    scaled = X if abs(e) <= _QR_SAFE else np.ldexp(X, -e)
-    if want_q:
-        Q, R = np.linalg.qr(scaled)
-    else:
-        Q, R = None, np.asarray(np.linalg.qr(scaled, mode="r"))
-    if scaled is not X:
-        with np.errstate(over="ignore"):  # beyond the range: the update is refused
-            R = np.ldexp(R, e)
-    return Q, R
 
 
 # what the squares of a term's entries below 2^-511 may lose (_norms_before)

@@ -330,4 +330,4 @@ def _aside_budget(nu: np.ndarray, exps: np.ndarray, aside: tuple[float, float]) 
     try:
         return math.ldexp(aside[0], -2 * top) + aside[1] * energy
     except OverflowError:  # past the range in the block's units (data near 1e-180 and
-        return 0.0  # below): nothing is set aside, as for a budget of infinity
+        return 0.0  # below, a target far above them): nothing is set aside, the safe side

@@ -95,7 +95,8 @@ def test_the_parallel_modes_name_their_source(tmp_path, kind):
 def test_an_absolute_target_far_above_data_near_1e_minus_181():
     """Data at 2^-600 under a ``mean_l2`` target of 1e-4 (every term cut): the budget a
     block may set aside, 2^1200 times the target's energy in the block's scaled units,
-    raised ``OverflowError: math range error``; it is now the whole block."""
+    raised ``OverflowError: math range error``; nothing is set aside there now, and the
+    target's cut removes every term."""
     n, m = 200, 150
     x = np.linspace(0, 1, n)[:, np.newaxis]
     t = np.linspace(0, 1, m)[np.newaxis, :]
