@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+from streamsvd._util.scaling import pow2_exponent
 from streamsvd._util.validation import check_nonnegative, check_positive_int
 from streamsvd.dynamics.pairs import PairFactor
 from streamsvd.dynamics.result import DMDResult
@@ -109,13 +110,18 @@ def dmd_from_pairs(
             f"singular value {S[0] if S.size else 0.0:.3g}); nothing to fit."
         )
     P, S, W = P[:, :r], S[:r], Wt[:r].T
-    B = pairs.Ty.T @ (W / S)  # B w = Zy c, c = Q W S^-1 w
+    # S scaled by a power of two to [1/2, 1) at its top (exact): for data near 1e-200,
+    # ||S^-1 w|| ~ 1e200 is a float64 but its square, which a norm forms, is not
+    top = pow2_exponent(S)
+    S_unit = np.ldexp(S, -top)
+    B = np.ldexp(pairs.Ty.T @ (W / S_unit), -top)  # B w = Zy c, c = Q W S^-1 w
     A_tilde = P.T @ B
     mu, Wv = np.linalg.eig(A_tilde)
     Wv = Wv / np.linalg.norm(Wv, axis=0)
     order = np.lexsort((-mu.imag, -np.abs(mu)))
     mu, Wv = mu[order], Wv[:, order]
-    c_norm = np.linalg.norm(Wv / S[:, None], axis=0)
+    with np.errstate(over="ignore"):  # beyond the range: nothing certified (eta = inf)
+        c_norm = np.ldexp(np.linalg.norm(Wv / S_unit[:, None], axis=0), -top)
     rho = np.linalg.norm(B @ Wv - (P @ Wv) * mu, axis=0)
     # rounding of the O(k^3) solve (not rigorous: docs, theory, DMD)
     rho = rho + 8 * (k + r) * _EPS * (np.linalg.norm(B @ Wv, axis=0) + np.abs(mu))

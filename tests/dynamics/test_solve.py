@@ -36,6 +36,24 @@ def test_exact_data_gives_eigenvalues_to_rounding_with_small_eta(rng):
     assert np.max(res.residual_bounds) < 1e-10  # informative on clean data
 
 
+@pytest.mark.parametrize("exponent", [-996, -664, 664, 996])
+def test_the_certificate_does_not_depend_on_the_scale(rng, exponent):
+    """Data scaled by 2^exponent (1e-300 .. 1e300, exact): the same eigenvalues and
+    bounds. ``||S^-1 w||`` was a norm of entries near 1e200 (data at 1e-200), whose
+    squares overflow: ``eta`` was infinite; at 1e200 they underflowed and ``eta`` came
+    out 0.6 times its value."""
+    sysm = _system(rng)
+    X = sysm.trajectory(rng.standard_normal(7), 120)
+    ref = _stream(X, 16).dmd()
+    res = _stream(np.ldexp(X, exponent), 16).dmd()
+    np.testing.assert_allclose(res.eigenvalues, ref.eigenvalues, rtol=0, atol=1e3 * EPS)
+    # the bounds are rounding-sized here (rho): the streams' roundings differ by 1%
+    np.testing.assert_allclose(res.residual_bounds, ref.residual_bounds, rtol=0.05)
+    err = match_eigenvalues(res.eigenvalues, sysm.eigenvalues)
+    assert np.all(err <= res.residual_bounds)
+    assert np.max(res.residual_bounds) < 1e-10
+
+
 def test_forecast_continues_the_trajectory(rng):
     sysm = _system(rng)
     X = sysm.trajectory(rng.standard_normal(7), 80)
