@@ -125,9 +125,10 @@ def dmd_from_pairs(
     rho = np.linalg.norm(B @ Wv - (P @ Wv) * mu, axis=0)
     # rounding of the O(k^3) solve (not rigorous: docs, theory, DMD)
     rho = rho + 8 * (k + r) * _EPS * (np.linalg.norm(B @ Wv, axis=0) + np.abs(mu))
-    denom = math.sqrt(max(1.0 - omega, 0.0)) - e * c_norm
-    num = math.sqrt(1.0 + omega) * rho + ((1.0 + np.abs(mu)) * e + delta) * c_norm
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # an infinite ||c|| (0 * inf when e = 0: NaN) leaves the denominator not positive
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        denom = math.sqrt(max(1.0 - omega, 0.0)) - e * c_norm
+        num = math.sqrt(1.0 + omega) * rho + ((1.0 + np.abs(mu)) * e + delta) * c_norm
         eta = np.where(denom > 0, num / np.where(denom > 0, denom, 1.0), np.inf)
     modes = P @ Wv  # coordinates on U, unit norm
     amplitudes = np.linalg.lstsq(modes, pairs.last.astype(complex), rcond=None)[0]

@@ -54,6 +54,27 @@ def test_the_certificate_does_not_depend_on_the_scale(rng, exponent):
     assert np.max(res.residual_bounds) < 1e-10
 
 
+def test_a_direction_beyond_the_range_is_not_certified(rng):
+    """Two noisy trajectories at 1e-300 under weights and forgetting, one snapshot per
+    update: the noise (1e-310) is subnormal and ``||S^-1 w||`` of its directions passes
+    1.8e308. With a bound of 0 that was ``0 * inf`` (a RuntimeWarning, an exception under
+    ``-W error``; 40 of 40 seeds). Such an eigenvalue gets ``eta = inf``: nothing
+    certified; the others keep their certificate."""
+    n = 60
+    sysm = normal_system(n, rng.uniform(0.85, 1.0, 2), rng.uniform(0.1, 2.5, 2), rng,
+                         real=np.array([0.5]))
+    sc = ss.StreamCompressor(n, dynamics=True, forget=0.97,
+                             inner=10 ** rng.uniform(-2, 2, n))
+    for t in range(2):
+        X = sysm.trajectory(rng.standard_normal(5), 40, noise=1e-10, rng=rng) * 1e-300
+        for j in range(40):
+            sc.absorb(X[:, j:j + 1], new_trajectory=bool(t and not j))
+    res = sc.dmd()
+    eta = res.residual_bounds
+    assert not np.isnan(eta).any() and np.isinf(eta).any()
+    assert np.all(np.isfinite(res.eigenvalues))
+
+
 def test_forecast_continues_the_trajectory(rng):
     sysm = _system(rng)
     X = sysm.trajectory(rng.standard_normal(7), 80)
