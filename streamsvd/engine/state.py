@@ -21,7 +21,6 @@ switches the state to it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import cast
 
@@ -204,17 +203,6 @@ class Plan:
     bound: Bound
     record: UpdateRecord
     writes: Writes
-
-    def in_range(self) -> bool:
-        """Whether its core, error bound and new rows of the right factor are finite.
-
-        An update of data near the top of the float64 range can take a singular value
-        or the bound past it (``1.8e308``) while every input entry is finite. (The
-        orthonormal factors are finite when these are: 9 microseconds at rank 70.)
-        """
-        rows = self.writes.rows
-        return (math.isfinite(self.bound.bound) and bool(np.isfinite(self.R).all())
-                and (rows is None or bool(np.isfinite(rows.rows).all())))
 
 
 def stage_plan(state: State, plan: Plan) -> None:

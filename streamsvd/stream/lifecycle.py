@@ -268,8 +268,6 @@ class Lifecycle:
                     plan = make_plan()
                 except FloatRangeError as exc:  # the engine's, named here
                     raise exc.naming(name, self._norm()) from exc
-            if not plan.in_range():
-                raise FloatRangeError(name, self._norm())
             self._pending = (
                 (self.ledger if ledger is None else ledger).appended(
                     plan.m, plan.record.discarded),
